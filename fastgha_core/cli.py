@@ -1,0 +1,76 @@
+"""The ``fastgha`` console script.
+
+Each subcommand is one module in ``fastgha_core/commands/`` that defines::
+
+    NAME = "reconstruct"            # the subcommand
+    HELP = "one line for --help"
+    def add_arguments(parser): ...  # argparse options
+    def run(args) -> int: ...       # heavy imports go inside run()
+
+Modules are discovered, so adding a command touches no other file. A ``CLIError`` (or a
+``ValueError``/``FileNotFoundError`` from the library) prints one clear line and exits 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import pkgutil
+import sys
+
+from . import __version__, commands
+
+__all__ = ["main", "CLIError", "build_parser"]
+
+
+class CLIError(Exception):
+    """A user-facing error: printed as one line, exit status 2."""
+
+
+def _command_modules():
+    mods = []
+    for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
+        if info.name.startswith("_"):
+            continue
+        mod = importlib.import_module(f"{commands.__name__}.{info.name}")
+        if hasattr(mod, "NAME") and hasattr(mod, "run"):
+            mods.append(mod)
+    return mods
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="fastgha",
+        description="FastGHA: few-shot 3D Gaussian head avatars, reconstructed once and animated in real time.",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for mod in _command_modules():
+        p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.HELP)
+        if hasattr(mod, "add_arguments"):
+            mod.add_arguments(p)
+        p.set_defaults(_run=mod.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    if not getattr(args, "_run", None):
+        parser.print_help()
+        return 0
+    try:
+        rc = args._run(args)
+    except (CLIError, ValueError, FileNotFoundError) as e:
+        print(f"fastgha {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"fastgha {args.command}: interrupted", file=sys.stderr)
+        return 130
+    return int(rc or 0)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""One module per ``fastgha`` subcommand (see ``fastgha_core.cli``)."""
