@@ -245,12 +245,12 @@ def look_at_w2c(
     up = torch.as_tensor(up, dtype=eye.dtype).expand_as(eye)
     z = target - eye
     z = z / z.norm(dim=-1, keepdim=True)  # forward
-    x = torch.linalg.cross(z, -up)  # right = forward x down
+    x = torch.linalg.cross(-up, z, dim=-1)  # right = down x forward (OpenCV: x = y x z)
     xn = x.norm(dim=-1, keepdim=True)
     if (xn < 1e-8).any():
         raise ValueError("look_at: the viewing direction is parallel to `up`; choose another up vector")
     x = x / xn
-    y = torch.linalg.cross(z, x)  # down
+    y = torch.linalg.cross(z, x, dim=-1)  # down
     R = torch.stack([x, y, z], dim=-2)  # rows: camera axes in world  [..., 3, 3]
     t = -(R @ eye.unsqueeze(-1)).squeeze(-1)
     w2c = torch.zeros(*eye.shape[:-1], 4, 4, dtype=eye.dtype)
