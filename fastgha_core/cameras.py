@@ -8,11 +8,16 @@ Conventions (DESIGN.md):
 
 Pixel (u, v) = (0, 0) is the *top-left corner* of the top-left pixel, so the centre of
 pixel (i, j) is at (j + 0.5, i + 0.5).
+
+Dataset converters (bottom of the file) turn Ava-256 ``KRT`` / ``camera_calibration.json``,
+NeRSemble ``camera_params.json``, VHAP/NeRF ``transforms.json`` and FLAME-fit head poses into
+these cameras; ``docs/conventions.md`` writes the conventions down.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,7 +35,18 @@ __all__ = [
     "cameras_to_json",
     "load_request_folder",
     "orbit_cameras",
+    "parse_ava256_krt",
+    "read_ava256_krt",
+    "read_ava256_calibration_json",
+    "read_nersemble_camera_params",
+    "read_transforms_json",
+    "opengl_c2w_to_opencv_w2c",
+    "head_pose_matrix",
+    "fold_head_pose",
+    "cameras_from_flame_pose",
 ]
+
+logger = logging.getLogger(__name__)
 
 _ORTHO_TOL = 1e-3
 
@@ -41,7 +57,7 @@ def _check_finite(name: str, t: Tensor) -> None:
         raise ValueError(f"{name} must be finite, got a non-finite value at index {bad}")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Cameras:
     """A batch of pinhole cameras sharing one image size.
 
@@ -229,8 +245,9 @@ class Cameras:
         for c in cams:
             if (c.width, c.height) != (w, h):
                 raise ValueError(f"all cameras must share one image size, got {w}x{h} and {c.width}x{c.height}")
+        # Each item may itself be a batch (any shape); the result has batch shape [sum of sizes].
         return Cameras(
-            torch.stack([c.K.reshape(3, 3) for c in cams]), torch.stack([c.w2c.reshape(4, 4) for c in cams]), w, h
+            torch.cat([c.K.reshape(-1, 3, 3) for c in cams]), torch.cat([c.w2c.reshape(-1, 4, 4) for c in cams]), w, h
         )
 
 
@@ -240,7 +257,8 @@ def look_at_w2c(
     up: Tensor | Sequence[float] = (0.0, 1.0, 0.0),
 ) -> Tensor:
     """OpenCV world-to-camera matrices ``[..., 4, 4]`` for cameras at ``eye`` looking at ``target``."""
-    eye = torch.as_tensor(eye, dtype=torch.float32)
+    dtype = eye.dtype if isinstance(eye, Tensor) and eye.is_floating_point() else torch.float32
+    eye = torch.as_tensor(eye, dtype=dtype)
     target = torch.as_tensor(target, dtype=eye.dtype).expand_as(eye)
     up = torch.as_tensor(up, dtype=eye.dtype).expand_as(eye)
     z = target - eye
@@ -296,12 +314,19 @@ def farthest_viewpoint_sampling(centers: Tensor, k: int, start: int | None = Non
     Starts from ``start`` (a random camera when None) and repeatedly adds the camera whose
     direction from the origin (the head) is farthest from all chosen ones.
     """
+    centers = torch.as_tensor(centers)
+    if centers.ndim != 2 or centers.shape[1] != 3:
+        raise ValueError(f"centers must have shape [N, 3], got {list(centers.shape)}")
     n = centers.shape[0]
     if not 1 <= k <= n:
         raise ValueError(f"k must be in [1, {n}] for {n} cameras, got {k}")
+    centers = centers.double()
     dirs = centers / centers.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     if start is None:
         start = int(torch.randint(n, (1,), generator=generator))
+    elif not 0 <= int(start) < n:
+        raise ValueError(f"start must be a camera index in [0, {n - 1}], got {start}")
+    start = int(start)
     chosen = [start]
     dist = (dirs - dirs[start]).norm(dim=-1)
     for _ in range(k - 1):
@@ -390,3 +415,362 @@ def load_request_folder(folder: str | Path) -> tuple[list[Path], list[Cameras]]:
     if len(images) != len(cams):
         raise ValueError(f"request folder {folder}: {len(images)} images but {len(cams)} cameras in cameras.json")
     return images, cams
+
+
+# ---------------------------------------------------------------- dataset converters
+# Every converter returns OpenCV cameras in metres (module doc). Lens distortion is not modelled:
+# images are assumed undistorted; a warning is logged when a file carries non-zero coefficients.
+
+# Ava-256 full-resolution images are 2668 wide x 4096 tall (the released images are downsampled;
+# call ``.resize(w, h)`` on the result to match them).
+AVA256_WIDTH, AVA256_HEIGHT = 2668, 4096
+
+# OpenCV calibrations put pixel centres at integer coordinates, ours at +0.5 (module doc): the
+# dataset readers whose K comes from an OpenCV-style calibration add this to (cx, cy).
+OPENCV_TO_CORNER = 0.5
+
+# OpenGL camera axes (x right, y up, z backward) -> OpenCV (x right, y down, z forward).
+_GL_TO_CV = (1.0, -1.0, -1.0)
+
+
+def _read_json_source(src: Any, what: str) -> Any:
+    """A parsed JSON object, or the file at a path (str / Path)."""
+    if isinstance(src, (dict, list)):
+        return src
+    if isinstance(src, (str, Path)):
+        path = Path(src)
+        if not path.is_file():
+            raise FileNotFoundError(f"{what}: no such file {path}")
+        try:
+            return json.loads(path.read_text())
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{what}: {path} is not valid JSON ({e})") from None
+    raise ValueError(f"{what}: expected a path or a parsed JSON object, got {type(src).__name__}")
+
+
+def _matrix(value: Any, what: str, shapes: tuple[tuple[int, int], ...]) -> Tensor:
+    try:
+        m = torch.tensor(value, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError) as e:
+        raise ValueError(f"{what} must be a numeric matrix ({e})") from None
+    if tuple(m.shape) not in shapes:
+        raise ValueError(f"{what} must have shape {' or '.join(str(list(s)) for s in shapes)}, got {list(m.shape)}")
+    return m
+
+
+def _intrinsics_either_layout(k: Tensor, what: str) -> Tensor:
+    """``K`` stored row-major (last row ``[0, 0, 1]``) or transposed (last column ``[0, 0, 1]``)."""
+    last = torch.tensor([0.0, 0.0, 1.0], dtype=k.dtype)
+    if torch.allclose(k[2], last, atol=1e-9):
+        return k
+    if torch.allclose(k[:, 2], last, atol=1e-9):
+        return k.T.contiguous()
+    raise ValueError(f"{what}: expected a pinhole K with [0, 0, 1] as last row (or, transposed, last column), got {k.tolist()}")
+
+
+def _shift_principal_point(K: Tensor, shift: float) -> Tensor:
+    K = K.clone()
+    K[0, 2] += shift
+    K[1, 2] += shift
+    return K
+
+
+def _homogeneous(m: Tensor) -> Tensor:  # [3, 4] | [4, 4] -> [4, 4]
+    if m.shape[0] == 4:
+        return m
+    return torch.cat([m, torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=m.dtype)], dim=0)
+
+
+def _single(K: Tensor, w2c: Tensor, width: int, height: int, what: str) -> Cameras:
+    try:
+        return Cameras(K.float()[None], w2c.float()[None], width, height)
+    except ValueError as e:
+        raise ValueError(f"{what}: {e}") from None
+
+
+def _warn_distortion(dist: Any, what: str) -> None:
+    try:
+        d = torch.as_tensor(dist, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        return
+    if d.numel() and d.abs().max() > 0:
+        logger.warning("%s: lens distortion %s is ignored; undistort the images first", what, d.tolist())
+
+
+def parse_ava256_krt(
+    text: str,
+    *,
+    width: int = AVA256_WIDTH,
+    height: int = AVA256_HEIGHT,
+    translation_scale: float = 1e-3,
+    principal_point_shift: float = OPENCV_TO_CORNER,
+) -> dict[str, Cameras]:
+    """Cameras from the text of an Ava-256 / Multiface ``KRT`` file.
+
+    Per camera, 9 lines: the camera name; ``K`` as 3 lines of 3 numbers (row-major or
+    transposed, detected from where ``[0, 0, 1]`` sits); the distortion coefficients;
+    the world-to-camera extrinsic ``[R | t]`` as 3 lines of 4 numbers with ``t`` in
+    millimetres; one blank line. ``translation_scale`` converts the translation to metres;
+    ``principal_point_shift`` (+0.5) moves the OpenCV principal point to our pixel-corner origin.
+
+    Returns ``{name: Cameras}`` with batch shape ``[1]`` each, in file order; ``K`` is in pixels of
+    the ``width`` x ``height`` image (Ava-256 full resolution by default).
+    """
+    lines = [ln.strip() for ln in text.splitlines()]
+    out: dict[str, Cameras] = {}
+    i = 0
+    while i < len(lines):
+        if not lines[i]:
+            i += 1
+            continue
+        name = lines[i]
+        block = lines[i + 1 : i + 8]
+        what = f"KRT camera {name!r}"
+        if len(block) < 7:
+            raise ValueError(f"{what}: expected 7 lines after the name (K 3, distortion 1, extrinsic 3), got {len(block)}")
+        try:
+            rows = [[float(x) for x in ln.split()] for ln in block]
+        except ValueError as e:
+            raise ValueError(f"{what}: non-numeric value ({e})") from None
+        K = _intrinsics_either_layout(_matrix(rows[0:3], f"{what} K", ((3, 3),)), what)
+        K = _shift_principal_point(K, principal_point_shift)
+        _warn_distortion(rows[3], what)
+        ext = _matrix(rows[4:7], f"{what} extrinsic", ((3, 4),))
+        ext[:, 3] *= translation_scale
+        out[name] = _single(K, _homogeneous(ext), width, height, what)
+        i += 8
+    if not out:
+        raise ValueError("KRT file holds no cameras")
+    return out
+
+
+def read_ava256_krt(path: str | Path, **kwargs: Any) -> dict[str, Cameras]:
+    """:func:`parse_ava256_krt` on the file at ``path``."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"KRT: no such file {path}")
+    return parse_ava256_krt(path.read_text(), **kwargs)
+
+
+def read_ava256_calibration_json(
+    src: Any,
+    *,
+    width: int | None = None,
+    height: int | None = None,
+    translation_scale: float = 1e-3,
+    principal_point_shift: float = OPENCV_TO_CORNER,
+) -> dict[str, Cameras]:
+    """Cameras from an Ava-256 ``camera_calibration.json`` (Meta's KRT JSON format).
+
+    ``{"KRT": [{"cameraId", "K", "T", "width"?, "height"?, "distortion"?, ...}, ...]}`` where
+    ``K`` is stored transposed (column-major; a row-major K is detected and accepted) and ``T`` is
+    the world-to-camera extrinsic stored transposed, ``[4][4]`` or ``[4][3]`` (i.e. a 3x4
+    ``[R | t]``), translation in millimetres. ``width``/``height`` fill in when a camera has none.
+    ``principal_point_shift`` (+0.5) moves the OpenCV principal point to our pixel-corner origin.
+
+    Args:
+        src: a path or the parsed JSON object.
+    Returns:
+        ``{cameraId: Cameras}`` with batch shape ``[1]`` each, in file order.
+    """
+    data = _read_json_source(src, "camera_calibration.json")
+    entries = data.get("KRT") if isinstance(data, dict) else data
+    if not isinstance(entries, list) or not entries:
+        raise ValueError("camera_calibration.json: expected {'KRT': [camera, ...]} with at least one camera")
+    out: dict[str, Cameras] = {}
+    for i, cam in enumerate(entries):
+        if not isinstance(cam, dict):
+            raise ValueError(f"camera_calibration.json: camera {i} must be an object, got {type(cam).__name__}")
+        name = str(cam.get("cameraId", cam.get("name", i)))
+        what = f"camera_calibration.json camera {name!r}"
+        for key in ("K", "T"):
+            if key not in cam:
+                raise ValueError(f"{what}: missing field {key!r}; expected K, T (and width, height)")
+        K = _intrinsics_either_layout(_matrix(cam["K"], f"{what} K", ((3, 3),)), what)
+        K = _shift_principal_point(K, principal_point_shift)
+        ext = _matrix(cam["T"], f"{what} T (stored transposed)", ((4, 4), (4, 3))).T.contiguous()
+        ext = _homogeneous(ext)
+        ext[:3, 3] *= translation_scale
+        w, h = cam.get("width", width), cam.get("height", height)
+        if w is None or h is None:
+            raise ValueError(f"{what}: no width/height in the file; pass width= and height=")
+        _warn_distortion(cam.get("distortion", []), what)
+        out[name] = _single(K, ext, int(w), int(h), what)
+    return out
+
+
+def read_nersemble_camera_params(
+    src: Any, *, width: int, height: int, principal_point_shift: float = OPENCV_TO_CORNER
+) -> dict[str, Cameras]:
+    """Cameras from NeRSemble ``calibration/camera_params.json``.
+
+    ``{"world_2_cam": {serial: 4x4}, "intrinsics": 3x3}``: OpenCV world-to-camera matrices in
+    metres per camera serial and one shared ``K`` (a ``{serial: 3x3}`` map is accepted too) in
+    pixels of the ``width`` x ``height`` images it was calibrated for (not stored in the file;
+    full-resolution NeRSemble images are 2200 x 3208). ``principal_point_shift`` (+0.5) moves the
+    OpenCV principal point to our pixel-corner origin.
+
+    Returns ``{serial: Cameras}`` with batch shape ``[1]`` each.
+    """
+    data = _read_json_source(src, "camera_params.json")
+    if not isinstance(data, dict) or "world_2_cam" not in data or "intrinsics" not in data:
+        got = sorted(data) if isinstance(data, dict) else type(data).__name__
+        raise ValueError(f"camera_params.json: expected keys 'world_2_cam' and 'intrinsics', got {got}")
+    w2cs, intr = data["world_2_cam"], data["intrinsics"]
+    if not isinstance(w2cs, dict) or not w2cs:
+        raise ValueError("camera_params.json: 'world_2_cam' must map camera serials to 4x4 matrices")
+    out: dict[str, Cameras] = {}
+    for serial, m in w2cs.items():
+        what = f"camera_params.json camera {serial!r}"
+        k_src = intr[serial] if isinstance(intr, dict) else intr
+        K = _shift_principal_point(_matrix(k_src, f"{what} intrinsics", ((3, 3),)), principal_point_shift)
+        w2c = _homogeneous(_matrix(m, f"{what} world_2_cam", ((4, 4), (3, 4))))
+        out[str(serial)] = _single(K, w2c, width, height, what)
+    return out
+
+
+def opengl_c2w_to_opencv_w2c(c2w_gl: Tensor) -> Tensor:
+    """``c2w [..., 4, 4]`` with OpenGL camera axes (x right, y up, z back) -> OpenCV ``w2c [..., 4, 4]``."""
+    flip = torch.tensor([*_GL_TO_CV, 1.0], dtype=c2w_gl.dtype, device=c2w_gl.device)
+    c2w = c2w_gl * flip  # scales the columns: camera axes y, z flipped  [..., 4, 4]
+    R = c2w[..., :3, :3].transpose(-1, -2)
+    w2c = torch.zeros_like(c2w)
+    w2c[..., :3, :3] = R
+    w2c[..., :3, 3] = -(R @ c2w[..., :3, 3:4]).squeeze(-1)
+    w2c[..., 3, 3] = 1.0
+    return w2c
+
+
+def read_transforms_json(src: Any) -> list[Cameras]:
+    """Cameras from a VHAP / NeRF-style ``transforms.json``, one per entry of ``frames``.
+
+    ``transform_matrix`` is camera-to-world with OpenGL camera axes. Intrinsics ``fl_x fl_y cx cy
+    w h`` are read from the frame, falling back to the top level; ``camera_angle_x`` (horizontal
+    FoV, radians, principal point at the image centre) is accepted when ``fl_x`` is absent and
+    ``fl_y`` defaults to ``fl_x``. ``cx cy`` are taken as they are: nerfstudio / instant-ngp / VHAP
+    already put pixel centres at +0.5, as we do.
+
+    Returns a list of ``Cameras`` (batch shape ``[1]``) in frame order.
+    """
+    data = _read_json_source(src, "transforms.json")
+    frames = data.get("frames") if isinstance(data, dict) else None
+    if not isinstance(frames, list) or not frames:
+        raise ValueError("transforms.json: expected an object with a non-empty 'frames' array")
+    out = []
+    for i, fr in enumerate(frames):
+        what = f"transforms.json frame {i}"
+        if not isinstance(fr, dict) or "transform_matrix" not in fr:
+            raise ValueError(f"{what}: expected an object with 'transform_matrix'")
+
+        def get(key: str, default: Any = None) -> Any:
+            return fr.get(key, data.get(key, default))
+
+        w, h = get("w"), get("h")
+        if w is None or h is None:
+            raise ValueError(f"{what}: no image size; expected 'w' and 'h' in the frame or at the top level")
+        fx = get("fl_x")
+        if fx is None:
+            angle = get("camera_angle_x")
+            if angle is None:
+                raise ValueError(f"{what}: no focal length; expected 'fl_x' or 'camera_angle_x'")
+            fx = 0.5 * float(w) / math.tan(0.5 * float(angle))
+        fy = get("fl_y", fx)
+        cx, cy = get("cx", 0.5 * float(w)), get("cy", 0.5 * float(h))
+        try:
+            K = torch.tensor([[float(fx), 0.0, float(cx)], [0.0, float(fy), float(cy)], [0.0, 0.0, 1.0]], dtype=torch.float64)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{what}: intrinsics must be numbers ({e})") from None
+        c2w = _homogeneous(_matrix(fr["transform_matrix"], f"{what} transform_matrix", ((4, 4), (3, 4))))
+        out.append(_single(K, opengl_c2w_to_opencv_w2c(c2w), int(round(float(w))), int(round(float(h))), what))
+    return out
+
+
+def head_pose_matrix(rotation: Tensor, translation: Tensor, pivot: Tensor | None = None) -> Tensor:
+    """Rigid head-to-parent transforms ``[..., 4, 4]`` from an axis-angle pose.
+
+    ``x_parent = R(rotation) (x_head - pivot) + pivot + translation``. FLAME rotates its global
+    pose about the root joint, so pass the shape's root joint as ``pivot`` for an exact fold;
+    ``pivot=None`` rotates about the head origin.
+
+    Args:
+        rotation: ``[..., 3]`` axis-angle (radians).
+        translation: ``[..., 3]`` in metres.
+        pivot: ``[..., 3]`` or None.
+    """
+    from .rotations import axis_angle_to_matrix
+
+    rotation = torch.as_tensor(rotation, dtype=torch.float64)
+    translation = torch.as_tensor(translation, dtype=torch.float64)
+    if rotation.shape[-1:] != (3,) or translation.shape[-1:] != (3,):
+        raise ValueError(
+            f"head pose rotation and translation must have shape [..., 3], got {list(rotation.shape)} and {list(translation.shape)}"
+        )
+    _check_finite("head pose rotation", rotation)
+    _check_finite("head pose translation", translation)
+    R = axis_angle_to_matrix(rotation)  # [..., 3, 3]
+    t = translation
+    if pivot is not None:
+        p = torch.as_tensor(pivot, dtype=torch.float64)
+        t = t + p - (R @ p.unsqueeze(-1)).squeeze(-1)
+    batch = torch.broadcast_shapes(R.shape[:-2], t.shape[:-1])
+    T = torch.zeros(*batch, 4, 4, dtype=torch.float64)
+    T[..., :3, :3] = R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def fold_head_pose(cameras: Cameras, head_to_world: Tensor) -> Cameras:
+    """Head-centric cameras: ``w2c' = w2c @ head_to_world`` so that the head pose lives in the cameras.
+
+    ``head_to_world [..., 4, 4]`` (or ``[..., 3, 4]``) is the rigid transform placing the canonical
+    head in the cameras' world (e.g. an Ava-256 per-frame head pose, converted to metres, or
+    :func:`head_pose_matrix` of a FLAME fit); it broadcasts against the camera batch.
+    """
+    T = torch.as_tensor(head_to_world, dtype=torch.float64)
+    if T.shape[-2:] == (3, 4):
+        T = torch.cat([T, torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype).expand(*T.shape[:-2], 1, 4)], dim=-2)
+    if T.shape[-2:] != (4, 4):
+        raise ValueError(f"head_to_world must have shape [..., 4, 4] or [..., 3, 4], got {list(T.shape)}")
+    w2c = cameras.w2c.double() @ T
+    K = cameras.K.expand(*w2c.shape[:-2], 3, 3)
+    try:
+        return Cameras(K.clone(), w2c.to(cameras.w2c.dtype), cameras.width, cameras.height)
+    except ValueError as e:
+        raise ValueError(f"fold_head_pose: head_to_world must be a rigid transform ({e})") from None
+
+
+def cameras_from_flame_pose(
+    rotation: Tensor,
+    translation: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    *,
+    pivot: Tensor | None = None,
+    camera_convention: str = "opengl",
+) -> Cameras:
+    """Head-centric OpenCV cameras from a FLAME fit's head pose expressed in the camera frame.
+
+    Monocular FLAME trackers output the head's rotation (axis-angle) and translation in the
+    camera's frame: ``x_cam = R (x_head - pivot) + pivot + t``. With ``camera_convention="opengl"``
+    that camera frame has x right, y up, z backward (the head sits at negative z); "opencv" means
+    x right, y down, z forward. Folding the pose into the camera gives
+    ``w2c = diag(1, -1, -1, 1) @ [R | t']`` (OpenGL) or ``[R | t']`` (OpenCV).
+
+    Args:
+        rotation, translation: ``[..., 3]`` head pose (radians, metres).
+        K: ``[..., 3, 3]`` or ``[3, 3]`` intrinsics in pixels of the ``width`` x ``height`` image.
+        pivot: ``[..., 3]`` rotation centre (FLAME's root joint) or None for the head origin.
+    """
+    if camera_convention not in ("opengl", "opencv"):
+        raise ValueError(f"camera_convention must be 'opengl' or 'opencv', got {camera_convention!r}")
+    T = head_pose_matrix(rotation, translation, pivot)  # [..., 4, 4]
+    if camera_convention == "opengl":
+        flip = torch.tensor([*_GL_TO_CV, 1.0], dtype=T.dtype)
+        T = flip[:, None] * T  # scales the rows: camera y, z flipped
+    K = torch.as_tensor(K, dtype=torch.float32)
+    if K.shape[-2:] != (3, 3):
+        raise ValueError(f"K must have shape [..., 3, 3], got {list(K.shape)}")
+    batch = torch.broadcast_shapes(K.shape[:-2], T.shape[:-2])
+    return Cameras(K.expand(*batch, 3, 3).clone(), T.float().expand(*batch, 4, 4).clone(), width, height)

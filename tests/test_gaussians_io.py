@@ -1,0 +1,201 @@
+"""Gaussians dataclass, 3DGS PLY files and avatar files."""
+
+from __future__ import annotations
+
+import math
+import struct
+import warnings
+
+import numpy as np
+import pytest
+import torch
+from plyfile import PlyData, PlyElement
+from torch.testing import assert_close
+
+from fastgha_core.cli import main as cli_main
+from fastgha_core.constants import AVATAR_FORMAT_VERSION
+from fastgha_core.gaussians import Gaussians
+from fastgha_core.io import load_avatar_file, load_ply, save_avatar_file, save_ply
+
+SH_C0 = 0.28209479177387814
+
+
+def random_gaussians(n=64, f=8, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    q = torch.randn(n, 4, generator=g)
+    return Gaussians(
+        means=torch.randn(n, 3, generator=g) * 0.1,
+        quats=q / q.norm(dim=-1, keepdim=True),
+        scales=torch.rand(n, 3, generator=g) * 0.01 + 1e-4,
+        opacities=torch.rand(n, generator=g).clamp(0.001, 0.999),
+        colors=torch.rand(n, 3, generator=g),
+        features=torch.randn(n, f, generator=g) if f else None,
+    )
+
+
+# ---------------------------------------------------------------- dataclass
+def test_shape_checks_and_ops():
+    g = random_gaussians(10, 4)
+    with pytest.raises(ValueError, match=r"Gaussians.colors must have shape \[10, 3\] for N=10, got \[10, 4\]"):
+        Gaussians(g.means, g.quats, g.scales, g.opacities, torch.zeros(10, 4))
+    with pytest.raises(ValueError, match=r"features must have shape \[N=10, F\], got \[9, 4\]"):
+        g.replace(features=torch.zeros(9, 4))
+    both = Gaussians.concat([g, g[:3]])
+    assert len(both) == 13 and both.num_features == 4
+    kept = g.prune(0.5)
+    assert (kept.opacities >= 0.5).all() and len(kept) == int((g.opacities >= 0.5).sum())
+    assert g.to(dtype=torch.float64).means.dtype == torch.float64
+    with pytest.raises(ValueError, match="either all items have features or none do"):
+        Gaussians.concat([g, g.replace(features=None)])
+
+
+# ---------------------------------------------------------------- PLY
+def test_ply_layout_by_hand(tmp_path):
+    # One Gaussian with hand-computed file values.
+    g = Gaussians(
+        means=torch.tensor([[1.0, 2.0, 3.0]]),
+        quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]]),
+        scales=torch.tensor([[1.0, math.e, 0.5]]),
+        opacities=torch.tensor([0.5]),
+        colors=torch.tensor([[0.5, 0.5 + SH_C0, 0.5 - 2 * SH_C0]]),
+    )
+    path = tmp_path / "one.ply"
+    save_ply(path, g)
+    v = PlyData.read(str(path))["vertex"]
+    names = list(v.data.dtype.names)
+    assert names == ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
+                     "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]  # fmt: skip
+    row = {k: float(v[k][0]) for k in names}
+    assert (row["x"], row["y"], row["z"]) == (1.0, 2.0, 3.0)
+    assert (row["nx"], row["ny"], row["nz"]) == (0.0, 0.0, 0.0)
+    assert row["f_dc_0"] == pytest.approx(0.0, abs=1e-6)
+    assert row["f_dc_1"] == pytest.approx(1.0, abs=1e-6)
+    assert row["f_dc_2"] == pytest.approx(-2.0, abs=1e-6)
+    assert row["opacity"] == pytest.approx(0.0, abs=1e-7)  # logit(0.5)
+    assert row["scale_0"] == pytest.approx(0.0, abs=1e-7)
+    assert row["scale_1"] == pytest.approx(1.0, abs=1e-6)  # log(e)
+    assert row["scale_2"] == pytest.approx(math.log(0.5), abs=1e-6)
+    assert [row[f"rot_{i}"] for i in range(4)] == [1.0, 0.0, 0.0, 0.0]
+    assert all(v[k].dtype == np.float32 for k in names)
+
+
+def test_ply_round_trip_exact_within_float32(tmp_path):
+    g = random_gaussians(200, f=8, seed=1)
+    # include the extremes of the opacity range
+    g = g.replace(opacities=torch.cat([torch.tensor([0.0, 1.0]), g.opacities[2:]]))
+    path = tmp_path / "avatar.ply"
+    save_ply(path, g)
+    h = load_ply(path)
+    assert h.features is None and h.dtype == torch.float32
+    assert_close(h.means, g.means, rtol=0, atol=0)
+    assert_close(h.colors, g.colors, rtol=0, atol=2e-7)
+    assert_close(h.opacities, g.opacities, rtol=0, atol=2e-7)
+    # log-scales near -9 are stored in float32 (half an ulp = 4.8e-7), so exp() inherits that relative error
+    assert_close(h.scales, g.scales, rtol=1e-6, atol=0)
+    assert_close(h.quats, g.quats, rtol=0, atol=2e-7)
+
+
+def _write_degree3_ply(path, n, seed):
+    rng = np.random.default_rng(seed)
+    props = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)]
+    props += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    arr = np.zeros(n, dtype=[(p, "f4") for p in props])
+    vals = {}
+    for p in props:
+        arr[p] = vals[p] = rng.normal(size=n).astype(np.float32)
+    arr["f_dc_0"] = vals["f_dc_0"] = np.array([0.0, 10.0, -10.0][:n], dtype=np.float32)  # colour 0.5 / clamp 1 / clamp 0
+    PlyData([PlyElement.describe(arr, "vertex")]).write(str(path))
+    return vals
+
+
+def test_read_degree3_ply_from_other_tool(tmp_path):
+    path = tmp_path / "gs3.ply"
+    vals = _write_degree3_ply(path, 3, seed=2)
+    with pytest.warns(UserWarning, match="SH degree 3; dropping the 45 higher-order"):
+        g = load_ply(path)
+    assert len(g) == 3
+    assert_close(g.means, torch.from_numpy(np.stack([vals["x"], vals["y"], vals["z"]], 1)))
+    # colour = 0.5 + C0 * f_dc, clamped to [0, 1]
+    assert_close(g.colors[:, 0], torch.tensor([0.5, 1.0, 0.0]))
+    assert_close(g.colors[:, 1], torch.from_numpy(np.clip(0.5 + SH_C0 * vals["f_dc_1"].astype(np.float64), 0, 1)).float())
+    assert_close(g.opacities, torch.from_numpy(1.0 / (1.0 + np.exp(-vals["opacity"].astype(np.float64)))).float())
+    assert_close(g.scales[:, 2], torch.from_numpy(np.exp(vals["scale_2"].astype(np.float64))).float())
+    q = np.stack([vals[f"rot_{i}"] for i in range(4)], 1).astype(np.float64)
+    assert_close(g.quats, torch.from_numpy(q / np.linalg.norm(q, axis=1, keepdims=True)).float())
+
+
+def test_read_degree0_ply_has_no_warning(tmp_path):
+    path = tmp_path / "d0.ply"
+    save_ply(path, random_gaussians(5, 0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_ply(path)
+
+
+def test_ply_errors(tmp_path):
+    arr = np.zeros(2, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1")])
+    path = tmp_path / "points.ply"
+    PlyData([PlyElement.describe(arr, "vertex")]).write(str(path))
+    with pytest.raises(ValueError, match=r"not a 3DGS Gaussian PLY, missing properties \['f_dc_0'"):
+        load_ply(path)
+    bad = tmp_path / "garbage.ply"
+    bad.write_bytes(b"not a ply at all")
+    with pytest.raises(ValueError, match="cannot parse"):
+        load_ply(bad)
+    with pytest.raises(FileNotFoundError):
+        load_ply(tmp_path / "missing.ply")
+
+
+# ---------------------------------------------------------------- avatar files
+def test_avatar_file_round_trip(tmp_path):
+    g = random_gaussians(50, f=32, seed=3)
+    extra = {"bbox": torch.tensor([[-0.1, -0.2, -0.3], [0.1, 0.2, 0.3]]), "ids": torch.arange(5)}
+    path = tmp_path / "a.safetensors"
+    save_avatar_file(path, g, {"model_name": "tiny", "expression_space": "ict53", "note": "hi"}, extra)
+    h, meta, ex = load_avatar_file(path)
+    for name in ("means", "quats", "scales", "opacities", "colors", "features"):
+        assert torch.equal(getattr(h, name), getattr(g, name)), name
+    assert meta == {"model_name": "tiny", "expression_space": "ict53", "note": "hi", "format_version": str(AVATAR_FORMAT_VERSION)}
+    assert set(ex) == {"bbox", "ids"} and torch.equal(ex["ids"], extra["ids"]) and torch.equal(ex["bbox"], extra["bbox"])
+
+
+def test_avatar_file_errors(tmp_path):
+    g = random_gaussians(4, f=0)
+    with pytest.raises(ValueError, match=r"must contain \['model_name', 'expression_space'\], missing \['expression_space'\]"):
+        save_avatar_file(tmp_path / "x.safetensors", g, {"model_name": "tiny"})
+    with pytest.raises(ValueError, match="dict of str -> str"):
+        save_avatar_file(tmp_path / "x.safetensors", g, {"model_name": 3, "expression_space": "ict53"})
+    # A file from a future format version.
+    from safetensors.torch import save_file
+
+    path = tmp_path / "future.safetensors"
+    save_file({"gaussians.means": torch.zeros(1, 3)}, str(path), metadata={"format_version": "999"})
+    with pytest.raises(ValueError, match=rf"format version '999', this FastGHA reads version {AVATAR_FORMAT_VERSION}"):
+        load_avatar_file(path)
+    plain = tmp_path / "plain.safetensors"
+    save_file({"w": torch.zeros(2)}, str(plain))
+    with pytest.raises(ValueError, match="not a FastGHA avatar file"):
+        load_avatar_file(plain)
+    partial = tmp_path / "partial.safetensors"
+    save_file({"gaussians.means": torch.zeros(1, 3)}, str(partial), metadata={"format_version": str(AVATAR_FORMAT_VERSION)})
+    with pytest.raises(ValueError, match=r"missing tensors \['gaussians.quats'"):
+        load_avatar_file(partial)
+    junk = tmp_path / "junk.safetensors"
+    junk.write_bytes(struct.pack("<Q", 10) + b"{not json}")
+    with pytest.raises(ValueError, match="cannot read as safetensors"):
+        load_avatar_file(junk)
+    with pytest.raises(FileNotFoundError):
+        load_avatar_file(tmp_path / "none.safetensors")
+
+
+def test_export_command(tmp_path, capsys):
+    g = random_gaussians(20, f=4, seed=4)
+    src = tmp_path / "a.safetensors"
+    save_avatar_file(src, g, {"model_name": "tiny", "expression_space": "ict53"})
+    out = tmp_path / "out" / "a.ply"
+    assert cli_main(["export", "--avatar", str(src), "--ply", str(out)]) == 0
+    assert "20 Gaussians" in capsys.readouterr().out
+    h = load_ply(out)
+    assert_close(h.means, g.means, rtol=0, atol=0)
+    assert cli_main(["export", "--avatar", str(tmp_path / "nope.safetensors"), "--ply", str(out)]) == 2
+    assert "does not exist" in capsys.readouterr().err
