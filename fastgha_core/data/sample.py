@@ -32,7 +32,7 @@ class SequenceSource(Protocol):
 
     subject: str
     sequence: str
-    expression_space: str  # "ict53" | "flame120"
+    expression_space: str  # "ict53" | "flame120" | "none" (no codes: readers without tracking)
 
     @property
     def num_timesteps(self) -> int: ...
