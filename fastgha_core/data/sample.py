@@ -52,8 +52,8 @@ class SequenceSource(Protocol):
 @dataclass
 class TrainingSample:
     """One training example (paper appendix): 4 inputs at 4 timesteps, 8 supervision views at one
-    timestep (the 4 input cameras + 4 novel ones). Shapes without a batch dim; the DataLoader's
-    default collate adds a leading ``B``.
+    timestep (the 4 input cameras + 4 novel ones). Shapes without a batch dim; batch them with
+    ``sampling.collate_samples`` (a DataLoader ``collate_fn``), which adds a leading ``B``.
     """
 
     input_images: Tensor  # [V, 3, H, W]       V = 4 by default
