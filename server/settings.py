@@ -1,0 +1,105 @@
+"""Server settings from ``FASTGHA_*`` environment variables (pydantic-settings).
+
+Every limit the server enforces is a field here, so operators can tune them without code.
+``get_settings()`` reads the environment each time it is called; ``create_app(settings)``
+takes an explicit ``Settings`` (tests and ``fastgha serve`` build one and pass it in).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+__all__ = ["Settings", "get_settings"]
+
+_REPO_STATIC = Path(__file__).resolve().parent.parent / "client_demo" / "static"
+
+
+def _split_csv(value: str) -> list[str]:
+    return [v.strip() for v in value.split(",") if v.strip()]
+
+
+class Settings(BaseSettings):
+    """All server settings; each field reads the environment variable ``FASTGHA_<NAME>``."""
+
+    model_config = SettingsConfigDict(env_prefix="FASTGHA_", extra="ignore", protected_namespaces=())
+
+    # ------------------------------------------------------------ model and storage
+    model: str = Field("tiny", description='model to load: "tiny", "paper" or a folder with config.json')
+    device: str = Field("auto", description='"auto" (cuda when available, else cpu), "cpu" or "cuda[:N]"')
+    data_dir: Path = Field(Path("fastgha-data"), description="folder where avatars are persisted")
+    warmup: bool = Field(True, description="reconstruct once and render a few frames at start-up")
+    warmup_frames: int = Field(3, ge=0, le=100)
+
+    # ------------------------------------------------------------ security
+    api_keys: str = Field(
+        "",
+        description="comma-separated API keys required to create avatars; empty = creation is open (set it in production)",
+    )
+    cors_origins: str = Field("", description='comma-separated allowed CORS origins; empty = CORS off, "*" = any')
+
+    # ------------------------------------------------------------ upload limits
+    max_upload_bytes: int = Field(32 * 1024 * 1024, ge=1024, description="largest POST /v1/avatars body")
+    max_image_pixels: int = Field(16_777_216, ge=64, description="largest width*height of one uploaded image")
+    max_images: int = Field(8, ge=1, le=64, description="most images per avatar")
+    max_concurrent_reconstructions: int = Field(1, ge=1, description="reconstructions running at once; others queue")
+
+    # ------------------------------------------------------------ streaming
+    max_output_size: int = Field(1024, ge=16, le=8192, description="cap on the output width and height of a frame")
+    default_jpeg_quality: int = Field(85, ge=1, le=100)
+    default_camera_distance: float = Field(1.0, gt=0, description="metres from the head centre of the default camera")
+    default_camera_fov_deg: float = Field(20.0, gt=0, lt=180)
+    ws_max_message_bytes: int = Field(65536, ge=256, description="largest WebSocket message a client may send")
+    ws_max_messages_per_second: float = Field(240.0, gt=0, description="sustained client message rate per socket")
+    ws_abuse_factor: float = Field(
+        4.0, ge=1.0, description="a socket sending faster than this multiple of the rate limit is closed"
+    )
+    max_streams_per_avatar: int = Field(4, ge=1)
+    max_streams_total: int = Field(64, ge=1)
+    render_workers: int = Field(2, ge=1, description="threads rendering frames (off the event loop)")
+
+    # ------------------------------------------------------------ cache and expiry
+    cache_max_bytes: int = Field(2 * 1024**3, ge=0, description="byte budget of the in-memory avatar LRU")
+    avatar_ttl_seconds: float = Field(
+        7 * 24 * 3600.0, ge=0, description="idle avatars are deleted after this long; 0 = never"
+    )
+    expiry_interval_seconds: float = Field(300.0, gt=0, description="how often expired avatars are swept")
+
+    # ------------------------------------------------------------ misc
+    static_dir: Path | None = Field(
+        None, description="folder served at / (the browser demo); default client_demo/static when it exists"
+    )
+
+    @field_validator("model")
+    @classmethod
+    def _non_empty(cls, v: str) -> str:
+        if not v.strip():
+            raise ValueError("model must not be empty")
+        return v
+
+    @property
+    def api_key_list(self) -> list[str]:
+        return _split_csv(self.api_keys)
+
+    @property
+    def cors_origin_list(self) -> list[str]:
+        return _split_csv(self.cors_origins)
+
+    def resolved_static_dir(self) -> Path | None:
+        """The folder to serve at ``/``, or None when there is none."""
+        d = self.static_dir if self.static_dir is not None else _REPO_STATIC
+        return d if d.is_dir() else None
+
+    def resolved_device(self) -> str:
+        if self.device != "auto":
+            return self.device
+        import torch
+
+        return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def get_settings() -> Settings:
+    """Settings from the environment (``FASTGHA_*``); override by passing your own to ``create_app``."""
+    return Settings()
