@@ -1,0 +1,156 @@
+"""Face detection and 68 landmarks with dlib (extra ``faces``: dlib-bin, face-recognition-models).
+
+- Detector: dlib's HOG frontal face detector (``get_frontal_face_detector``), run with one
+  upsampling step on photos (finds faces down to about 40 px) and none on video frames.
+- Landmarks: the 68-point shape predictor shipped by ``face_recognition_models``
+  (``pose_predictor_model_location()``, iBUG 300-W / Multi-PIE order: 0-16 jaw line, 17-26 brows,
+  27-35 nose, 36-47 eyes, 48-67 mouth), in our pixel convention (corner of the top-left pixel is
+  (0, 0), so dlib's integer pixel positions get +0.5).
+
+Policy for photos (:meth:`FaceDetector.detect_one`):
+- no face -> ``NoFaceError``;
+- faces whose box side is at least ``ignore_ratio`` (1/3) of the largest one count; more than one
+  such face -> ``SeveralFacesError`` (smaller background faces are ignored and logged);
+- a face box narrower than ``min_face_px`` (80 px, the size dlib's HOG detector is trained at;
+  smaller faces give unreliable landmarks and a crop upsampled by more than ~1.3x to 256 px)
+  -> ``TinyFaceError``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "FaceDetector",
+    "FaceBox",
+    "FacesUnavailableError",
+    "NoFaceError",
+    "SeveralFacesError",
+    "TinyFaceError",
+    "load_face_detector",
+    "MIN_FACE_PX",
+]
+
+logger = logging.getLogger(__name__)
+
+MIN_FACE_PX = 80  # smallest accepted face box side in pixels (see module doc)
+
+_INSTALL_HINT = "install the 'faces' extra: pip install -e '.[faces]' (dlib-bin, face-recognition-models, setuptools<81)"
+
+
+class FacesUnavailableError(ImportError):
+    """dlib or face_recognition_models is missing."""
+
+
+class NoFaceError(ValueError):
+    """No face was found in an image."""
+
+
+class SeveralFacesError(ValueError):
+    """More than one face of similar size was found in an image."""
+
+
+class TinyFaceError(ValueError):
+    """The face is smaller than the accepted minimum."""
+
+
+@dataclass(frozen=True)
+class FaceBox:
+    """A detected face: box in pixels (left, top, right, bottom; corner convention) and its score."""
+
+    left: float
+    top: float
+    right: float
+    bottom: float
+    score: float = 0.0
+
+    @property
+    def size(self) -> float:
+        return float(min(self.right - self.left, self.bottom - self.top))
+
+    def scaled(self, s: float) -> "FaceBox":
+        return FaceBox(self.left * s, self.top * s, self.right * s, self.bottom * s, self.score)
+
+    @staticmethod
+    def from_landmarks(lm: np.ndarray, pad: float = 0.0) -> "FaceBox":
+        """The box around landmarks ``[68, 2]``, grown by ``pad`` x its size on each side."""
+        x0, y0 = lm.min(axis=0)
+        x1, y1 = lm.max(axis=0)
+        w, h = x1 - x0, y1 - y0
+        return FaceBox(x0 - pad * w, y0 - pad * h, x1 + pad * w, y1 + pad * h)
+
+
+def _check_image(img: np.ndarray, what: str = "image") -> np.ndarray:
+    img = np.asarray(img)
+    if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+        raise ValueError(f"{what} must be an RGB uint8 array [H, W, 3], got {img.dtype} {list(img.shape)}")
+    return np.ascontiguousarray(img)
+
+
+@dataclass
+class FaceDetector:
+    """dlib's HOG detector + 68-point shape predictor (build with :func:`load_face_detector`)."""
+
+    detector: object
+    predictor: object
+    dlib: object
+    min_face_px: float = MIN_FACE_PX
+    ignore_ratio: float = 1.0 / 3.0
+
+    def detect(self, img: np.ndarray, upsample: int = 1) -> list[FaceBox]:
+        """All face boxes in ``img [H, W, 3]`` uint8 RGB, largest first."""
+        img = _check_image(img)
+        rects, scores, _ = self.detector.run(img, int(upsample), 0.0)
+        boxes = [
+            FaceBox(float(r.left()), float(r.top()), float(r.right() + 1), float(r.bottom() + 1), float(s))
+            for r, s in zip(rects, scores)
+        ]
+        return sorted(boxes, key=lambda b: -b.size)
+
+    def landmarks(self, img: np.ndarray, box: FaceBox) -> np.ndarray:
+        """The 68 landmarks ``[68, 2]`` float64 (pixel corner convention) inside ``box``."""
+        img = _check_image(img)
+        rect = self.dlib.rectangle(int(round(box.left)), int(round(box.top)), int(round(box.right)) - 1, int(round(box.bottom)) - 1)
+        shape = self.predictor(img, rect)
+        return np.array([[shape.part(i).x + 0.5, shape.part(i).y + 0.5] for i in range(68)], dtype=np.float64)
+
+    def detect_one(self, img: np.ndarray, name: str = "image") -> tuple[FaceBox, np.ndarray]:
+        """The single face of a photo and its landmarks ``[68, 2]``; errors name ``name`` (module doc)."""
+        boxes = self.detect(img, upsample=1)
+        if not boxes:
+            raise NoFaceError(
+                f"no face found in {name} (dlib's detector finds roughly frontal faces of at least ~40 px; "
+                "use a photo with one clearly visible face)"
+            )
+        big = [b for b in boxes if b.size >= self.ignore_ratio * boxes[0].size]
+        if len(big) > 1:
+            where = ", ".join(f"({b.left:.0f},{b.top:.0f})-({b.right:.0f},{b.bottom:.0f})" for b in big)
+            raise SeveralFacesError(f"found {len(big)} faces in {name} at {where}; expected exactly one person per photo (crop the photo)")
+        if len(boxes) > len(big):
+            logger.info("%s: ignoring %d small background face(s)", name, len(boxes) - len(big))
+        box = boxes[0]
+        if box.size < self.min_face_px:
+            raise TinyFaceError(
+                f"the face in {name} is too small: {box.size:.0f} px, expected at least {self.min_face_px:.0f} px "
+                "(use a larger or less downscaled photo)"
+            )
+        return box, self.landmarks(img, box)
+
+
+def load_face_detector(min_face_px: float = MIN_FACE_PX) -> FaceDetector:
+    """dlib's detector and 68-point predictor; ``FacesUnavailableError`` naming the extra when missing."""
+    try:
+        import warnings
+
+        import dlib  # type: ignore
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # pkg_resources deprecation inside face_recognition_models
+            import face_recognition_models as frm  # type: ignore
+        path = frm.pose_predictor_model_location()
+    except Exception as e:  # ImportError, or pkg_resources missing with setuptools >= 81
+        raise FacesUnavailableError(f"face tracking needs dlib and face_recognition_models ({e}); {_INSTALL_HINT}") from None
+    return FaceDetector(detector=dlib.get_frontal_face_detector(), predictor=dlib.shape_predictor(path), dlib=dlib, min_face_px=min_face_px)

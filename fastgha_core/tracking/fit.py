@@ -1,0 +1,387 @@
+"""Fit the ICT-FaceKit head model to 68 2D landmarks (bounded Levenberg-Marquardt with priors).
+
+Unknowns, for ``V`` photos of one person:
+- identity ``beta [Ki]``: the first ``num_identity`` (50) ICT identity modes, **shared** by all
+  photos, Gaussian prior ``identity_weight * |beta|^2`` (modes are ~N(0, 1));
+- per photo: expression ``e_v [53]`` (``ict53``), **bounded to [0, 1]**, ridge prior
+  ``expression_weight * |e_v|^2`` pulling unobservable shapes to 0; head rotation ``R_v``
+  (head -> camera, updated multiplicatively ``R <- exp([d]x) R``) and translation ``t_v`` (metres).
+
+The 3D landmarks are fixed vertices of the model (``HeadModel.landmarks68``), linear in
+``beta`` and ``e``: ``X = n + B_id beta + B_e e``. They are projected with the given pinhole ``K``
+(the focal length is an assumption made by the caller, see :func:`default_intrinsics`):
+``u = K (R X + t)``. Residuals are landmark errors divided by ``landmark_sigma`` x the face size
+(the landmark box diagonal), so weights do not depend on the image resolution. The 17 jaw-line
+landmarks of dlib follow the visible silhouette, not fixed skin points, so they get the lower
+weight ``contour_weight``.
+
+Solver: Levenberg-Marquardt on the stacked residuals with the analytic Jacobian (dense normal
+equations: at most 30 + 8 x 59 unknowns). The box [0, 1] on ``e`` is kept by an active set:
+weights at a bound whose gradient points outwards are frozen for the step, the step is clamped.
+A rigid-only stage (pose only, expression and identity at 0) starts from three yaw guesses
+(-40, 0, +40 degrees) and keeps the best, so profile-ish photos converge.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["FitConfig", "FitResult", "LandmarkModel", "fit_landmarks", "default_intrinsics", "rodrigues", "FRONTAL_R"]
+
+logger = logging.getLogger(__name__)
+
+# Head -> camera rotation of a head looking straight into the camera: head +y up -> camera -y
+# (down), head +z out of the face -> camera -z (towards the camera), head +x -> camera +x.
+FRONTAL_R = np.diag([1.0, -1.0, -1.0])
+
+CONTOUR = slice(0, 17)  # dlib jaw-line landmarks
+
+# ict53 shapes that 68 sparse landmarks hardly see (gaze, cheeks, squints, nose, dimples): on
+# real photos they absorb the mismatch between dlib's landmark definitions and the model's fixed
+# vertices, so they get a much stronger prior (``weak_expression_weight``).
+WEAKLY_OBSERVED = (
+    "cheekPuff_L", "cheekPuff_R", "cheekSquint_L", "cheekSquint_R", "eyeLookDown_L", "eyeLookDown_R",
+    "eyeLookIn_L", "eyeLookIn_R", "eyeLookOut_L", "eyeLookOut_R", "eyeLookUp_L", "eyeLookUp_R",
+    "eyeSquint_L", "eyeSquint_R", "eyeWide_L", "eyeWide_R", "noseSneer_L", "noseSneer_R",
+    "mouthDimple_L", "mouthDimple_R", "jawForward",
+)  # fmt: skip
+
+
+@dataclass
+class FitConfig:
+    """Options of :func:`fit_landmarks` (see module doc)."""
+
+    num_identity: int = 50  # identity modes estimated (of 100); the rest stay 0
+    identity_weight: float = 0.3  # prior weight on |beta|^2 (modes ~ N(0, 1))
+    expression_weight: float = 1.0  # ridge weight on |e|^2 per photo
+    weak_expression_weight: float = 20.0  # ridge weight of the shapes in WEAKLY_OBSERVED
+    landmark_sigma: float = 0.01  # landmark noise, as a fraction of the face-box diagonal
+    contour_weight: float = 0.5  # weight of the 17 jaw-line landmarks (silhouette, not fixed points)
+    iterations: int = 40  # LM iterations of the full fit
+    rigid_iterations: int = 10  # LM iterations of the rigid stage (per yaw guess)
+    yaw_guesses_deg: tuple[float, ...] = (-40.0, 0.0, 40.0)
+    tolerance: float = 1e-7  # stop when the relative cost decrease is below this
+
+
+@dataclass
+class FitResult:
+    """Fitted parameters for ``V`` photos."""
+
+    identity: np.ndarray  # [100] float64, zeros beyond num_identity
+    expressions: np.ndarray  # [V, 53] float64 in [0, 1]
+    rotations: np.ndarray  # [V, 3, 3] head -> camera
+    translations: np.ndarray  # [V, 3] metres (head origin in camera coordinates)
+    K: np.ndarray  # [V, 3, 3] the intrinsics used
+    rms_px: np.ndarray  # [V] RMS landmark reprojection error in pixels
+    cost: float = 0.0
+
+    def project(self, model: "LandmarkModel", v: int) -> np.ndarray:
+        """Projected model landmarks ``[68, 2]`` of photo ``v``."""
+        X = model.points(self.identity[: model.num_identity], self.expressions[v])
+        return _project(X, self.rotations[v], self.translations[v], self.K[v])[0]
+
+
+@dataclass
+class LandmarkModel:
+    """The head model restricted to its 68 landmark vertices (metres, DESIGN axes)."""
+
+    mean: np.ndarray  # [68, 3]
+    identity: np.ndarray  # [Ki, 68, 3]
+    expression: np.ndarray  # [53, 68, 3]
+    num_total_identity: int = 100
+    _flat_id: np.ndarray = field(init=False, repr=False)
+    _flat_ex: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._flat_id = self.identity.reshape(self.identity.shape[0], -1).T.copy()  # [204, Ki]
+        self._flat_ex = self.expression.reshape(self.expression.shape[0], -1).T.copy()  # [204, 53]
+
+    @property
+    def num_identity(self) -> int:
+        return int(self.identity.shape[0])
+
+    @staticmethod
+    def from_head_model(head=None, num_identity: int = 30) -> "LandmarkModel":
+        from ..data.headmodel import HeadModel
+
+        head = HeadModel.load() if head is None else head
+        lm = head.landmarks68
+        if not 0 <= num_identity <= head.num_identity:
+            raise ValueError(f"num_identity must be in [0, {head.num_identity}], got {num_identity}")
+        return LandmarkModel(
+            mean=head.neutral[lm].astype(np.float64),
+            identity=head.identity_basis[:num_identity, lm].astype(np.float64),
+            expression=head.expression_basis[:, lm].astype(np.float64),
+            num_total_identity=head.num_identity,
+        )
+
+    def points(self, beta: np.ndarray, e: np.ndarray) -> np.ndarray:
+        """Landmark points ``[68, 3]`` for identity ``[Ki]`` and expression ``[53]``."""
+        flat = self.mean.reshape(-1) + self._flat_id @ beta + self._flat_ex @ e
+        return flat.reshape(68, 3)
+
+
+def default_intrinsics(width: int, height: int, fov_deg: float = 30.0) -> np.ndarray:
+    """The assumed pinhole ``K [3, 3]``: field of view ``fov_deg`` across the **longer** image side,
+    principal point at the image centre, square pixels.
+
+    30 degrees is between a phone's main camera (~65 degrees, 26 mm equivalent) and a portrait lens
+    (~15 degrees, 85 mm): a wrong focal length mostly changes the fitted distance (the head's image
+    size fixes f / z), hardly the rotation.
+    """
+    if not 1.0 <= fov_deg <= 150.0:
+        raise ValueError(f"fov_deg must be in [1, 150] degrees, got {fov_deg}")
+    f = 0.5 * max(width, height) / math.tan(math.radians(fov_deg) / 2)
+    return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+
+
+def rodrigues(w: np.ndarray) -> np.ndarray:
+    """Axis-angle ``[3]`` -> rotation ``[3, 3]``."""
+    t = float(np.linalg.norm(w))
+    S = _skew(w)
+    if t < 1e-8:
+        return np.eye(3) + S + 0.5 * S @ S
+    return np.eye(3) + math.sin(t) / t * S + (1 - math.cos(t)) / t**2 * (S @ S)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _project(X: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray):
+    """``X [N, 3]`` -> uv ``[N, 2]``, camera points ``P [N, 3]``."""
+    P = X @ R.T + t
+    z = np.maximum(P[:, 2], 1e-6)
+    uv = np.stack([K[0, 0] * P[:, 0] / z + K[0, 1] * P[:, 1] / z + K[0, 2], K[1, 1] * P[:, 1] / z + K[1, 2]], axis=1)
+    return uv, P
+
+
+def _dproj(P: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """d uv / d P ``[N, 2, 3]`` (skew K[0,1] ignored in the derivative; it is 0 for our cameras)."""
+    z = np.maximum(P[:, 2], 1e-6)
+    J = np.zeros((P.shape[0], 2, 3))
+    J[:, 0, 0] = K[0, 0] / z
+    J[:, 0, 2] = -K[0, 0] * P[:, 0] / z**2
+    J[:, 1, 1] = K[1, 1] / z
+    J[:, 1, 2] = -K[1, 1] * P[:, 1] / z**2
+    return J
+
+
+class _Problem:
+    """Stacked residuals and Jacobian for V views (internal)."""
+
+    def __init__(self, model: LandmarkModel, obs: np.ndarray, K: np.ndarray, cfg: FitConfig, weights: np.ndarray | None,
+                 free_identity: bool, free_expression: bool):
+        self.m, self.obs, self.K, self.cfg = model, obs, K, cfg
+        self.V = obs.shape[0]
+        w = np.ones(68)
+        w[CONTOUR] = cfg.contour_weight
+        if weights is not None:
+            w = w * weights
+        diag = np.linalg.norm(obs.max(axis=1) - obs.min(axis=1), axis=1)  # [V]
+        self.scale = np.sqrt(w)[None, :] / (cfg.landmark_sigma * np.maximum(diag, 1.0))[:, None]  # [V, 68]
+        self.free_id = free_identity and model.num_identity > 0
+        self.free_ex = free_expression
+        self.nid = model.num_identity if self.free_id else 0
+        self.nex = 53 if free_expression else 0
+        self.nv = 6 + self.nex
+        from ..expressions import ICT53_NAMES
+
+        ew = np.full(53, cfg.expression_weight)
+        ew[[ICT53_NAMES.index(n) for n in WEAKLY_OBSERVED]] = cfg.weak_expression_weight
+        self.ex_sqrt_w = np.sqrt(ew)  # [53]
+
+    def residuals(self, beta, E, Rs, ts) -> np.ndarray:
+        out = []
+        for v in range(self.V):
+            uv, _ = _project(self.m.points(beta, E[v]), Rs[v], ts[v], self.K[v])
+            out.append(((uv - self.obs[v]) * self.scale[v][:, None]).reshape(-1))
+        if self.free_id:
+            out.append(math.sqrt(self.cfg.identity_weight) * beta)
+        if self.free_ex:
+            out.append((self.ex_sqrt_w[None] * E).reshape(-1))
+        return np.concatenate(out)
+
+    def jacobian(self, beta, E, Rs, ts) -> np.ndarray:
+        n_lm = self.V * 136
+        n_rows = n_lm + self.nid + self.V * self.nex
+        n_cols = self.nid + self.V * self.nv
+        J = np.zeros((n_rows, n_cols))
+        for v in range(self.V):
+            X = self.m.points(beta, E[v])
+            _, P = _project(X, Rs[v], ts[v], self.K[v])
+            D = _dproj(P, self.K[v]) * self.scale[v][:, None, None]  # [68, 2, 3]
+            rows = slice(v * 136, (v + 1) * 136)
+            c0 = self.nid + v * self.nv
+            RX = P - ts[v]
+            dP_drot = -np.stack([_skew(p) for p in RX])  # [68, 3, 3]
+            J[rows, c0 : c0 + 3] = np.einsum("nij,njk->nik", D, dP_drot).reshape(136, 3)
+            J[rows, c0 + 3 : c0 + 6] = D.reshape(136, 3)
+            DR = np.einsum("nij,jk->nik", D, Rs[v])  # [68, 2, 3]: d uv / d X
+            if self.free_ex:
+                J[rows, c0 + 6 : c0 + 6 + 53] = np.einsum("nik,ank->nia", DR, self.m.expression).reshape(136, 53)
+            if self.free_id:
+                J[rows, : self.nid] = np.einsum("nik,ank->nia", DR, self.m.identity).reshape(136, self.nid)
+        if self.free_id:
+            J[n_lm : n_lm + self.nid, : self.nid] = math.sqrt(self.cfg.identity_weight) * np.eye(self.nid)
+        if self.free_ex:
+            for v in range(self.V):
+                r0 = n_lm + self.nid + v * 53
+                c0 = self.nid + v * self.nv + 6
+                J[r0 : r0 + 53, c0 : c0 + 53] = np.diag(self.ex_sqrt_w)
+        return J
+
+    def apply(self, x, beta, E, Rs, ts):
+        beta, E, Rs, ts = beta.copy(), E.copy(), Rs.copy(), ts.copy()
+        if self.free_id:
+            beta = beta + x[: self.nid]
+        for v in range(self.V):
+            c0 = self.nid + v * self.nv
+            Rs[v] = rodrigues(x[c0 : c0 + 3]) @ Rs[v]
+            ts[v] = ts[v] + x[c0 + 3 : c0 + 6]
+            if self.free_ex:
+                E[v] = np.clip(E[v] + x[c0 + 6 : c0 + 6 + 53], 0.0, 1.0)
+        return beta, E, Rs, ts
+
+    def expression_columns(self) -> np.ndarray:
+        """``[V, 53]`` column index of each expression unknown."""
+        return np.array([[self.nid + v * self.nv + 6 + k for k in range(53)] for v in range(self.V)])
+
+
+def _lm(prob: _Problem, beta, E, Rs, ts, iterations: int, tol: float):
+    r = prob.residuals(beta, E, Rs, ts)
+    cost = 0.5 * float(r @ r)
+    lam = 1e-3
+    ecols = prob.expression_columns() if prob.free_ex else None
+    for _ in range(iterations):
+        J = prob.jacobian(beta, E, Rs, ts)
+        g = J.T @ r
+        H = J.T @ J
+        free = np.ones(H.shape[0], dtype=bool)
+        if ecols is not None:  # active set of the [0, 1] box
+            gi = g[ecols]
+            free[ecols[((E <= 0.0) & (gi > 0)) | ((E >= 1.0) & (gi < 0))]] = False
+        idx = np.flatnonzero(free)
+        Hf, gf = H[np.ix_(idx, idx)], g[idx]
+        improved = False
+        for _ in range(8):
+            A = Hf + lam * (np.diag(np.diag(Hf)) + 1e-9 * np.eye(len(idx)))
+            try:
+                step = -np.linalg.solve(A, gf)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            x = np.zeros(H.shape[0])
+            x[idx] = step
+            nb, nE, nR, nt = prob.apply(x, beta, E, Rs, ts)
+            nr = prob.residuals(nb, nE, nR, nt)
+            ncost = 0.5 * float(nr @ nr)
+            if ncost < cost:
+                rel = (cost - ncost) / max(cost, 1e-12)
+                beta, E, Rs, ts, r, cost = nb, nE, nR, nt, nr, ncost
+                lam = max(lam / 3.0, 1e-7)
+                improved = True
+                break
+            lam *= 4.0
+        if not improved or rel < tol:
+            break
+    return beta, E, Rs, ts, cost
+
+
+def _initial_translation(model: LandmarkModel, obs: np.ndarray, K: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Translation placing the rotated mean landmarks over the observed ones (scale from spread)."""
+    X = model.mean @ R.T
+    spread_m = np.sqrt(((X[:, :2] - X[:, :2].mean(0)) ** 2).sum(1).mean())
+    spread_px = np.sqrt(((obs - obs.mean(0)) ** 2).sum(1).mean())
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    z = f * spread_m / max(spread_px, 1e-6)
+    c = obs.mean(0)
+    ray = np.linalg.solve(K, np.array([c[0], c[1], 1.0]))
+    return ray * z - X.mean(0)
+
+
+def fit_landmarks(*args, **kwargs) -> FitResult:
+    """Fit identity (shared), expression and head pose (per photo) to 2D landmarks (module doc).
+
+    Args:
+        landmarks: ``[V, 68, 2]`` (or ``[68, 2]``) pixels.
+        K: ``[V, 3, 3]`` or ``[3, 3]`` intrinsics.
+        config: ``FitConfig``; model: a ``LandmarkModel`` (built from the shipped head when None).
+        identity: ``[100]`` (or ``[Ki]``) fixed identity; estimated (shared) when None.
+        init: a ``FitResult`` to warm-start pose and expression from (skips the rigid stage).
+        weights: ``[68]`` extra per-landmark weights.
+    """
+    from .blas import one_blas_thread
+
+    with one_blas_thread():
+        return _fit_landmarks(*args, **kwargs)
+
+
+def _fit_landmarks(
+    landmarks: np.ndarray,  # [V, 68, 2] pixels
+    K: np.ndarray,  # [V, 3, 3] or [3, 3]
+    config: FitConfig | None = None,
+    model: LandmarkModel | None = None,
+    *,
+    identity: np.ndarray | None = None,  # [100] or [Ki]: fixed identity (not estimated) when given
+    init: FitResult | None = None,  # warm start (pose + expression); skips the rigid stage
+    weights: np.ndarray | None = None,  # [68] extra per-landmark weights
+) -> FitResult:
+    cfg = config or FitConfig()
+    obs = np.asarray(landmarks, dtype=np.float64)
+    if obs.ndim == 2:
+        obs = obs[None]
+    if obs.ndim != 3 or obs.shape[1:] != (68, 2):
+        raise ValueError(f"landmarks must have shape [V, 68, 2], got {list(np.shape(landmarks))}")
+    if not np.isfinite(obs).all():
+        raise ValueError("landmarks must be finite")
+    V = obs.shape[0]
+    K = np.asarray(K, dtype=np.float64)
+    K = np.broadcast_to(K, (V, 3, 3)).copy() if K.shape == (3, 3) else K
+    if K.shape != (V, 3, 3):
+        raise ValueError(f"K must have shape [3, 3] or [V={V}, 3, 3], got {list(K.shape)}")
+    model = model or LandmarkModel.from_head_model(num_identity=cfg.num_identity)
+    Ki = model.num_identity
+    if identity is not None:
+        identity = np.asarray(identity, dtype=np.float64)
+        if identity.shape[0] < Ki:
+            raise ValueError(f"identity must have at least {Ki} entries, got {identity.shape[0]}")
+        beta = identity[:Ki].copy()
+    else:
+        beta = np.zeros(Ki)
+
+    if init is not None:
+        E = np.array(init.expressions, dtype=np.float64).reshape(V, 53)
+        Rs = np.array(init.rotations, dtype=np.float64).reshape(V, 3, 3)
+        ts = np.array(init.translations, dtype=np.float64).reshape(V, 3)
+        if identity is None:
+            beta = np.array(init.identity[:Ki], dtype=np.float64)
+    else:
+        E = np.zeros((V, 53))
+        Rs = np.zeros((V, 3, 3))
+        ts = np.zeros((V, 3))
+        for v in range(V):
+            sub = _Problem(model, obs[v : v + 1], K[v : v + 1], cfg, weights, False, False)
+            best = None
+            for yaw in cfg.yaw_guesses_deg:
+                R0 = FRONTAL_R @ rodrigues(np.array([0.0, math.radians(yaw), 0.0]))
+                t0 = _initial_translation(model, obs[v], K[v], R0)
+                out = _lm(sub, beta, E[v : v + 1], R0[None], t0[None], cfg.rigid_iterations, cfg.tolerance)
+                if best is None or out[4] < best[4]:
+                    best = out
+            Rs[v], ts[v] = best[2][0], best[3][0]
+
+    prob = _Problem(model, obs, K, cfg, weights, free_identity=identity is None, free_expression=True)
+    beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
+
+    rms = np.zeros(V)
+    for v in range(V):
+        uv, _ = _project(model.points(beta, E[v]), Rs[v], ts[v], K[v])
+        rms[v] = float(np.sqrt(((uv - obs[v]) ** 2).sum(1).mean()))
+    full_id = np.zeros(model.num_total_identity)
+    full_id[:Ki] = beta
+    return FitResult(identity=full_id, expressions=E, rotations=Rs, translations=ts, K=K, rms_px=rms, cost=cost)

@@ -1,0 +1,157 @@
+"""Foreground masks for tracked photos when the user gives none.
+
+OpenCV (GrabCut) is not a dependency, so the mask is built from the fitted head model and a
+colour model, in numpy/scipy:
+
+1. **Silhouette**: the fitted ICT head (identity + expression + pose, all visible surfaces) is
+   rendered into the crop with the CPU mesh rasterizer (``data/meshraster.py``).
+2. **Trimap**: sure foreground = the silhouette eroded by ``erode_m`` (1 cm); hair can only lie
+   within ``hair_m`` (5 cm) of the silhouette and above the mouth (``hair_below_m`` 2 cm below
+   landmark 57's row), elsewhere the band is ``edge_m`` (0.8 cm) wide (ears, cheeks, neck edge);
+   the rest of the photo is sure background. Pixels outside the photo (crop padding) are background.
+3. **Colour model**: one Gaussian mixture (``components`` full-covariance RGB Gaussians, EM in
+   numpy) on sure-foreground pixels and one on sure-background pixels; an uncertain pixel is
+   foreground when its foreground log-likelihood is higher.
+4. **Clean-up**: keep only regions connected to the sure foreground, fill holes, and soften the
+   edge with a Gaussian blur of ``feather_px`` pixels.
+
+Limits: hair longer than ``hair_m`` beyond the skull or below the mouth (long hair on the
+shoulders) is cut; hats, hands and glasses frames are treated like hair; a background with the
+colours of skin or hair next to the head leaks into the mask; neck and clothes below the fitted
+mesh are background by design (the synthetic training heads end at the neck). A user mask
+(``<name>_mask.png``) always wins.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+__all__ = ["MattingConfig", "head_silhouette", "matte_from_head", "GaussianMixture"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class MattingConfig:
+    erode_m: float = 0.01  # sure foreground = silhouette eroded by this much
+    hair_m: float = 0.05  # hair may extend this far beyond the skull
+    hair_below_m: float = 0.02  # ... down to this far below the mouth centre (landmark 57)
+    edge_m: float = 0.008  # width of the uncertain band elsewhere
+    components: int = 4  # Gaussians per colour model
+    samples: int = 4000  # pixels per colour model fit
+    feather_px: float = 1.0  # edge softening (Gaussian sigma, output pixels)
+    seed: int = 0
+
+
+class GaussianMixture:
+    """Full-covariance Gaussian mixture fitted by EM (numpy)."""
+
+    def __init__(self, k: int, iterations: int = 20, seed: int = 0):
+        self.k, self.iterations, self.seed = k, iterations, seed
+
+    def fit(self, x: np.ndarray) -> "GaussianMixture":  # x [N, D]
+        x = np.asarray(x, dtype=np.float64)
+        n, d = x.shape
+        if n < self.k:
+            raise ValueError(f"need at least {self.k} samples to fit {self.k} Gaussians, got {n}")
+        rng = np.random.default_rng(self.seed)
+        self.means = x[rng.choice(n, self.k, replace=False)].copy()  # [k, D]
+        self.covs = np.repeat((np.cov(x.T) + 1e-4 * np.eye(d))[None], self.k, axis=0)
+        self.weights = np.full(self.k, 1.0 / self.k)
+        for _ in range(self.iterations):
+            logp = self._component_logp(x)  # [N, k]
+            m = logp.max(1, keepdims=True)
+            r = np.exp(logp - m)
+            r /= r.sum(1, keepdims=True)
+            nk = r.sum(0) + 1e-9
+            self.weights = nk / n
+            self.means = (r.T @ x) / nk[:, None]
+            for j in range(self.k):
+                dx = x - self.means[j]
+                self.covs[j] = (r[:, j, None] * dx).T @ dx / nk[j] + 1e-4 * np.eye(d)
+        return self
+
+    def _component_logp(self, x: np.ndarray) -> np.ndarray:
+        out = np.empty((x.shape[0], self.k))
+        for j in range(self.k):
+            L = np.linalg.cholesky(self.covs[j])
+            z = np.linalg.solve(L, (x - self.means[j]).T)  # [D, N]
+            out[:, j] = np.log(self.weights[j] + 1e-12) - np.log(np.diag(L)).sum() - 0.5 * (z * z).sum(0) - 0.5 * x.shape[1] * np.log(2 * np.pi)
+        return out
+
+    def score(self, x: np.ndarray) -> np.ndarray:
+        """Log-likelihood ``[N]`` of samples ``[N, D]``."""
+        logp = self._component_logp(np.asarray(x, dtype=np.float64))
+        m = logp.max(1)
+        return m + np.log(np.exp(logp - m[:, None]).sum(1))
+
+
+def head_silhouette(vertices: np.ndarray, faces: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray, size: int) -> np.ndarray:
+    """Coverage ``[size, size]`` float32 in [0, 1] of the head mesh ``vertices [Nv, 3]`` (head space)
+    seen by the camera ``(R, t, K)``."""
+    from ..data.meshraster import render_mesh
+
+    pts = np.asarray(vertices, dtype=np.float64) @ np.asarray(R).T + np.asarray(t)
+    ones = np.ones((pts.shape[0], 1), dtype=np.float32)
+    return render_mesh(pts.astype(np.float32), faces, ones, np.asarray(K), size, size, supersample=1).alpha
+
+
+def _disk(r: float) -> np.ndarray:
+    r = max(int(round(r)), 1)
+    y, x = np.mgrid[-r : r + 1, -r : r + 1]
+    return x * x + y * y <= r * r
+
+
+def matte_from_head(
+    img: np.ndarray,  # [S, S, 3] uint8 crop
+    silhouette: np.ndarray,  # [S, S] coverage of the fitted head
+    px_per_m: float,  # crop pixels per metre at the head's depth (f / t_z)
+    mouth_row: float,  # row (pixels) of landmark 57 in the crop
+    valid: np.ndarray | None = None,  # [S, S] bool: pixels inside the photo (not padding)
+    config: MattingConfig | None = None,
+) -> np.ndarray:
+    """Foreground alpha ``[S, S]`` float32 in [0, 1] (module doc)."""
+    cfg = config or MattingConfig()
+    s = img.shape[0]
+    valid = np.ones((s, s), dtype=bool) if valid is None else valid.astype(bool)
+    sil = silhouette > 0.5
+    if not sil.any():
+        raise ValueError("the fitted head is not visible in the crop; cannot build a mask")
+    sure_fg = ndimage.binary_erosion(sil, _disk(cfg.erode_m * px_per_m)) & valid
+    if sure_fg.sum() < 50:
+        sure_fg = sil & valid
+    rows = np.arange(s)[:, None]
+    hair_zone = ndimage.binary_dilation(sil, _disk(cfg.hair_m * px_per_m)) & (rows <= mouth_row + cfg.hair_below_m * px_per_m)
+    edge_zone = ndimage.binary_dilation(sil, _disk(cfg.edge_m * px_per_m))
+    maybe = (hair_zone | edge_zone) & valid & ~sure_fg
+    sure_bg = valid & ~(hair_zone | edge_zone)
+    fg = sure_fg.copy()
+    pix = img.reshape(-1, 3).astype(np.float64) / 255.0
+    rng = np.random.default_rng(cfg.seed)
+    if maybe.any() and sure_bg.sum() >= 10 * cfg.components and sure_fg.sum() >= 10 * cfg.components:
+        def sample(mask):
+            idx = np.flatnonzero(mask.reshape(-1))
+            return pix[rng.choice(idx, min(cfg.samples, idx.size), replace=False)]
+
+        gf = GaussianMixture(cfg.components, seed=cfg.seed).fit(sample(sure_fg))
+        gb = GaussianMixture(cfg.components, seed=cfg.seed).fit(sample(sure_bg))
+        idx = np.flatnonzero(maybe.reshape(-1))
+        is_fg = gf.score(pix[idx]) > gb.score(pix[idx])
+        fg.reshape(-1)[idx[is_fg]] = True
+    else:
+        logger.info("matting: too few sure pixels for a colour model; using the silhouette band")
+        fg |= edge_zone & valid
+    fg = ndimage.binary_opening(fg, _disk(1.5)) | sure_fg
+    lab, n = ndimage.label(fg)
+    if n > 1:
+        keep = np.unique(lab[sure_fg])
+        fg = np.isin(lab, keep[keep > 0])
+    fg = ndimage.binary_fill_holes(fg)
+    alpha = fg.astype(np.float32)
+    if cfg.feather_px > 0:
+        alpha = ndimage.gaussian_filter(alpha, cfg.feather_px)
+    return np.clip(alpha * valid, 0.0, 1.0).astype(np.float32)

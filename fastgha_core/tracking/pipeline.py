@@ -1,0 +1,156 @@
+"""Photos -> request data: detect, fit, camera, crop, matte (the `fastgha track` pipeline)."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from ..cameras import Cameras
+from .camera import pose_to_cameras
+from .crop import DEFAULT_EXTENT_M, background_uint8, crop_array, crop_cameras, head_crop_box
+from .fit import FitConfig, FitResult, default_intrinsics, fit_landmarks
+from .matting import MattingConfig, head_silhouette, matte_from_head
+
+__all__ = ["TrackConfig", "TrackedPhotos", "track_photos", "track_request"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class TrackConfig:
+    """Options of :func:`track_photos`."""
+
+    size: int = 256  # output crop side in pixels
+    fov_deg: float = 30.0  # assumed field of view across the longer photo side (fit.default_intrinsics)
+    extent_m: float = DEFAULT_EXTENT_M  # crop field at the head's depth (crop.py)
+    fit: FitConfig = field(default_factory=FitConfig)
+    matting: MattingConfig = field(default_factory=MattingConfig)
+
+
+@dataclass
+class TrackedPhotos:
+    """Everything the tracker found for ``V`` photos."""
+
+    crops: np.ndarray  # [V, S, S, 3] uint8 (padding = BACKGROUND_RGB; not matted)
+    masks: np.ndarray  # [V, S, S] float32 alpha in [0, 1]
+    cameras: Cameras  # [V] of the crops
+    photo_cameras: Cameras | list[Cameras]  # per photo, of the full photo (sizes may differ)
+    expressions: np.ndarray  # [V, 53] ict53
+    landmarks: list[np.ndarray]  # V x [68, 2] detected, in photo pixels
+    fit: FitResult
+    mask_given: list[bool]
+
+
+def _as_photo(img, i: int, name: str) -> np.ndarray:
+    a = np.asarray(img)
+    if a.ndim == 2:
+        a = np.repeat(a[..., None], 3, axis=2)
+    if a.ndim != 3 or a.shape[2] not in (3, 4):
+        raise ValueError(f"{name}: expected an RGB image [H, W, 3], got shape {list(a.shape)}")
+    if a.dtype != np.uint8:
+        if np.issubdtype(a.dtype, np.floating) and a.size and a.max() <= 1.0:
+            a = np.round(a * 255.0)
+        a = np.clip(a, 0, 255).astype(np.uint8)
+    return np.ascontiguousarray(a[..., :3])
+
+
+def _as_mask(m, shape: tuple[int, int], name: str) -> np.ndarray:
+    m = np.asarray(m)
+    if m.ndim == 3:
+        m = m[..., 0] if m.shape[-1] in (1, 3, 4) else m[0]
+    m = m.astype(np.float32) / 255.0 if m.dtype == np.uint8 else m.astype(np.float32)
+    if m.shape != shape:
+        raise ValueError(f"{name}: mask must have the photo's size {list(shape)}, got {list(m.shape)}")
+    return np.clip(m, 0.0, 1.0)
+
+
+def track_photos(
+    images: list[np.ndarray],  # V x [H_i, W_i, 3] uint8 RGB
+    config: TrackConfig | None = None,
+    masks: list[np.ndarray | None] | None = None,  # V x [H_i, W_i] alpha (uint8 or float) or None
+    names: list[str] | None = None,  # used in error messages
+    detector=None,  # a faces.FaceDetector (default: load_face_detector())
+    identity: np.ndarray | None = None,  # [100] fixed identity; estimated when None
+) -> TrackedPhotos:
+    """Track photos of **one** person (shared identity); see the package doc."""
+    from ..data.headmodel import HeadModel
+    from .faces import load_face_detector
+
+    cfg = config or TrackConfig()
+    if not images:
+        raise ValueError("need at least one photo to track, got none")
+    if cfg.size < 16:
+        raise ValueError(f"size must be at least 16 pixels, got {cfg.size}")
+    names = names or [f"photo {i}" for i in range(len(images))]
+    masks = list(masks) if masks is not None else [None] * len(images)
+    if len(masks) != len(images) or len(names) != len(images):
+        raise ValueError(f"got {len(images)} photos, {len(masks)} masks and {len(names)} names")
+    det = detector or load_face_detector()
+    photos = [_as_photo(im, i, n) for i, (im, n) in enumerate(zip(images, names))]
+    lms, Ks = [], []
+    for img, name in zip(photos, names):
+        _, lm = det.detect_one(img, name)
+        lms.append(lm)
+        Ks.append(default_intrinsics(img.shape[1], img.shape[0], cfg.fov_deg))
+    fit = fit_landmarks(np.stack(lms), np.stack(Ks), cfg.fit, identity=identity)
+    for v, name in enumerate(names):
+        logger.info("%s: landmark RMS %.2f px, distance %.2f m", name, fit.rms_px[v], fit.translations[v, 2])
+
+    head = HeadModel.load()
+    faces = head.visible_faces(eyelashes=False)
+    bg = background_uint8()
+    S = cfg.size
+    crops, out_masks, crop_cams, photo_cams = [], [], [], []
+    for v, (img, name) in enumerate(zip(photos, names)):
+        H, W = img.shape[:2]
+        cam = pose_to_cameras(fit.rotations[v], fit.translations[v], fit.K[v], W, H)
+        photo_cams.append(cam)
+        box = head_crop_box(fit.K[v], fit.translations[v], cfg.extent_m)
+        ccam = crop_cameras(cam, box, S)
+        crop = crop_array(img, box, S, bg)
+        valid = crop_array(np.ones((H, W, 1), np.float32), box, S, [0.0])[..., 0] > 0.5
+        if masks[v] is not None:
+            m = crop_array(_as_mask(masks[v], (H, W), name)[..., None], box, S, [0.0])[..., 0]
+        else:
+            Kc = ccam.K[0].double().numpy()
+            verts = head.vertices(fit.identity.astype(np.float32), fit.expressions[v].astype(np.float32))
+            sil = head_silhouette(verts, faces, fit.rotations[v], fit.translations[v], Kc, S)
+            lm57 = (head.landmarks(verts)[57] @ fit.rotations[v].T + fit.translations[v]) @ Kc.T
+            m = matte_from_head(crop, sil, Kc[0, 0] / fit.translations[v, 2], lm57[1] / lm57[2], valid, cfg.matting)
+        crops.append(crop)
+        out_masks.append(np.clip(m, 0, 1).astype(np.float32))
+        crop_cams.append(ccam)
+    same = len({(c.width, c.height) for c in photo_cams}) == 1
+    return TrackedPhotos(
+        crops=np.stack(crops),
+        masks=np.stack(out_masks),
+        cameras=Cameras.stack(crop_cams),
+        photo_cameras=Cameras.stack(photo_cams) if same else photo_cams,
+        expressions=fit.expressions.astype(np.float32),
+        landmarks=lms,
+        fit=fit,
+        mask_given=[m is not None for m in masks],
+    )
+
+
+def track_request(images: list[np.ndarray], size: int, masks=None):
+    """Server entry point: photos without cameras -> model-ready crops.
+
+    Args:
+        images: V x ``[H, W, 3]`` uint8 RGB photos of one person.
+        size: output side ``S`` (the crops can be passed to ``FastGHA.prepare``, which resizes).
+        masks: optional V x ``[H, W]`` alpha (uint8 or float) or None entries.
+    Returns:
+        crops ``[V, 3, S, S]`` float32 in [0, 1] (not matted; padding = BACKGROUND_RGB),
+        ``Cameras [V]`` of the crops, masks ``[V, 1, S, S]`` float32, expressions ``[V, 53]`` float32.
+    Raises:
+        faces.FacesUnavailableError (an ImportError) when the ``faces`` extra is missing;
+        ValueError (NoFaceError / SeveralFacesError / TinyFaceError) naming the photo.
+    """
+    res = track_photos(list(images), TrackConfig(size=int(size)), masks=masks)
+    crops = torch.from_numpy(res.crops).permute(0, 3, 1, 2).float() / 255.0
+    m = torch.from_numpy(res.masks)[:, None]
+    return crops, res.cameras, m, torch.from_numpy(res.expressions)
