@@ -1,0 +1,246 @@
+"""Model configuration: one dataclass per stage, nested in ``FastGHAConfig``, plus named presets.
+
+``PRESETS["paper"]`` follows the paper's appendix table (dinov3-vitl16, SD-Turbo VAE, transformer
+512 x 8, decoder 512 in / 44 out, deformation MLP 256 x 6). ``PRESETS["tiny"]`` is the same set of
+classes at CPU size (128^2 in and out, encoders trained from scratch). A config serialises to plain
+JSON (``to_dict``/``from_dict``), which is what ``FastGHA.save_pretrained`` writes as ``config.json``.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+__all__ = [
+    "DinoConfig",
+    "VAEConfig",
+    "TransformerConfig",
+    "DecoderConfig",
+    "GaussianHeadConfig",
+    "DeformConfig",
+    "FastGHAConfig",
+    "PRESETS",
+    "get_preset",
+]
+
+
+@dataclass
+class DinoConfig:
+    """Semantic encoder: a ``transformers`` DINOv3 ViT plus the convs that fuse its layers."""
+
+    hidden_size: int = 1024  # ViT width (dinov3-vitl16: 1024)
+    num_layers: int = 24  # transformer blocks (dinov3-vitl16: 24)
+    num_heads: int = 16  # attention heads (head dim must be divisible by 4 for DINOv3's 2D RoPE)
+    intermediate_size: int = 4096  # MLP width inside each block
+    patch_size: int = 16  # pixels per patch side; patch tokens lie on an H/p x W/p grid
+    num_register_tokens: int = 4  # register tokens after CLS (dropped with CLS before fusion)
+    layerscale_value: float = 1.0  # initial LayerScale value (pretrained weights overwrite it)
+    use_gated_mlp: bool = False  # SwiGLU MLP (the ViT-7B/H+ variants) instead of GELU MLP
+    rope_theta: float = 100.0  # RoPE base period
+    pos_embed_rescale: float | None = None  # RoPE coordinate jitter in train mode (DINOv3 uses 2.0); None = deterministic
+    feature_layers: tuple[int, ...] = (6, 12, 18, 24)  # 1-based blocks whose patch tokens are fused
+    out_channels: int = 256  # channels of the fused map F_dino at H/8 (paper: 256)
+    frozen: bool = True  # no gradients, eval mode (set when pretrained weights are loaded)
+
+    def to_hf(self):
+        """The equivalent ``transformers.DINOv3ViTConfig``."""
+        from transformers import DINOv3ViTConfig
+
+        kw: dict[str, Any] = dict(
+            hidden_size=self.hidden_size,
+            num_hidden_layers=self.num_layers,
+            num_attention_heads=self.num_heads,
+            intermediate_size=self.intermediate_size,
+            patch_size=self.patch_size,
+            num_register_tokens=self.num_register_tokens,
+            layerscale_value=self.layerscale_value,
+            use_gated_mlp=self.use_gated_mlp,
+            rope_theta=self.rope_theta,
+        )
+        cfg = DINOv3ViTConfig(**kw)
+        cfg.pos_embed_rescale = self.pos_embed_rescale
+        return cfg
+
+
+@dataclass
+class VAEConfig:
+    """Colour encoder: the ``diffusers`` AutoencoderKL encoder (+ quant conv); we keep the latent mean."""
+
+    block_out_channels: tuple[int, ...] = (128, 256, 512, 512)  # SD VAE; len-1 downsamplings (4 -> H/8)
+    layers_per_block: int = 2  # resnets per down block
+    latent_channels: int = 4  # C_e, channels of F_enc
+    norm_num_groups: int = 32  # GroupNorm groups (must divide every block width)
+    scaling_factor: float = 0.18215  # latents are multiplied by this (SD convention: ~unit variance)
+    frozen: bool = True  # no gradients, eval mode (set when pretrained weights are loaded)
+
+
+@dataclass
+class TransformerConfig:
+    """Multi-view transformer: pre-norm self-attention over all V*(H/8)*(W/8) tokens jointly."""
+
+    hidden_size: int = 512  # token width (paper: 512)
+    num_layers: int = 8  # self-attention blocks (paper: 8)
+    num_heads: int = 8  # attention heads
+    mlp_ratio: float = 4.0  # MLP width = mlp_ratio * hidden_size
+
+
+@dataclass
+class DecoderConfig:
+    """The SD VAE decoder with conv_in widened to the token width, cross-view mid attention and
+    conv_out widened to the Gaussian channels."""
+
+    block_out_channels: tuple[int, ...] = (128, 256, 512, 512)  # SD VAE decoder widths (reversed inside)
+    layers_per_block: int = 2  # the up blocks hold layers_per_block + 1 resnets each
+    norm_num_groups: int = 32  # GroupNorm groups
+    cross_view_attention: bool = True  # mid-block attention over the tokens of all views jointly
+    init_from_vae: bool = True  # copy the pretrained VAE decoder weights where shapes allow (with vae_weights)
+
+
+@dataclass
+class GaussianHeadConfig:
+    """Activations of the raw Gaussian maps (see ``model/gaussian_head.py``)."""
+
+    feature_dim: int = 32  # per-Gaussian feature f (paper: 32); maps have 12 + feature_dim channels
+    depth_range: float = 0.35  # metres; depth along a ray = |camera centre| + depth_range * tanh(raw)
+    min_scale_px: float = 0.25  # smallest scale, in pixel footprints at the Gaussian's depth
+    max_scale_px: float = 16.0  # largest scale, in pixel footprints at the Gaussian's depth
+    prune_opacity: float = 0.005  # reconstruct() drops Gaussians less opaque than this (0 = keep all)
+
+    @property
+    def channels(self) -> int:
+        """Raw channels per pixel: depth 1 + rgb 3 + quat 4 + scale 3 + opacity 1 + feature."""
+        return 12 + self.feature_dim
+
+
+@dataclass
+class DeformConfig:
+    """Deformation MLP: [feature, PE(xyz), expression] -> (dxyz, drgb) per Gaussian."""
+
+    hidden_size: int = 256  # width of the hidden layers (paper: 256)
+    num_layers: int = 6  # hidden layers, each Linear + LeakyReLU (paper: 6)
+    pe_freqs: int = 6  # sinusoidal frequencies 2^k * pi, k < pe_freqs, per coordinate
+    pe_scale: float = 4.0  # xyz (metres) is multiplied by this before the encoding (head ~ [-0.6, 0.6])
+    negative_slope: float = 0.01  # LeakyReLU slope
+
+
+@dataclass
+class FastGHAConfig:
+    """The whole model. ``name`` and ``expression_space`` travel with avatars and the server."""
+
+    name: str = "paper"  # preset name (or a user name for a trained variant)
+    expression_space: str = "flame120"  # fastgha_core.expressions space: "flame120" or "ict53"
+    expression_dim: int = 120  # E, length of an expression code (must match the space)
+    input_size: int = 512  # S: input images and Gaussian maps are S x S
+    render_size: int = 512  # default training/rendering resolution
+    max_views: int = 8  # reconstruct() accepts 1..max_views images
+    dino: DinoConfig = field(default_factory=DinoConfig)
+    vae: VAEConfig = field(default_factory=VAEConfig)
+    transformer: TransformerConfig = field(default_factory=TransformerConfig)
+    decoder: DecoderConfig = field(default_factory=DecoderConfig)
+    gaussians: GaussianHeadConfig = field(default_factory=GaussianHeadConfig)
+    deform: DeformConfig = field(default_factory=DeformConfig)
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    @property
+    def token_channels(self) -> int:
+        """Input token width: C_d + C_e + 6 (Plücker)."""
+        return self.dino.out_channels + self.vae.latent_channels + 6
+
+    @property
+    def encoders_frozen(self) -> bool:
+        return self.dino.frozen and self.vae.frozen
+
+    def validate(self) -> None:
+        s = self.input_size
+        if s % 8 != 0 or s % self.dino.patch_size != 0:
+            raise ValueError(f"input_size must be divisible by 8 and by the DINO patch size {self.dino.patch_size}, got {s}")
+        if len(self.vae.block_out_channels) != 4 or len(self.decoder.block_out_channels) != 4:
+            raise ValueError(
+                "VAE encoder and decoder need 4 blocks (H/8 latents), got "
+                f"{list(self.vae.block_out_channels)} and {list(self.decoder.block_out_channels)}"
+            )
+        if bad := [i for i in self.dino.feature_layers if not 1 <= i <= self.dino.num_layers]:
+            raise ValueError(f"dino.feature_layers must lie in [1, {self.dino.num_layers}], got {bad}")
+        if (self.dino.hidden_size // self.dino.num_heads) % 4 != 0 or self.dino.hidden_size % self.dino.num_heads:
+            raise ValueError(f"DINO head dim must be an integer divisible by 4, got {self.dino.hidden_size}/{self.dino.num_heads}")
+        if self.transformer.hidden_size % self.transformer.num_heads:
+            raise ValueError(
+                f"transformer.hidden_size {self.transformer.hidden_size} not divisible by num_heads {self.transformer.num_heads}"
+            )
+        if not 1 <= self.max_views:
+            raise ValueError(f"max_views must be >= 1, got {self.max_views}")
+
+    # ------------------------------------------------------------ (de)serialisation
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "FastGHAConfig":
+        return _from_dict(cls, data, "config")
+
+    def copy(self, **changes: Any) -> "FastGHAConfig":
+        return dataclasses.replace(copy.deepcopy(self), **changes)
+
+
+def _from_dict(cls, data: Any, where: str):
+    if not isinstance(data, dict):
+        raise ValueError(f"{where}: expected an object, got {type(data).__name__}")
+    names = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - set(names))
+    if unknown:
+        raise ValueError(f"{where}: unknown field(s) {unknown}; expected some of {sorted(names)}")
+    kw = {}
+    for key, value in data.items():
+        default = names[key].default_factory() if names[key].default_factory is not dataclasses.MISSING else names[key].default
+        if dataclasses.is_dataclass(default):
+            kw[key] = _from_dict(type(default), value, f"{where}.{key}")
+        elif isinstance(default, tuple):
+            kw[key] = tuple(value)
+        else:
+            kw[key] = value
+    return cls(**kw)
+
+
+def _paper() -> FastGHAConfig:
+    return FastGHAConfig()
+
+
+def _tiny() -> FastGHAConfig:
+    return FastGHAConfig(
+        name="tiny",
+        expression_space="ict53",
+        expression_dim=53,
+        input_size=128,
+        render_size=128,
+        dino=DinoConfig(
+            hidden_size=96,
+            num_layers=4,
+            num_heads=4,
+            intermediate_size=384,
+            patch_size=16,
+            num_register_tokens=4,
+            feature_layers=(2, 4),
+            out_channels=64,
+            frozen=False,
+        ),
+        vae=VAEConfig(block_out_channels=(32, 64, 64, 64), layers_per_block=1, norm_num_groups=16, frozen=False),
+        transformer=TransformerConfig(hidden_size=192, num_layers=4, num_heads=4),
+        decoder=DecoderConfig(block_out_channels=(32, 64, 64, 64), layers_per_block=1, norm_num_groups=16, init_from_vae=False),
+        gaussians=GaussianHeadConfig(feature_dim=32, prune_opacity=0.005),
+        deform=DeformConfig(hidden_size=48, num_layers=4, pe_freqs=4),  # ~8 ms/frame fp32 at 65k Gaussians on 2 cores
+    )
+
+
+# Read-only templates; get_preset() hands out copies.
+PRESETS: dict[str, FastGHAConfig] = {"paper": _paper(), "tiny": _tiny()}
+
+
+def get_preset(name: str) -> FastGHAConfig:
+    """A fresh copy of the named preset (``"paper"`` or ``"tiny"``)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown model preset {name!r}; expected one of {sorted(PRESETS)}")
+    return copy.deepcopy(PRESETS[name])

@@ -1,0 +1,388 @@
+"""FastGHA: few-shot feed-forward reconstruction of a canonical Gaussian head + real-time deformation.
+
+Pipeline (paper §3.2; one module per stage)::
+
+    images [B,V,3,H,W] --SemanticEncoder--> F_dino [B*V,C_d,H/8,W/8]
+                       --ColourEncoder----> F_enc  [B*V,4,H/8,W/8]
+    cameras ----------- plucker_rays -----> P_cam  [B,V,6,H/8,W/8]
+    tokens [B,V,C_d+4+6,H/8,W/8] --MultiViewTransformer--> [B,V,D,H/8,W/8]
+      --GaussianDecoder--> raw maps [B,V,12+F,H,W] --GaussianHead--> canonical Gaussians (V*H*W per sample)
+    canonical + expression --DeformationMLP--> (dxyz, drgb) --> deformed Gaussians
+
+Entry points: ``forward`` (training), ``prepare`` + ``reconstruct`` (inference, no grad),
+``animate`` (per frame, with the deformation MLP's first layer split), ``save_pretrained`` /
+``from_pretrained`` / ``load_model``.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import logging
+from contextlib import nullcontext
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from ..cameras import Cameras, plucker_rays
+from ..config import PRESETS, FastGHAConfig, get_preset
+from ..constants import BACKGROUND_RGB
+from ..gaussians import Gaussians
+from .avatar import CanonicalAvatar
+from .decoder import GaussianDecoder
+from .deform import DeformationMLP
+from .encoders import ColourEncoder, SemanticEncoder
+from .gaussian_head import GaussianHead, GaussianLayout
+from .transformer import MultiViewTransformer
+
+__all__ = ["FastGHA", "FastGHAOutput", "load_model", "ASSET_MODELS_DIR", "CONFIG_NAME", "WEIGHTS_NAME"]
+
+log = logging.getLogger(__name__)
+
+ASSET_MODELS_DIR = Path(__file__).resolve().parent.parent / "assets" / "models"
+CONFIG_NAME = "config.json"
+WEIGHTS_NAME = "model.safetensors"
+
+
+@dataclass
+class FastGHAOutput:
+    """What the training losses need, one entry per sample.
+
+    Attributes:
+        gaussians: deformed Gaussians (target expression applied, features kept), ready to render.
+        canonical: the canonical Gaussians before deformation.
+    """
+
+    gaussians: list[Gaussians]
+    canonical: list[Gaussians]
+
+
+def _apply_deformation(g: Gaussians, dxyz: Tensor, drgb: Tensor) -> Gaussians:
+    """Canonical ``g`` with offsets ``dxyz``/``drgb [N, 3]`` applied (colours stay in [0, 1])."""
+    return g.replace(means=g.means + dxyz, colors=(g.colors + drgb).clamp(0.0, 1.0))
+
+
+class FastGHA(nn.Module):
+    """The reconstruction network and the deformation MLP.
+
+    Args:
+        config: a ``FastGHAConfig`` (copied; ``get_preset("tiny")`` etc.).
+        dino_weights: optional local ``DINOv3ViTModel`` folder; loaded and frozen.
+        vae_weights: optional local ``AutoencoderKL`` folder; its encoder is loaded and frozen, and
+            its decoder initialises the Gaussian decoder (``config.decoder.init_from_vae``).
+    """
+
+    def __init__(self, config: FastGHAConfig, dino_weights: str | Path | None = None, vae_weights: str | Path | None = None):
+        super().__init__()
+        config = copy.deepcopy(config)
+        config.validate()
+        self.config = config
+        fdim = config.gaussians.feature_dim
+        self.layout = GaussianLayout(fdim)
+        self.semantic = SemanticEncoder(config.dino)  # shares config.dino (records `frozen`)
+        self.colour = ColourEncoder(config.vae)
+        self.transformer = MultiViewTransformer(config.token_channels, config.transformer)
+        self.decoder = GaussianDecoder(config.transformer.hidden_size, self.layout, config.decoder)
+        self.head = GaussianHead(config.gaussians)
+        self.deform = DeformationMLP(fdim, config.expression_dim, config.deform)
+        if dino_weights is not None or vae_weights is not None:
+            self.load_pretrained_encoders(dino_weights, vae_weights)
+
+    # ------------------------------------------------------------ weights
+    def load_pretrained_encoders(self, dino_weights: str | Path | None = None, vae_weights: str | Path | None = None) -> None:
+        """Load local Hugging Face-format encoder folders and freeze those encoders."""
+        if dino_weights is not None:
+            self.semantic.load_pretrained(dino_weights)
+        if vae_weights is not None:
+            dec_state = self.colour.load_pretrained(vae_weights)
+            if self.config.decoder.init_from_vae:
+                self.decoder.load_vae_decoder(dec_state)
+
+    def save_pretrained(self, folder: str | Path) -> None:
+        """Write ``config.json`` + ``model.safetensors`` into ``folder``."""
+        from safetensors.torch import save_file
+
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / CONFIG_NAME).write_text(json.dumps(self.config.to_dict(), indent=2) + "\n")
+        state = {k: v.detach().to("cpu").contiguous() for k, v in self.state_dict().items()}
+        save_file(state, str(folder / WEIGHTS_NAME), metadata={"format": "pt", "fastgha_model": self.config.name})
+
+    @classmethod
+    def from_pretrained(cls, folder: str | Path, device: Any = "cpu") -> "FastGHA":
+        """Load a folder written by ``save_pretrained`` (eval mode)."""
+        from safetensors.torch import load_file
+
+        folder = Path(folder)
+        cfg_file, w_file = folder / CONFIG_NAME, folder / WEIGHTS_NAME
+        if not cfg_file.is_file() or not w_file.is_file():
+            raise ValueError(f"model folder {str(folder)!r} must contain {CONFIG_NAME} and {WEIGHTS_NAME} (written by save_pretrained)")
+        try:
+            cfg = FastGHAConfig.from_dict(json.loads(cfg_file.read_text()))
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{cfg_file}: does not parse as JSON: {e}") from None
+        model = cls(cfg)
+        state = load_file(str(w_file), device="cpu")
+        missing, unexpected = model.load_state_dict(state, strict=False)
+        if missing or unexpected:
+            raise ValueError(f"{w_file} does not match {cfg_file}: missing {missing[:5]}, unexpected {unexpected[:5]}")
+        return model.to(device).eval()
+
+    # ------------------------------------------------------------ info
+    @property
+    def expression_space(self):
+        """The model's ``fastgha_core.expressions.ExpressionSpace``."""
+        from ..expressions import get_space
+
+        return get_space(self.config.expression_space)
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.parameters()).device
+
+    def parameter_counts(self) -> dict[str, int]:
+        """Parameters per module (``dino_vit`` is the pretrained backbone, ``dino_fusion`` the new convs)."""
+        count = lambda m: sum(p.numel() for p in m.parameters())  # noqa: E731
+        out = {
+            "dino_vit": count(self.semantic.vit),
+            "dino_fusion": count(self.semantic) - count(self.semantic.vit),
+            "vae_encoder": count(self.colour),
+            "transformer": count(self.transformer),
+            "decoder": count(self.decoder),
+            "deform": count(self.deform),
+        }
+        out["total"] = sum(out.values())
+        out["trainable"] = sum(p.numel() for p in self.parameters() if p.requires_grad)
+        return out
+
+    # ------------------------------------------------------------ reconstruction
+    def forward_gaussians(self, images: Tensor, cameras: Cameras) -> list[Gaussians]:
+        """Canonical Gaussians per sample.
+
+        Args:
+            images: ``[B, V, 3, H, W]`` in [0, 1], matted on ``BACKGROUND_RGB``.
+            cameras: batch ``[B, V]`` describing the ``W x H`` images.
+        Returns:
+            ``B`` canonical ``Gaussians`` of ``V*H*W`` points with features.
+        """
+        if images.ndim != 5 or images.shape[2] != 3:
+            raise ValueError(f"images must have shape [B, V, 3, H, W], got {list(images.shape)}")
+        b, v, _, h, w = images.shape
+        if tuple(cameras.batch_shape) != (b, v) or (cameras.width, cameras.height) != (w, h):
+            raise ValueError(
+                f"cameras must have batch shape [{b}, {v}] and size {w}x{h}, "
+                f"got {list(cameras.batch_shape)} and {cameras.width}x{cameras.height}"
+            )
+        if h % 8 or w % 8:
+            raise ValueError(f"image size must be divisible by 8, got {w}x{h}")
+        flat = images.flatten(0, 1)  # [B*V, 3, H, W]
+        f_dino = self.semantic(flat)  # [B*V, C_d, H/8, W/8]
+        f_enc = self.colour(flat)  # [B*V, 4, H/8, W/8]
+        with torch.autocast(device_type=images.device.type, enabled=False):  # camera geometry in fp32
+            p_cam = plucker_rays(cameras.to(dtype=torch.float32), h // 8, w // 8)  # [B, V, 6, H/8, W/8]
+        f_dino, f_enc = f_dino.unflatten(0, (b, v)), f_enc.unflatten(0, (b, v))
+        tokens = torch.cat([f_dino, f_enc.to(f_dino.dtype), p_cam.to(f_dino.dtype)], dim=2)
+        x = self.transformer(tokens)  # [B, V, D, H/8, W/8]
+        maps = self.decoder(x)  # [B, V, 12+F, H, W]
+        return self.head(maps, cameras)
+
+    def forward(self, images: Tensor, K: Tensor, w2c: Tensor, expression: Tensor) -> FastGHAOutput:
+        """Training forward.
+
+        Args:
+            images: ``[B, V, 3, H, W]`` input views in [0, 1].
+            K: ``[B, V, 3, 3]`` intrinsics of the input images; w2c: ``[B, V, 4, 4]``.
+            expression: ``[B, E]`` target expression per sample.
+        """
+        if images.ndim != 5:
+            raise ValueError(f"images must have shape [B, V, 3, H, W], got {list(images.shape)}")
+        b = images.shape[0]
+        e = self.config.expression_dim
+        if expression.shape != (b, e):
+            raise ValueError(f"expression must have shape [B={b}, E={e}], got {list(expression.shape)}")
+        cams = Cameras(K, w2c, images.shape[-1], images.shape[-2])
+        canonical = self.forward_gaussians(images, cams)
+        deformed = []
+        for g, z in zip(canonical, expression):
+            dxyz, drgb = self.deform(g.features, g.means, z)
+            deformed.append(_apply_deformation(g, dxyz, drgb))
+        return FastGHAOutput(gaussians=deformed, canonical=canonical)
+
+    def prepare(
+        self,
+        images: Tensor | Sequence[Tensor],
+        cameras: Cameras | Sequence[Cameras],
+        masks: Tensor | Sequence[Tensor | None] | None = None,
+    ) -> tuple[Tensor, Cameras]:
+        """Matte, centre-crop to a square and resize to the model's input size, adjusting K.
+
+        Args:
+            images: ``[V, 3, H, W]`` or a list of ``[3, H_i, W_i]``; float in [0, 1] or uint8.
+            cameras: ``Cameras`` batch ``[V]`` or a list of single cameras matching each image's size.
+            masks: optional ``[V, H, W]`` / list of ``[H_i, W_i]`` or ``[1, H_i, W_i]`` alpha in [0, 1]
+                (uint8 -> /255); the background becomes ``BACKGROUND_RGB``.
+        Returns:
+            images ``[V, 3, S, S]`` and ``Cameras`` ``[V]`` of size ``S x S``.
+        """
+        imgs = list(images.unbind(0)) if isinstance(images, Tensor) and images.ndim == 4 else list(images)
+        if isinstance(cameras, Cameras):
+            flat = cameras.flatten()
+            cams = [flat[i] for i in range(len(flat.K))]
+        else:
+            cams = [c.flatten()[0] for c in cameras]
+        if len(imgs) != len(cams):
+            raise ValueError(f"prepare: got {len(imgs)} images but {len(cams)} cameras")
+        if masks is None:
+            mlist: list[Tensor | None] = [None] * len(imgs)
+        else:
+            mlist = list(masks.unbind(0)) if isinstance(masks, Tensor) and masks.ndim >= 3 and masks.shape[0] == len(imgs) else list(masks)
+            if len(mlist) != len(imgs):
+                raise ValueError(f"prepare: got {len(imgs)} images but {len(mlist)} masks")
+        s = self.config.input_size
+        bg = torch.tensor(BACKGROUND_RGB, dtype=torch.float32).view(3, 1, 1)
+        out_i, out_c = [], []
+        for i, (img, cam, m) in enumerate(zip(imgs, cams, mlist)):
+            img = torch.as_tensor(img)
+            if img.ndim != 3 or img.shape[0] != 3:
+                raise ValueError(f"prepare: image {i} must have shape [3, H, W], got {list(img.shape)}")
+            img = img.float() / 255.0 if img.dtype == torch.uint8 else img.float()
+            h, w = img.shape[1:]
+            if (cam.width, cam.height) != (w, h):
+                raise ValueError(f"prepare: camera {i} describes a {cam.width}x{cam.height} image, but image {i} is {w}x{h}")
+            if m is not None:
+                m = torch.as_tensor(m)
+                m = m.float() / 255.0 if m.dtype == torch.uint8 else m.float()
+                m = m.reshape(m.shape[-2:]) if m.ndim == 3 and m.shape[0] == 1 else m
+                if tuple(m.shape) != (h, w):
+                    raise ValueError(f"prepare: mask {i} must have shape [{h}, {w}], got {list(m.shape)}")
+                img = img * m + bg * (1.0 - m)
+            side = min(h, w)
+            left, top = (w - side) // 2, (h - side) // 2
+            img = img[:, top : top + side, left : left + side]
+            cam = cam.crop(left, top, side, side)
+            if side != s:
+                img = F.interpolate(img[None], size=(s, s), mode="bilinear", antialias=True, align_corners=False)[0]
+                cam = cam.resize(s, s)
+            out_i.append(img.clamp(0.0, 1.0))
+            out_c.append(cam)
+        return torch.stack(out_i), Cameras.stack(out_c)
+
+    @torch.no_grad()
+    def reconstruct(self, images: Tensor, cameras: Cameras) -> CanonicalAvatar:
+        """Canonical avatar from ``images [V, 3, S, S]`` in [0, 1] and ``cameras [V]`` of size ``S x S``.
+
+        ``S`` is ``config.input_size`` and ``1 <= V <= config.max_views``. Other sizes raise a
+        ``ValueError``: use ``prepare()`` to crop and resize. Gaussians with opacity below
+        ``config.gaussians.prune_opacity`` are dropped.
+        """
+        s, vmax = self.config.input_size, self.config.max_views
+        hint = "use model.prepare(images, cameras) to crop/resize them"
+        if not isinstance(images, Tensor) or images.ndim != 4 or tuple(images.shape[1:]) != (3, s, s):
+            shape = list(images.shape) if isinstance(images, Tensor) else type(images).__name__
+            raise ValueError(f"reconstruct: images must have shape [V, 3, {s}, {s}] for model {self.config.name!r}, got {shape}; {hint}")
+        v = images.shape[0]
+        if not 1 <= v <= vmax:
+            raise ValueError(f"reconstruct: expected 1 to {vmax} views, got {v}")
+        if not images.is_floating_point():
+            raise ValueError(f"reconstruct: images must be float in [0, 1], got {images.dtype}; {hint}")
+        lo, hi = float(images.min()), float(images.max())
+        if lo < -1e-3 or hi > 1 + 1e-3:
+            raise ValueError(f"reconstruct: images must lie in [0, 1], got values in [{lo:.3g}, {hi:.3g}]")
+        if not isinstance(cameras, Cameras):
+            raise ValueError(f"reconstruct: cameras must be a Cameras batch [V], got {type(cameras).__name__}")
+        if tuple(cameras.batch_shape) != (v,) or (cameras.width, cameras.height) != (s, s):
+            raise ValueError(
+                f"reconstruct: cameras must have batch shape [{v}] and size {s}x{s}, got "
+                f"{list(cameras.batch_shape)} and {cameras.width}x{cameras.height}; {hint}"
+            )
+        dev = self.device
+        g = self.forward_gaussians(images.to(dev, torch.float32)[None], cameras.to(dev, torch.float32)[None])[0]
+        thr = self.config.gaussians.prune_opacity
+        if thr > 0:
+            g = g.prune(thr)
+        avatar = CanonicalAvatar(g, self.config.name, self.config.expression_space)
+        self._deform_partial(avatar)
+        return avatar
+
+    # ------------------------------------------------------------ animation
+    def _deform_partial(self, avatar: CanonicalAvatar) -> Tensor:
+        """The avatar's cached first-layer partial ``[N, H]``, computed on first use for this model."""
+        g = avatar.gaussians
+        cache = avatar.deform_cache
+        if (
+            cache is None
+            or avatar.deform_cache_owner != id(self.deform)
+            or cache.shape != (len(g), self.config.deform.hidden_size)
+            or cache.device != self.device
+        ):
+            with torch.no_grad():
+                cache = self.deform.precompute(g.features.to(self.device), g.means.to(self.device))
+            avatar.deform_cache, avatar.deform_cache_owner = cache, id(self.deform)
+        return cache
+
+    @torch.no_grad()
+    def animate(self, avatar: CanonicalAvatar, expression: Any, bf16: bool = False) -> Gaussians | list[Gaussians]:
+        """Deform the avatar to ``expression [E]`` (-> ``Gaussians``) or ``[B, E]`` (-> ``list[Gaussians]``).
+
+        Uses the split first layer (cached on the avatar). ``bf16=True`` runs the per-frame layers under
+        CPU/CUDA bf16 autocast (outputs are float32).
+        """
+        if avatar.expression_space != self.config.expression_space:
+            raise ValueError(
+                f"avatar uses expression space {avatar.expression_space!r} but model {self.config.name!r} "
+                f"uses {self.config.expression_space!r}"
+            )
+        if avatar.gaussians.num_features != self.config.gaussians.feature_dim:
+            raise ValueError(
+                f"avatar has {avatar.gaussians.num_features} features per Gaussian, model expects {self.config.gaussians.feature_dim}"
+            )
+        dev = self.device
+        z = torch.as_tensor(expression, dtype=torch.float32).to(dev)
+        e = self.config.expression_dim
+        if z.ndim not in (1, 2) or z.shape[-1] != e:
+            raise ValueError(f"expression must have shape [{e}] or [B, {e}] for space {self.config.expression_space!r}, got {list(z.shape)}")
+        partial = self._deform_partial(avatar)
+        ctx = torch.autocast(device_type=dev.type, dtype=torch.bfloat16) if bf16 else nullcontext()
+        with ctx:
+            dxyz, drgb = self.deform.forward_split(partial, z)
+        dxyz, drgb = dxyz.float(), drgb.float()
+        g = avatar.gaussians.to(dev)
+        if z.ndim == 1:
+            return _apply_deformation(g, dxyz, drgb)
+        return [_apply_deformation(g, a, c) for a, c in zip(dxyz, drgb)]
+
+
+def load_model(
+    name_or_dir: str | Path = "tiny",
+    device: Any = "cpu",
+    dino_weights: str | Path | None = None,
+    vae_weights: str | Path | None = None,
+) -> FastGHA:
+    """Load a model in eval mode.
+
+    Args:
+        name_or_dir: a preset name (``"tiny"``, ``"paper"``) -- its shipped weights from
+            ``fastgha_core/assets/models/<name>/`` when present, else a randomly initialised model
+            (with a warning) -- or a folder written by ``save_pretrained``.
+        device: torch device.
+        dino_weights / vae_weights: optional local pretrained encoder folders (then frozen).
+    """
+    name = str(name_or_dir)
+    if name in PRESETS:
+        folder = ASSET_MODELS_DIR / name
+        if (folder / CONFIG_NAME).is_file() and (folder / WEIGHTS_NAME).is_file():
+            model = FastGHA.from_pretrained(folder)
+        else:
+            log.warning("no shipped weights for model %r in %s: using a randomly initialised model", name, folder)
+            model = FastGHA(get_preset(name))
+    elif Path(name).is_dir():
+        model = FastGHA.from_pretrained(name)
+    else:
+        raise ValueError(f"unknown model {name!r}: expected a preset name {sorted(PRESETS)} or a folder written by save_pretrained")
+    if dino_weights is not None or vae_weights is not None:
+        model.load_pretrained_encoders(dino_weights, vae_weights)
+    return model.to(device).eval()

@@ -1,0 +1,145 @@
+"""Gaussian head: raw decoder maps -> activated, unprojected, fused ``Gaussians``.
+
+This is the one place where raw channels are sliced (``GaussianLayout``). Per pixel of each view's
+map ``[12+F, H, W]``:
+
+- depth 1: distance along the pixel's ray, ``t = |c| + depth_range * tanh(raw)`` where ``|c|`` is the
+  camera's distance to the world origin (the head centre). Zero raw output puts the point on the
+  sphere around the camera through the origin, and the parameterisation works for any camera
+  distance. The Gaussian centre is ``origin + t * direction`` (``Cameras.pixel_rays``).
+- rgb 3: sigmoid.
+- quat 4: wxyz in the *camera* frame, ``normalize(raw + (1, 0, 0, 0))`` (identity at zero), rotated to
+  world by the camera-to-world rotation.
+- scale 3: bounded exp in units of the pixel footprint at that depth,
+  ``footprint * exp(log(min) + (log(max) - log(min)) * sigmoid(raw))`` with
+  ``footprint = t / f`` (metres per map pixel, ``f`` the mean focal length of the map's camera).
+- opacity 1: sigmoid.
+- feature F: raw (the deformation MLP's input).
+
+All views of a sample are concatenated into one set of ``V*H*W`` Gaussians.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..cameras import Cameras
+from ..config import GaussianHeadConfig
+from ..gaussians import Gaussians
+
+__all__ = ["GaussianLayout", "GaussianHead", "matrix_to_quaternion", "quaternion_multiply"]
+
+
+@dataclass(frozen=True)
+class GaussianLayout:
+    """Channel slices of the raw Gaussian maps: depth 1 + rgb 3 + quat 4 + scale 3 + opacity 1 + feature F."""
+
+    feature_dim: int = 32
+
+    depth = slice(0, 1)
+    rgb = slice(1, 4)
+    quat = slice(4, 8)
+    scale = slice(8, 11)
+    opacity = slice(11, 12)
+
+    @property
+    def feature(self) -> slice:
+        return slice(12, 12 + self.feature_dim)
+
+    @property
+    def channels(self) -> int:
+        return 12 + self.feature_dim
+
+
+def quaternion_multiply(a: Tensor, b: Tensor) -> Tensor:
+    """Hamilton product of wxyz quaternions ``[..., 4]`` (rotation ``a`` after ``b``)."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        dim=-1,
+    )
+
+
+def matrix_to_quaternion(R: Tensor) -> Tensor:
+    """Rotation matrices ``[..., 3, 3]`` -> unit wxyz quaternions ``[..., 4]`` (w >= 0)."""
+    m = R
+    tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
+    # Four candidate solutions; pick the numerically best per matrix (largest denominator).
+    cands = torch.stack(
+        [
+            torch.stack([1 + tr, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], -1),
+            torch.stack([m[..., 2, 1] - m[..., 1, 2], 1 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2], m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
+            torch.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0], 1 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2], m[..., 1, 2] + m[..., 2, 1]], -1),
+            torch.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1], 1 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2]], -1),
+        ],
+        dim=-2,
+    )  # [..., 4, 4]
+    diag = torch.stack([1 + tr, 1 + m[..., 0, 0] - m[..., 1, 1] - m[..., 2, 2], 1 - m[..., 0, 0] + m[..., 1, 1] - m[..., 2, 2], 1 - m[..., 0, 0] - m[..., 1, 1] + m[..., 2, 2]], -1)
+    best = diag.argmax(-1)  # [...]
+    q = torch.gather(cands, -2, best[..., None, None].expand(*best.shape, 1, 4)).squeeze(-2)
+    q = q / q.norm(dim=-1, keepdim=True)
+    return torch.where(q[..., :1] < 0, -q, q)
+
+
+class GaussianHead:
+    """Stateless: ``GaussianHead(cfg)(maps [B, V, 12+F, H, W], cameras [B, V]) -> list[Gaussians]``."""
+
+    def __init__(self, cfg: GaussianHeadConfig):
+        self.cfg = cfg
+        self.layout = GaussianLayout(cfg.feature_dim)
+
+    def __call__(self, maps: Tensor, cameras: Cameras) -> list[Gaussians]:
+        """Raw maps ``[B, V, 12+F, H, W]`` (any float dtype) -> float32 Gaussians, computed without autocast."""
+        with torch.autocast(device_type=maps.device.type, enabled=False):
+            return self._activate(maps.float(), cameras)
+
+    def _activate(self, maps: Tensor, cameras: Cameras) -> list[Gaussians]:
+        lay = self.layout
+        if maps.ndim != 5 or maps.shape[2] != lay.channels:
+            raise ValueError(f"GaussianHead: maps must have shape [B, V, {lay.channels}, H, W], got {list(maps.shape)}")
+        b, v, _, h, w = maps.shape
+        if tuple(cameras.batch_shape) != (b, v):
+            raise ValueError(f"GaussianHead: cameras must have batch shape [{b}, {v}], got {list(cameras.batch_shape)}")
+        cams = cameras.to(dtype=maps.dtype)
+        x = maps.permute(0, 1, 3, 4, 2)  # [B, V, H, W, C]
+        origins, dirs = cams.pixel_rays(h, w)  # [B, V, H, W, 3] each
+        dist = cams.centers.norm(dim=-1)[..., None, None, None]  # [B, V, 1, 1, 1]
+        t = dist + self.cfg.depth_range * torch.tanh(x[..., lay.depth])  # [B, V, H, W, 1]
+        means = origins + t * dirs  # [B, V, H, W, 3]
+
+        focal = cams.resize(w, h).K[..., [0, 1], [0, 1]].mean(-1)[..., None, None, None]  # [B, V, 1, 1, 1]
+        lo, hi = math.log(self.cfg.min_scale_px), math.log(self.cfg.max_scale_px)
+        scales = (t / focal) * torch.exp(lo + (hi - lo) * torch.sigmoid(x[..., lay.scale]))  # [B, V, H, W, 3]
+
+        q_cam = x[..., lay.quat] + x.new_tensor([1.0, 0.0, 0.0, 0.0])
+        q_cam = F.normalize(q_cam, dim=-1, eps=1e-8)  # [B, V, H, W, 4]
+        q_c2w = matrix_to_quaternion(cams.c2w[..., :3, :3])[..., None, None, :]  # [B, V, 1, 1, 4]
+        quats = F.normalize(quaternion_multiply(q_c2w.expand_as(q_cam), q_cam), dim=-1)
+
+        colors = torch.sigmoid(x[..., lay.rgb])
+        opac = torch.sigmoid(x[..., lay.opacity])[..., 0]  # [B, V, H, W]
+        feats = x[..., lay.feature]
+        out = []
+        for i in range(b):
+            out.append(
+                Gaussians(
+                    means=means[i].reshape(-1, 3),  # [V*H*W, 3]
+                    quats=quats[i].reshape(-1, 4),
+                    scales=scales[i].reshape(-1, 3),
+                    opacities=opac[i].reshape(-1),
+                    colors=colors[i].reshape(-1, 3),
+                    features=feats[i].reshape(-1, lay.feature_dim),
+                )
+            )
+        return out

@@ -1,0 +1,80 @@
+"""`fastgha reconstruct` and `fastgha animate` end to end with a toy model folder."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from fastgha_core.cameras import cameras_to_json, orbit_cameras
+from fastgha_core.cli import main
+from fastgha_core.config import DecoderConfig, DeformConfig, DinoConfig, FastGHAConfig, GaussianHeadConfig, TransformerConfig, VAEConfig
+from fastgha_core.model.avatar import CanonicalAvatar
+from fastgha_core.model.fastgha import FastGHA
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory):
+    cfg = FastGHAConfig(
+        name="toy", expression_space="ict53", expression_dim=53, input_size=32, render_size=32,
+        dino=DinoConfig(hidden_size=32, num_layers=2, num_heads=2, intermediate_size=64, feature_layers=(1, 2), out_channels=8, frozen=False),
+        vae=VAEConfig(block_out_channels=(8, 8, 8, 8), layers_per_block=1, norm_num_groups=4, frozen=False),
+        transformer=TransformerConfig(hidden_size=32, num_layers=1, num_heads=2),
+        decoder=DecoderConfig(block_out_channels=(8, 8, 8, 8), layers_per_block=1, norm_num_groups=4),
+        gaussians=GaussianHeadConfig(feature_dim=8, prune_opacity=0.2),
+        deform=DeformConfig(hidden_size=16, num_layers=2, pe_freqs=2),
+    )
+    torch.manual_seed(0)
+    folder = tmp_path_factory.mktemp("model") / "toy"
+    FastGHA(cfg).save_pretrained(folder)
+    return folder
+
+
+def _request(folder, masks: bool):
+    folder.mkdir()
+    cams = orbit_cameras(3, width=40, height=36)
+    rng = np.random.default_rng(0)
+    for i in range(3):
+        Image.fromarray(rng.integers(0, 255, (36, 40, 3), dtype=np.uint8)).save(folder / f"view{i}.png")
+        if masks:
+            Image.fromarray(np.full((36, 40), 255, np.uint8)).save(folder / f"view{i}_mask.png")
+    (folder / "cameras.json").write_text(json.dumps(cameras_to_json(cams)))
+    return folder
+
+
+def test_reconstruct_then_animate(tmp_path, model_dir, capsys):
+    req = _request(tmp_path / "req", masks=True)
+    out, ply = tmp_path / "avatar.safetensors", tmp_path / "avatar.ply"
+    assert main(["reconstruct", "--input", str(req), "--model", str(model_dir), "--out", str(out), "--ply", str(ply)]) == 0
+    printed = capsys.readouterr().out
+    avatar = CanonicalAvatar.load(out)
+    assert f"reconstructed {len(avatar)} Gaussians from 3 views" in printed and " ms " in printed
+    assert 0 < len(avatar) <= 3 * 32 * 32 and ply.exists()
+
+    np.save(tmp_path / "seq.npy", np.random.default_rng(1).random((3, 53)).astype(np.float32))
+    frames = tmp_path / "frames"
+    args = ["animate", "--avatar", str(out), "--model", str(model_dir), "--expressions", str(tmp_path / "seq.npy"), "--size", "24"]
+    assert main(args + ["--out", str(frames)]) == 0
+    pngs = sorted(frames.glob("*.png"))
+    assert len(pngs) == 3 and Image.open(pngs[0]).size == (24, 24)
+
+    (tmp_path / "seq.json").write_text(json.dumps([{"jawOpen": 0.5}, {"eyeBlink_L": 1.0}]))
+    (tmp_path / "cams.json").write_text(json.dumps(cameras_to_json(orbit_cameras(1, width=64, height=64))))
+    video = tmp_path / "out.mp4"
+    args = ["animate", "--avatar", str(out), "--model", str(model_dir), "--expressions", str(tmp_path / "seq.json"),
+            "--cameras", str(tmp_path / "cams.json"), "--size", "32", "--out", str(video)]
+    assert main(args) == 0
+    import imageio.v3 as iio
+
+    assert iio.imread(video, index=None).shape[0] == 2  # two frames
+
+
+def test_cli_errors_are_one_line(tmp_path, model_dir, capsys):
+    req = _request(tmp_path / "req", masks=False)
+    (req / "view0_mask.png").write_bytes((req / "view0.png").read_bytes())  # a mask for one image only
+    assert main(["reconstruct", "--input", str(req), "--model", str(model_dir), "--out", str(tmp_path / "a.safetensors")]) == 2
+    assert "missing masks" in capsys.readouterr().err
+    assert main(["reconstruct", "--input", str(tmp_path / "nope"), "--out", str(tmp_path / "a.safetensors")]) == 2

@@ -1,0 +1,110 @@
+"""The deformation MLP: identity at initialisation, and the real-time split == the plain MLP."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch.testing import assert_close
+
+from fastgha_core.config import DeformConfig
+from fastgha_core.model.deform import DeformationMLP, positional_encoding
+
+F_DIM, E_DIM, N = 8, 11, 300
+
+
+def _mlp(seed: int = 0, randomise_out: bool = True) -> DeformationMLP:
+    torch.manual_seed(seed)
+    mlp = DeformationMLP(F_DIM, E_DIM, DeformConfig(hidden_size=24, num_layers=3, pe_freqs=3))
+    if randomise_out:
+        torch.nn.init.normal_(mlp.out.weight, std=0.2)
+        torch.nn.init.normal_(mlp.out.bias, std=0.2)
+    return mlp
+
+
+def _inputs(seed: int = 1):
+    g = torch.Generator().manual_seed(seed)
+    return torch.randn(N, F_DIM, generator=g), torch.rand(N, 3, generator=g) * 0.3 - 0.15, g
+
+
+def test_identity_at_initialisation():
+    mlp = _mlp(randomise_out=False)
+    feats, xyz, g = _inputs()
+    for expr in (torch.randn(E_DIM, generator=g), torch.randn(4, E_DIM, generator=g)):
+        dxyz, drgb = mlp(feats, xyz, expr)
+        assert torch.equal(dxyz, torch.zeros_like(dxyz)) and torch.equal(drgb, torch.zeros_like(drgb))
+        assert dxyz.shape == (*expr.shape[:-1], N, 3)
+
+
+def test_positional_encoding_values():
+    xyz = torch.tensor([[0.1, -0.2, 0.05]])
+    pe = positional_encoding(xyz, 2, 4.0)
+    x = xyz * 4.0
+    expect = torch.cat([x, torch.sin(x * math.pi), torch.sin(x * 2 * math.pi), torch.cos(x * math.pi), torch.cos(x * 2 * math.pi)], -1)
+    # layout: [x (3), sin (3 coords x 2 freqs, coordinate-major), cos (same)]
+    order = [0, 1, 2, 3, 6, 4, 7, 5, 8, 9, 12, 10, 13, 11, 14]
+    assert_close(pe, expect[:, order])
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_split_equals_plain_outputs_and_gradients(batched):
+    mlp = _mlp()
+    feats, xyz, g = _inputs()
+    expr = torch.randn(3, E_DIM, generator=g) if batched else torch.randn(E_DIM, generator=g)
+    w = torch.randn(*expr.shape[:-1], N, 6, generator=g)
+
+    def run(split: bool):
+        mlp.zero_grad()
+        f, x, z = feats.clone().requires_grad_(), xyz.clone().requires_grad_(), expr.clone().requires_grad_()
+        if split:
+            dxyz, drgb = mlp.forward_split(mlp.precompute(f, x), z)
+        else:
+            dxyz, drgb = mlp(f, x, z)
+        (torch.cat([dxyz, drgb], -1) * w).sum().backward()
+        grads = {n: p.grad.clone() for n, p in mlp.named_parameters()}
+        return dxyz, drgb, f.grad, x.grad, z.grad, grads
+
+    plain, split = run(False), run(True)
+    for a, b in zip(plain[:5], split[:5]):
+        assert_close(b, a)
+    for name in plain[5]:
+        assert_close(split[5][name], plain[5][name], msg=name)
+    assert plain[0].abs().max() > 0
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_chunked_inference_split_equals_plain(batched):
+    mlp = _mlp()
+    feats, xyz, g = _inputs()
+    expr = torch.randn(2, E_DIM, generator=g) if batched else torch.randn(E_DIM, generator=g)
+    with torch.no_grad():
+        ref = mlp(feats, xyz, expr)
+        got = mlp.forward_split(mlp.precompute(feats, xyz), expr, chunk_size=64)  # N=300: 5 chunks, ragged last
+    for a, b in zip(ref, got):
+        assert_close(b, a)
+
+
+def test_bf16_autocast_is_close_to_fp32():
+    mlp = _mlp()
+    feats, xyz, g = _inputs()
+    expr = torch.randn(E_DIM, generator=g)
+    with torch.no_grad():
+        partial = mlp.precompute(feats, xyz)
+        ref = mlp.forward_split(partial, expr)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            low = mlp.forward_split(partial, expr)
+    for a, b in zip(ref, low):
+        scale = a.abs().max()
+        assert (b.float() - a).abs().max() <= 0.03 * scale
+
+
+def test_shape_errors():
+    mlp = _mlp()
+    feats, xyz, _ = _inputs()
+    with pytest.raises(ValueError, match=r"expression must have shape \[11\]"):
+        mlp(feats, xyz, torch.zeros(12))
+    with pytest.raises(ValueError, match=r"features must have shape \[N, 8\]"):
+        mlp(feats[:, :4], xyz, torch.zeros(11))
+    with pytest.raises(ValueError, match=r"partial must have shape \[N, 24\]"):
+        mlp.forward_split(torch.zeros(N, 5), torch.zeros(11))
