@@ -1,0 +1,92 @@
+"""Build the pieces of a training or evaluation run from command-line style specs:
+the model (preset, config file or pretrained folder, with optional pretrained encoders) and the
+datasets (``synthetic`` / ``synthetic-heldout`` or an on-disk layout folder)."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import torch
+
+from .trainer import TrainConfig
+
+__all__ = ["build_model", "build_training_data", "build_eval_sources", "model_config_from_spec"]
+
+log = logging.getLogger(__name__)
+
+
+def model_config_from_spec(spec: str):
+    """A ``FastGHAConfig`` from a preset name or a JSON file (a config.json of a model folder works)."""
+    from ..config import PRESETS, FastGHAConfig, get_preset
+
+    if spec in PRESETS:
+        return get_preset(spec)
+    path = Path(spec)
+    if path.is_dir():
+        path = path / "config.json"
+    if not path.is_file():
+        raise ValueError(f"model must be one of {sorted(PRESETS)} or a FastGHAConfig JSON file, got {spec!r} (no such file)")
+    return FastGHAConfig.from_dict(json.loads(path.read_text()))
+
+
+def build_model(cfg: TrainConfig, dino_weights: str | None = None, vae_weights: str | None = None, init_from: str | None = None):
+    """A fresh ``FastGHA`` (seeded with ``cfg.seed`` so that every DDP rank builds the same one), or
+    the model in ``init_from``; pretrained encoder folders are loaded when given."""
+    from ..model.fastgha import FastGHA
+
+    if init_from:
+        model = FastGHA.from_pretrained(init_from)
+        log.info("initialised from %s (model config %r)", init_from, model.config.name)
+    else:
+        torch.manual_seed(cfg.seed)
+        model = FastGHA(model_config_from_spec(cfg.model))
+    if dino_weights or vae_weights:
+        model.load_pretrained_encoders(dino_weights=dino_weights, vae_weights=vae_weights)
+    model.train()
+    return model
+
+
+def build_training_data(data: str, cfg: TrainConfig, model_config):
+    """``(train_dataset, val_dataset, shuffle)`` for ``--data synthetic`` or an on-disk layout folder.
+    Synthetic samples are read in index order (``shuffle=False``): the dataset is already in random
+    subject order and caches the subject that consecutive indices share."""
+    from ..data import sampling
+
+    if data == "synthetic":
+        from ..data.synthetic import HELDOUT_SEEDS, TRAIN_SEEDS
+
+        res = cfg.synthetic_resolution or int(model_config.render_size)
+        kw = dict(resolution=res, num_inputs=cfg.num_inputs, num_targets=cfg.num_targets, timesteps=cfg.synthetic_timesteps, num_cameras=cfg.synthetic_cameras)
+        train = sampling.SyntheticTrainingDataset(TRAIN_SEEDS, seed=cfg.seed, **kw)
+        val = sampling.SyntheticTrainingDataset(HELDOUT_SEEDS, seed=cfg.seed + 1, **kw)
+        return train, val, False
+    from ..data.layout import open_dataset
+
+    root = Path(data)
+    if not root.is_dir():
+        raise ValueError(f"--data must be 'synthetic' or a dataset folder (docs/data-format.md), got {data!r} (no such folder)")
+    sources = open_dataset(root)
+    if not sources:
+        raise ValueError(f"{root}: no sequences found")
+    res = int(model_config.render_size)
+    train = sampling.TrainingDataset(sources, num_inputs=cfg.num_inputs, num_targets=cfg.num_targets, seed=cfg.seed, resolution=res)
+    val = sampling.TrainingDataset(sources, num_inputs=cfg.num_inputs, num_targets=cfg.num_targets, seed=cfg.seed + 1, resolution=res)
+    return train, val, True
+
+
+def build_eval_sources(data: str, subjects: int | None, resolution: int, timesteps: int = 16, num_cameras: int = 16) -> list:
+    """Held-out ``SequenceSource`` objects: ``synthetic-heldout`` or a dataset folder."""
+    if data in ("synthetic-heldout", "synthetic"):
+        from ..data.synthetic import HELDOUT_SEEDS, make_sequence
+
+        seeds = list(HELDOUT_SEEDS)[: subjects or 4]
+        return [make_sequence(s, timesteps=timesteps, num_cameras=num_cameras, resolution=resolution) for s in seeds]
+    from ..data.layout import open_dataset
+
+    root = Path(data)
+    if not root.is_dir():
+        raise ValueError(f"--data must be 'synthetic-heldout' or a dataset folder, got {data!r} (no such folder)")
+    sources = open_dataset(root)
+    return sources[:subjects] if subjects else sources

@@ -1,0 +1,154 @@
+"""The paper's training loss (§3.3):
+
+    L = L_RGB + λ_SSIM L_SSIM + λ_perc L_perc + λ_sil L_sil + λ_geo L_geo
+
+- ``L_RGB``  L1 between rendered and ground-truth images (both over ``BACKGROUND_RGB``);
+- ``L_SSIM`` 1 - SSIM (kornia, Gaussian window 11, σ 1.5);
+- ``L_perc`` L1 between VGG16 features (relu1_2 .. relu5_3, each layer's mean |Δ| averaged) of
+  the two images; off when no VGG16 weights file is given (logged once, when the loss is built);
+- ``L_sil``  L1 between the rendered alpha and the ground-truth mask;
+- ``L_geo``  L1 between the rendered expected depth and the depth prior, over pixels where the prior
+  is > 0 and the ground-truth mask is > 0.5.
+
+Default weights are the paper's: λ_SSIM 1, λ_perc 0.5, λ_sil 1, λ_geo 0.5.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from .vgg import LPIPS_LAYERS, VGG16Features
+
+__all__ = [
+    "LossConfig",
+    "FastGHALoss",
+    "l1_loss",
+    "ssim_loss",
+    "silhouette_loss",
+    "geometry_loss",
+    "perceptual_loss",
+    "LOSS_TERMS",
+]
+
+log = logging.getLogger(__name__)
+
+LOSS_TERMS = ("rgb", "ssim", "perc", "sil", "geo")
+
+
+@dataclass
+class LossConfig:
+    """Weights of the loss terms (paper §3.3) and their options."""
+
+    w_rgb: float = 1.0  # L1 on RGB
+    w_ssim: float = 1.0  # λ_SSIM (applied to 1 - SSIM)
+    w_perc: float = 0.5  # λ_perc (VGG16 perceptual; 0 when no weights are given)
+    w_sil: float = 1.0  # λ_sil (alpha vs mask)
+    w_geo: float = 0.5  # λ_geo (expected depth vs depth prior)
+    ssim_window: int = 11  # Gaussian window of SSIM (σ = 1.5 as in Wang et al.)
+    perc_layers: tuple[int, ...] = LPIPS_LAYERS  # VGG16 ``features`` indices used by L_perc
+    perc_max_size: int = 256  # images larger than this are downsampled before VGG (cost); 0 = never
+    geo_mask_threshold: float = 0.5  # ground-truth mask value above which the depth prior counts
+
+
+def _check_pair(name: str, a: Tensor, b: Tensor, channels: int | None = None) -> None:
+    if a.shape != b.shape or a.ndim != 4 or (channels is not None and a.shape[1] != channels):
+        want = f"[N, {channels}, H, W]" if channels else "[N, C, H, W]"
+        raise ValueError(f"{name}: expected two tensors {want} of one shape, got {list(a.shape)} and {list(b.shape)}")
+
+
+def l1_loss(pred: Tensor, target: Tensor) -> Tensor:
+    """Mean absolute error, ``[N, C, H, W]`` x2 -> scalar."""
+    _check_pair("l1_loss", pred, target)
+    return (pred - target).abs().mean()
+
+
+def ssim_loss(pred: Tensor, target: Tensor, window: int = 11) -> Tensor:
+    """``1 - mean SSIM`` of ``[N, 3, H, W]`` images in [0, 1] (kornia, 'same' padding)."""
+    from kornia.metrics import ssim
+
+    _check_pair("ssim_loss", pred, target)
+    return 1.0 - ssim(pred, target, window, max_val=1.0, padding="same").mean()
+
+
+def silhouette_loss(alpha: Tensor, mask: Tensor) -> Tensor:
+    """L1 between rendered alpha ``[N, 1, H, W]`` and the ground-truth mask ``[N, 1, H, W]``."""
+    _check_pair("silhouette_loss", alpha, mask, channels=1)
+    return (alpha - mask).abs().mean()
+
+
+def geometry_loss(depth: Tensor, prior: Tensor, mask: Tensor | None = None, mask_threshold: float = 0.5) -> Tensor:
+    """Masked L1 between rendered expected depth ``[N, 1, H, W]`` and the depth prior ``[N, 1, H, W]``.
+
+    Pixels count where ``prior > 0`` (and ``mask > mask_threshold`` when a mask is given). With no
+    valid pixel the loss is an exact zero that still belongs to the graph.
+    """
+    _check_pair("geometry_loss", depth, prior, channels=1)
+    valid = prior > 0
+    if mask is not None:
+        _check_pair("geometry_loss (mask)", depth, mask, channels=1)
+        valid = valid & (mask > mask_threshold)
+    n = valid.sum()
+    if int(n) == 0:
+        return depth.sum() * 0.0
+    diff = (depth - prior).abs() * valid.to(depth.dtype)
+    return diff.sum() / n.to(depth.dtype)
+
+
+def perceptual_loss(vgg: VGG16Features, pred: Tensor, target: Tensor, layers=LPIPS_LAYERS, max_size: int = 0) -> Tensor:
+    """Mean over ``layers`` of the mean |Δ| between VGG16 features of ``pred`` and ``target``."""
+    _check_pair("perceptual_loss", pred, target, channels=3)
+    if max_size and max(pred.shape[-2:]) > max_size:
+        s = max_size / max(pred.shape[-2:])
+        size = (max(1, round(pred.shape[-2] * s)), max(1, round(pred.shape[-1] * s)))
+        pred = torch.nn.functional.interpolate(pred, size=size, mode="bilinear", antialias=True, align_corners=False)
+        target = torch.nn.functional.interpolate(target, size=size, mode="bilinear", antialias=True, align_corners=False)
+    f_pred = vgg(pred, layers)
+    with torch.no_grad():
+        f_tgt = vgg(target, layers)
+    return torch.stack([(a - b).abs().mean() for a, b in zip(f_pred, f_tgt)]).mean()
+
+
+class FastGHALoss(nn.Module):
+    """The weighted sum of the paper's terms.
+
+    ``forward(rgb, alpha, depth, target_rgb, target_mask, target_depth)`` with ``[N, 3|1, H, W]``
+    tensors returns ``{"rgb", "ssim", "perc", "sil", "geo", "total"}`` (scalars; ``perc`` is 0
+    when it is off). Terms with weight 0 are not computed.
+    """
+
+    def __init__(self, config: LossConfig | None = None, vgg: VGG16Features | None = None) -> None:
+        super().__init__()
+        self.config = config or LossConfig()
+        self.vgg = vgg
+        if vgg is None and self.config.w_perc > 0:
+            log.warning("perceptual loss is off: no VGG16 weights file was given (--vgg-weights); λ_perc=%g ignored", self.config.w_perc)
+
+    @property
+    def perceptual_enabled(self) -> bool:
+        return self.vgg is not None and self.config.w_perc > 0
+
+    def forward(
+        self,
+        rgb: Tensor,  # [N, 3, H, W] rendered over the background
+        alpha: Tensor,  # [N, 1, H, W]
+        depth: Tensor,  # [N, 1, H, W] expected depth
+        target_rgb: Tensor,  # [N, 3, H, W]
+        target_mask: Tensor,  # [N, 1, H, W]
+        target_depth: Tensor,  # [N, 1, H, W] depth prior, 0 = no value
+    ) -> dict[str, Tensor]:
+        c = self.config
+        _check_pair("FastGHALoss rgb", rgb, target_rgb, channels=3)
+        zero = rgb.sum() * 0.0
+        terms: dict[str, Tensor] = {}
+        terms["rgb"] = l1_loss(rgb, target_rgb) if c.w_rgb else zero
+        terms["ssim"] = ssim_loss(rgb, target_rgb, c.ssim_window) if c.w_ssim else zero
+        terms["perc"] = perceptual_loss(self.vgg, rgb, target_rgb, c.perc_layers, c.perc_max_size) if self.perceptual_enabled else zero
+        terms["sil"] = silhouette_loss(alpha, target_mask) if c.w_sil else zero
+        terms["geo"] = geometry_loss(depth, target_depth, target_mask, c.geo_mask_threshold) if c.w_geo else zero
+        weights = {"rgb": c.w_rgb, "ssim": c.w_ssim, "perc": c.w_perc if self.perceptual_enabled else 0.0, "sil": c.w_sil, "geo": c.w_geo}
+        terms["total"] = sum(weights[k] * terms[k] for k in LOSS_TERMS)
+        return terms

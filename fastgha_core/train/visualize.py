@@ -1,0 +1,53 @@
+"""Image grids for validation renders and the evaluation comparison figure."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = ["make_grid", "save_grid", "error_map"]
+
+
+def error_map(pred: Tensor, target: Tensor, max_err: float = 0.25) -> Tensor:
+    """``[3, H, W]`` x2 -> ``[3, H, W]`` heat map of the mean absolute error (black 0, yellow >= max_err)."""
+    e = ((pred - target).abs().mean(0) / max_err).clamp(0, 1)  # [H, W]
+    return torch.stack([(e * 2).clamp(0, 1), (e * 2 - 1).clamp(0, 1) * 0.9 + 0.1 * e, torch.zeros_like(e)])
+
+
+def make_grid(rows: Sequence[Sequence[Tensor | None]], pad: int = 2, fill: float = 1.0) -> np.ndarray:
+    """Rows of ``[3, H, W]`` images in [0, 1] (None = empty cell) -> ``[H', W', 3]`` uint8; every cell
+    has the size of the largest image, smaller ones are centred."""
+    cells = [t for r in rows for t in r if t is not None]
+    if not cells:
+        raise ValueError("make_grid needs at least one image")
+    ch = max(int(t.shape[-2]) for t in cells)
+    cw = max(int(t.shape[-1]) for t in cells)
+    ncol = max(len(r) for r in rows)
+    H = len(rows) * (ch + pad) + pad
+    W = ncol * (cw + pad) + pad
+    out = torch.full((3, H, W), fill)
+    for i, r in enumerate(rows):
+        for j, t in enumerate(r):
+            if t is None:
+                continue
+            t = t.detach().float().cpu().clamp(0, 1)
+            if t.shape[0] == 1:
+                t = t.expand(3, -1, -1)
+            h, w = t.shape[-2:]
+            y = pad + i * (ch + pad) + (ch - h) // 2
+            x = pad + j * (cw + pad) + (cw - w) // 2
+            out[:, y : y + h, x : x + w] = t
+    return (out.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
+
+
+def save_grid(path: str | Path, rows: Sequence[Sequence[Tensor | None]], pad: int = 2) -> Path:
+    from PIL import Image
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(make_grid(rows, pad=pad)).save(path)
+    return path
