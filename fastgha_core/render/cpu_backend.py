@@ -1,0 +1,132 @@
+"""CPU backend: torch projection (autograd) + numba tile compositing (a torch.autograd.Function).
+
+Threads: numba uses ``FASTGHA_NUMBA_THREADS`` threads when that environment variable is set,
+else as many as torch (``torch.get_num_threads()``), capped by numba's pool size. The setting
+is applied per call (``numba.set_num_threads`` is thread-local), never at import.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numba
+import numpy as np
+import torch
+from torch import Tensor
+
+from . import cpu_kernels as _K
+from .projection import EPS2D, NEAR_PLANE, TILE_SIZE, Projected, tile_rects
+
+__all__ = ["num_threads", "project_cpu", "bin_tiles_cpu", "rasterize_cpu"]
+
+
+def num_threads() -> int:
+    """numba threads used by the CPU rasterizer (see the module docstring)."""
+    env = os.environ.get("FASTGHA_NUMBA_THREADS")
+    if env:
+        try:
+            n = int(env)
+        except ValueError:
+            raise ValueError(f"FASTGHA_NUMBA_THREADS must be a positive integer, got {env!r}") from None
+    else:
+        n = torch.get_num_threads()
+    return max(1, min(n, numba.config.NUMBA_NUM_THREADS))
+
+
+def _np(t: Tensor) -> np.ndarray:
+    return t.detach().contiguous().numpy()
+
+
+def project_cpu(
+    means: Tensor,  # [N, 3]
+    quats: Tensor,  # [N, 4]
+    scales: Tensor,  # [N, 3]
+    K: Tensor,  # [C, 3, 3]
+    w2c: Tensor,  # [C, 4, 4]
+    width: int,
+    height: int,
+) -> tuple[Projected, Tensor]:
+    """``projection.project_gaussians`` + ``tile_rects`` in one numba pass, without gradients.
+
+    Returns the projection and the tile rects ``[C, N, 4]``.
+    """
+    C, N = K.shape[0], means.shape[0]
+    dtype = means.dtype
+    m2d = torch.empty(C, N, 2, dtype=dtype)
+    conic = torch.empty(C, N, 3, dtype=dtype)
+    depth = torch.empty(C, N, dtype=dtype)
+    radii = torch.empty(C, N, dtype=torch.int32)
+    rects = torch.empty(C, N, 4, dtype=torch.int64)
+    _K.project_forward(
+        _np(means), _np(quats), _np(scales), _np(K).astype("float64"), _np(w2c).astype("float64"),
+        width, height, NEAR_PLANE, EPS2D, m2d.numpy(), conic.numpy(), depth.numpy(), radii.numpy(), rects.numpy(),
+    )
+    return Projected(m2d, conic, depth, radii), rects
+
+
+def bin_tiles_cpu(proj: Projected, width: int, height: int, rects: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Sorted (splat, tile) intersections: ``offsets [C*TH*TW + 1]`` int64, ``ids [M]`` int32."""
+    tw = (width + TILE_SIZE - 1) // TILE_SIZE
+    th = (height + TILE_SIZE - 1) // TILE_SIZE
+    if rects is None:
+        rects = tile_rects(proj.means2d, proj.radii, width, height)  # [C, N, 4]
+    order = torch.sort(proj.depths.detach(), dim=1, stable=True).indices  # [C, N] (depth, index) order
+    offsets, ids = _K.bin_tiles(_np(rects), order.numpy(), th * tw, tw, numba.get_num_threads())
+    return torch.from_numpy(offsets), torch.from_numpy(ids)
+
+
+class _RasterizeCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, values, offsets, ids, width, height):  # type: ignore[override]
+        C, N, D = values.shape
+        tw = (width + TILE_SIZE - 1) // TILE_SIZE
+        dtype = values.dtype
+        acc = np.empty((C, height, width, D), dtype=np.dtype(str(dtype).removeprefix("torch.")))
+        T = np.empty((C, height, width), dtype=acc.dtype)
+        ncon = np.empty((C, height, width), dtype=np.int32)
+        m2, co, op, va = _np(means2d), _np(conics), _np(opacities), _np(values)
+        _K.raster_forward(m2, co, op, va, offsets.numpy(), ids.numpy(), width, height, tw, acc, T, ncon)
+        T_t, ncon_t = torch.from_numpy(T), torch.from_numpy(ncon)
+        ctx.save_for_backward(means2d, conics, opacities, values, offsets, ids, T_t, ncon_t)
+        ctx.size = (width, height)
+        ctx.mark_non_differentiable(T_t)
+        return torch.from_numpy(acc), 1.0 - T_t
+
+    @staticmethod
+    def backward(ctx, g_acc, g_alpha):  # type: ignore[override]
+        means2d, conics, opacities, values, offsets, ids, T, ncon = ctx.saved_tensors
+        width, height = ctx.size
+        C, N, D = values.shape
+        tw = (width + TILE_SIZE - 1) // TILE_SIZE
+        if g_acc is None:
+            g_acc = torch.zeros(C, height, width, D, dtype=values.dtype)
+        if g_alpha is None:
+            g_alpha = torch.zeros(C, height, width, dtype=values.dtype)
+        isect = np.empty((ids.shape[0], _K.N_GRAD + D), dtype=np.float64)
+        _K.raster_backward(
+            _np(means2d), _np(conics), _np(opacities), _np(values), offsets.numpy(), ids.numpy(),
+            width, height, tw, T.numpy(), ncon.numpy(), _np(g_acc), _np(g_alpha), isect,
+        )
+        g = _K.reduce_grads(offsets.numpy(), ids.numpy(), isect, C, N, numba.get_num_threads())
+        g = torch.from_numpy(g).to(values.dtype)  # [C, N, N_GRAD + D]
+        return g[..., 0:2], g[..., 2:5], g[..., 5].sum(0), g[..., _K.N_GRAD :], None, None, None, None
+
+
+def rasterize_cpu(
+    proj: Projected,
+    opacities: Tensor,  # [N]
+    values: Tensor,  # [C, N, D]
+    width: int,
+    height: int,
+    rects: Tensor | None = None,  # [C, N, 4] from project_cpu, else computed here
+) -> tuple[Tensor, Tensor]:
+    """Tile compositing with the numba kernels. Returns ``acc [C, H, W, D]`` and ``alpha [C, H, W]``."""
+    if values.dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"the cpu backend supports float32 and float64, got {values.dtype}")
+    prev = numba.get_num_threads()
+    numba.set_num_threads(num_threads())
+    try:
+        offsets, ids = bin_tiles_cpu(proj, width, height, rects)
+        return _RasterizeCPU.apply(proj.means2d, proj.conics, opacities, values, offsets, ids, width, height)
+    finally:
+        numba.set_num_threads(prev)

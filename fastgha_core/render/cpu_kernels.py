@@ -1,0 +1,456 @@
+"""numba kernels of the CPU rasterizer: tile binning, forward and backward compositing.
+
+All kernels are ``@njit(parallel=True, cache=True, fastmath=False)`` and parallel over
+16x16 tiles (``prange``). Gradients are deterministic: every (tile, splat) intersection is
+owned by exactly one thread, which writes its gradient into its own row of a per-intersection
+buffer; a second pass sums those rows per splat in a fixed order.
+
+Internal arithmetic is float64 whatever the input dtype (float32 or float64).
+
+Rules (see ``projection.py`` and ``compositing.py``; identical to the torch backends):
+``sigma = 0.5 (a dx^2 + c dy^2) + b dx dy`` with ``(dx, dy) = mean2d - pixel centre``;
+``alpha = min(ALPHA_MAX, o exp(-sigma))``; skip when ``sigma < 0`` or ``alpha < ALPHA_MIN``;
+stop (without compositing) when ``T (1 - alpha) <= T_MIN``.
+
+Speed: a splat is only evaluated on the pixels of its tile that lie inside the box where
+``o exp(-sigma) >= ALPHA_MIN`` is possible (plus a one-pixel margin) and ``exp`` is not
+evaluated where ``sigma`` is surely above ``log(255 o)``; both are exact shortcuts of the
+skip rule, so the result equals evaluating every pixel of the tile.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from .projection import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE
+
+__all__ = ["project_forward", "bin_tiles", "raster_forward", "raster_backward", "reduce_grads", "N_GRAD"]
+
+_TS = TILE_SIZE
+_NPIX = TILE_SIZE * TILE_SIZE
+_LOG_INV_AMIN = math.log(1.0 / ALPHA_MIN)  # log(255)
+N_GRAD = 6  # per-splat gradient slots before the values: mx, my, conic a, b, c, opacity
+
+
+@njit(cache=True, fastmath=False)
+def _box(o, A, B, Cc, mx, my, x0, y0, x1, y1):
+    """Pixel box [jx0, jx1) x [iy0, iy1) of tile pixels where alpha >= ALPHA_MIN is possible,
+    and the sigma threshold above which alpha < ALPHA_MIN for sure."""
+    thresh = math.log(o) + _LOG_INV_AMIN  # alpha >= ALPHA_MIN needs sigma <= thresh
+    det = A * Cc - B * B
+    if det <= 0.0 or not (thresh >= 0.0):
+        return x0, x0, y0, y0, -1.0
+    ext2 = 2.0 * thresh * 1.0001 + 1e-6
+    hx = math.sqrt(ext2 * Cc / det) + 1.0
+    hy = math.sqrt(ext2 * A / det) + 1.0
+    fx0 = math.floor(mx - hx - 0.5)
+    fx1 = math.ceil(mx + hx - 0.5) + 1.0
+    fy0 = math.floor(my - hy - 0.5)
+    fy1 = math.ceil(my + hy - 0.5) + 1.0
+    jx0 = x0 if fx0 < x0 else (x1 if fx0 > x1 else int(fx0))
+    jx1 = x0 if fx1 < x0 else (x1 if fx1 > x1 else int(fx1))
+    iy0 = y0 if fy0 < y0 else (y1 if fy0 > y1 else int(fy0))
+    iy1 = y0 if fy1 < y0 else (y1 if fy1 > y1 else int(fy1))
+    return jx0, jx1, iy0, iy1, thresh * (1.0 + 1e-6) + 1e-6
+
+
+@njit(cache=True, fastmath=False)
+def _row_span(A, B, Cc, sig_max, mx, dy, jx0, jx1):
+    """Columns [j0, j1) of one pixel row (offset dy) where sigma <= sig_max is possible (+1 px margin)."""
+    disc = B * B * dy * dy - A * (Cc * dy * dy - 2.0 * sig_max)
+    if not (disc >= 0.0) or not (A > 0.0):
+        return jx0, jx0
+    sq = math.sqrt(disc)
+    lo = mx - (-B * dy + sq) / A - 0.5 - 1.0
+    hi = mx - (-B * dy - sq) / A - 0.5 + 2.0
+    j0 = jx0 if lo < jx0 else (jx1 if lo > jx1 else int(math.floor(lo)))
+    j1 = jx0 if hi < jx0 else (jx1 if hi > jx1 else int(math.ceil(hi)))
+    return max(j0, jx0), min(j1, jx1)
+
+
+@njit(cache=True, fastmath=False)
+def _tile_of(t, tw, tpc, width, height):
+    c = t // tpc
+    r = t - c * tpc
+    ty = r // tw
+    tx = r - ty * tw
+    x0 = tx * _TS
+    y0 = ty * _TS
+    return c, x0, y0, min(x0 + _TS, width), min(y0 + _TS, height)
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def bin_tiles(rects, order, tpc, tw, n_chunks):
+    """List (splat, tile) intersections, each tile's list in depth order.
+
+    Args:
+        rects: ``[C, N, 4]`` int64 tile rectangles (x0, y0, x1, y1), end-exclusive.
+        order: ``[C, N]`` int64 splat indices of each camera in (depth, index) order.
+        tpc: tiles per camera; tw: tiles per row; n_chunks: parallel chunks for listing.
+    Returns:
+        offsets ``[C*tpc + 1]`` int64 and ids ``[M]`` int32 (splat index within its camera).
+        Chunks of the ordered sequence fill disjoint, consecutive slots of each tile, so every
+        list keeps the depth order and the result does not depend on ``n_chunks``.
+    """
+    C, N = order.shape
+    n_tiles = C * tpc
+    total = C * N
+    csize = (total + n_chunks - 1) // n_chunks
+    counts = np.zeros((n_chunks, n_tiles), np.int64)
+    for ch in prange(n_chunks):
+        for f in range(ch * csize, min(total, (ch + 1) * csize)):
+            c = f // N
+            g = order[c, f - c * N]
+            for ty in range(rects[c, g, 1], rects[c, g, 3]):
+                base = c * tpc + ty * tw
+                for tx in range(rects[c, g, 0], rects[c, g, 2]):
+                    counts[ch, base + tx] += 1
+    offsets = np.zeros(n_tiles + 1, np.int64)
+    cursor = np.empty((n_chunks, n_tiles), np.int64)
+    run = 0
+    for t in range(n_tiles):
+        offsets[t] = run
+        for ch in range(n_chunks):
+            cursor[ch, t] = run
+            run += counts[ch, t]
+    offsets[n_tiles] = run
+    ids = np.empty(run, np.int32)
+    for ch in prange(n_chunks):
+        for f in range(ch * csize, min(total, (ch + 1) * csize)):
+            c = f // N
+            g = order[c, f - c * N]
+            for ty in range(rects[c, g, 1], rects[c, g, 3]):
+                base = c * tpc + ty * tw
+                for tx in range(rects[c, g, 0], rects[c, g, 2]):
+                    ids[cursor[ch, base + tx]] = g
+                    cursor[ch, base + tx] += 1
+    return offsets, ids
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def raster_forward(means2d, conics, opac, values, offsets, ids, width, height, tw, out_acc, out_T, out_n):
+    """Front-to-back compositing per tile.
+
+    Args:
+        means2d ``[C, N, 2]``, conics ``[C, N, 3]``, opac ``[N]``, values ``[C, N, D]``,
+        offsets/ids from ``bin_tiles``.
+    Writes:
+        out_acc ``[C, H, W, D]`` premultiplied sums, out_T ``[C, H, W]`` final transmittance,
+        out_n ``[C, H, W]`` int32: one past the position (in the tile's list) of the last
+        composited splat.
+    """
+    n_tiles = offsets.shape[0] - 1
+    C = means2d.shape[0]
+    tpc = n_tiles // C
+    D = values.shape[2]
+    for t in prange(n_tiles):
+        c, x0, y0, x1, y1 = _tile_of(t, tw, tpc, width, height)
+        acc = np.zeros((_NPIX, D))
+        T = np.ones(_NPIX)
+        done = np.zeros(_NPIX, np.bool_)
+        ncon = np.zeros(_NPIX, np.int32)
+        vals = np.empty(D)
+        n_pix = (x1 - x0) * (y1 - y0)
+        n_done = 0
+        s = offsets[t]
+        for k in range(s, offsets[t + 1]):
+            g = ids[k]
+            o = float(opac[g])
+            if not (o >= ALPHA_MIN):
+                continue
+            mx = float(means2d[c, g, 0])
+            my = float(means2d[c, g, 1])
+            A = float(conics[c, g, 0])
+            B = float(conics[c, g, 1])
+            Cc = float(conics[c, g, 2])
+            jx0, jx1, iy0, iy1, sig_max = _box(o, A, B, Cc, mx, my, x0, y0, x1, y1)
+            for d in range(D):
+                vals[d] = values[c, g, d]
+            for i in range(iy0, iy1):
+                dy = my - (i + 0.5)
+                prow = (i - y0) * _TS - x0
+                j0, j1 = _row_span(A, B, Cc, sig_max, mx, dy, jx0, jx1)
+                for j in range(j0, j1):
+                    p = prow + j
+                    if done[p]:
+                        continue
+                    dx = mx - (j + 0.5)
+                    sigma = 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy
+                    if sigma < 0.0 or sigma > sig_max:
+                        continue
+                    alpha = o * math.exp(-sigma)
+                    if alpha > ALPHA_MAX:
+                        alpha = ALPHA_MAX
+                    if alpha < ALPHA_MIN:
+                        continue
+                    Tp = T[p]
+                    nT = Tp * (1.0 - alpha)
+                    if nT <= T_MIN:
+                        done[p] = True
+                        n_done += 1
+                        continue
+                    w = alpha * Tp
+                    for d in range(D):
+                        acc[p, d] += vals[d] * w
+                    T[p] = nT
+                    ncon[p] = k - s + 1
+            if n_done == n_pix:
+                break
+        for i in range(y0, y1):
+            for j in range(x0, x1):
+                p = (i - y0) * _TS + (j - x0)
+                for d in range(D):
+                    out_acc[c, i, j, d] = acc[p, d]
+                out_T[c, i, j] = T[p]
+                out_n[c, i, j] = ncon[p]
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def raster_backward(means2d, conics, opac, values, offsets, ids, width, height, tw, T_final, ncon, g_acc, g_alpha, out_g):
+    """Back-to-front gradient pass per tile (the transmittance is recovered by division).
+
+    Args:
+        as ``raster_forward`` plus its outputs ``T_final [C, H, W]``, ``ncon [C, H, W]`` and the
+        incoming gradients ``g_acc [C, H, W, D]``, ``g_alpha [C, H, W]`` (for alpha = 1 - T_final).
+    Writes:
+        out_g ``[M, N_GRAD + D]`` float64, one row per intersection (zero where it got none):
+        d/d(mx, my, conic a, b, c, opacity, values...).
+    """
+    n_tiles = offsets.shape[0] - 1
+    C = means2d.shape[0]
+    tpc = n_tiles // C
+    D = values.shape[2]
+    for t in prange(n_tiles):
+        c, x0, y0, x1, y1 = _tile_of(t, tw, tpc, width, height)
+        s = offsets[t]
+        e = offsets[t + 1]
+        if e == s:
+            continue
+        T = np.ones(_NPIX)
+        Tf = np.ones(_NPIX)
+        S = np.zeros((_NPIX, D))
+        gA_pix = np.zeros((_NPIX, D))
+        gal = np.zeros(_NPIX)
+        nc = np.zeros(_NPIX, np.int32)
+        gv = np.zeros(D)
+        vals = np.empty(D)
+        n_max = 0
+        for i in range(y0, y1):
+            for j in range(x0, x1):
+                p = (i - y0) * _TS + (j - x0)
+                T[p] = T_final[c, i, j]
+                Tf[p] = T_final[c, i, j]
+                gal[p] = g_alpha[c, i, j]
+                nc[p] = ncon[c, i, j]
+                n_max = max(n_max, nc[p])
+                for d in range(D):
+                    gA_pix[p, d] = g_acc[c, i, j, d]
+        for k in range(s + n_max, e):
+            for q in range(N_GRAD + D):
+                out_g[k, q] = 0.0
+        for k in range(s + n_max - 1, s - 1, -1):
+            kk = k - s
+            g = ids[k]
+            o = float(opac[g])
+            gmx = 0.0
+            gmy = 0.0
+            ga = 0.0
+            gb = 0.0
+            gc = 0.0
+            go = 0.0
+            for d in range(D):
+                gv[d] = 0.0
+            if o >= ALPHA_MIN:
+                mx = float(means2d[c, g, 0])
+                my = float(means2d[c, g, 1])
+                A = float(conics[c, g, 0])
+                B = float(conics[c, g, 1])
+                Cc = float(conics[c, g, 2])
+                jx0, jx1, iy0, iy1, sig_max = _box(o, A, B, Cc, mx, my, x0, y0, x1, y1)
+                for d in range(D):
+                    vals[d] = values[c, g, d]
+                for i in range(iy0, iy1):
+                    dy = my - (i + 0.5)
+                    prow = (i - y0) * _TS - x0
+                    j0, j1 = _row_span(A, B, Cc, sig_max, mx, dy, jx0, jx1)
+                    for j in range(j0, j1):
+                        p = prow + j
+                        if kk >= nc[p]:
+                            continue
+                        dx = mx - (j + 0.5)
+                        sigma = 0.5 * (A * dx * dx + Cc * dy * dy) + B * dx * dy
+                        if sigma < 0.0 or sigma > sig_max:
+                            continue
+                        G = math.exp(-sigma)
+                        raw = o * G
+                        alpha = ALPHA_MAX if raw > ALPHA_MAX else raw
+                        if alpha < ALPHA_MIN:
+                            continue
+                        ra = 1.0 / (1.0 - alpha)
+                        Ti = T[p] * ra
+                        w = alpha * Ti
+                        dal = gal[p] * Tf[p] * ra
+                        for d in range(D):
+                            v = vals[d]
+                            gd = gA_pix[p, d]
+                            gv[d] += w * gd
+                            dal += gd * (v * Ti - S[p, d] * ra)
+                            S[p, d] += v * w
+                        T[p] = Ti
+                        if raw <= ALPHA_MAX:
+                            dsig = -dal * raw
+                            go += dal * G
+                            ga += 0.5 * dx * dx * dsig
+                            gc += 0.5 * dy * dy * dsig
+                            gb += dx * dy * dsig
+                            gmx += (A * dx + B * dy) * dsig
+                            gmy += (Cc * dy + B * dx) * dsig
+            out_g[k, 0] = gmx
+            out_g[k, 1] = gmy
+            out_g[k, 2] = ga
+            out_g[k, 3] = gb
+            out_g[k, 4] = gc
+            out_g[k, 5] = go
+            for d in range(D):
+                out_g[k, N_GRAD + d] = gv[d]
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def reduce_grads(offsets, ids, isect_g, C, N, n_chunks):
+    """Sum per-intersection gradient rows ``[M, K]`` into ``[C, N, K]`` in a fixed order.
+
+    Thread ``ch`` owns splats ``g % n_chunks == ch`` and scans all rows in order, so the sum
+    order (and the result) does not depend on the thread count.
+    """
+    K = isect_g.shape[1]
+    out = np.zeros((C, N, K))
+    n_tiles = offsets.shape[0] - 1
+    tpc = n_tiles // C
+    for ch in prange(n_chunks):
+        for c in range(C):
+            for k in range(offsets[c * tpc], offsets[(c + 1) * tpc]):
+                g = ids[k]
+                if g % n_chunks == ch:
+                    for q in range(K):
+                        out[c, g, q] += isect_g[k, q]
+    return out
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def project_forward(means, quats, scales, K, w2c, width, height, near, eps2d, out_m2d, out_conic, out_depth, out_radii, out_rect):
+    """No-gradient projection, the same maths as ``projection.project_gaussians`` + ``tile_rects``.
+
+    Args: means ``[N, 3]``, quats ``[N, 4]``, scales ``[N, 3]``, K ``[C, 3, 3]``, w2c ``[C, 4, 4]``.
+    Writes: ``out_m2d [C, N, 2]``, ``out_conic [C, N, 3]``, ``out_depth [C, N]``,
+    ``out_radii [C, N]`` int32, ``out_rect [C, N, 4]`` int64.
+    """
+    N = means.shape[0]
+    C = K.shape[0]
+    tw = (width + _TS - 1) // _TS
+    th = (height + _TS - 1) // _TS
+    for n in prange(N):
+        qw, qx, qy, qz = float(quats[n, 0]), float(quats[n, 1]), float(quats[n, 2]), float(quats[n, 3])
+        qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        qn = max(qn, 1e-12)
+        qw, qx, qy, qz = qw / qn, qx / qn, qy / qn, qz / qn
+        r00 = 1 - 2 * (qy * qy + qz * qz)
+        r01 = 2 * (qx * qy - qw * qz)
+        r02 = 2 * (qx * qz + qw * qy)
+        r10 = 2 * (qx * qy + qw * qz)
+        r11 = 1 - 2 * (qx * qx + qz * qz)
+        r12 = 2 * (qy * qz - qw * qx)
+        r20 = 2 * (qx * qz - qw * qy)
+        r21 = 2 * (qy * qz + qw * qx)
+        r22 = 1 - 2 * (qx * qx + qy * qy)
+        sx, sy, sz = float(scales[n, 0]), float(scales[n, 1]), float(scales[n, 2])
+        # M = Rq diag(s); cov3 = M M^T
+        m00, m01, m02 = r00 * sx, r01 * sy, r02 * sz
+        m10, m11, m12 = r10 * sx, r11 * sy, r12 * sz
+        m20, m21, m22 = r20 * sx, r21 * sy, r22 * sz
+        s00 = m00 * m00 + m01 * m01 + m02 * m02
+        s01 = m00 * m10 + m01 * m11 + m02 * m12
+        s02 = m00 * m20 + m01 * m21 + m02 * m22
+        s11 = m10 * m10 + m11 * m11 + m12 * m12
+        s12 = m10 * m20 + m11 * m21 + m12 * m22
+        s22 = m20 * m20 + m21 * m21 + m22 * m22
+        mx, my, mz = float(means[n, 0]), float(means[n, 1]), float(means[n, 2])
+        for c in range(C):
+            out_radii[c, n] = 0
+            for q in range(4):
+                out_rect[c, n, q] = 0
+            R = w2c[c]
+            x = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz + R[0, 3]
+            y = R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz + R[1, 3]
+            z = R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz + R[2, 3]
+            out_depth[c, n] = z
+            fx, fy, cx, cy = float(K[c, 0, 0]), float(K[c, 1, 1]), float(K[c, 0, 2]), float(K[c, 1, 2])
+            if not (z >= near):
+                out_m2d[c, n, 0] = 0.0
+                out_m2d[c, n, 1] = 0.0
+                for q in range(3):
+                    out_conic[c, n, q] = 0.0
+                continue
+            rz = 1.0 / z
+            tan_fovx = 0.5 * width / fx
+            tan_fovy = 0.5 * height / fy
+            lxp = (width - cx) / fx + 0.3 * tan_fovx
+            lxn = cx / fx + 0.3 * tan_fovx
+            lyp = (height - cy) / fy + 0.3 * tan_fovy
+            lyn = cy / fy + 0.3 * tan_fovy
+            tx = z * min(lxp, max(-lxn, x * rz))
+            ty = z * min(lyp, max(-lyn, y * rz))
+            j00 = fx * rz
+            j02 = -fx * tx * rz * rz
+            j11 = fy * rz
+            j12 = -fy * ty * rz * rz
+            # T = J W (2x3), W = rotation part of w2c
+            t00 = j00 * R[0, 0] + j02 * R[2, 0]
+            t01 = j00 * R[0, 1] + j02 * R[2, 1]
+            t02 = j00 * R[0, 2] + j02 * R[2, 2]
+            t10 = j11 * R[1, 0] + j12 * R[2, 0]
+            t11 = j11 * R[1, 1] + j12 * R[2, 1]
+            t12 = j11 * R[1, 2] + j12 * R[2, 2]
+            # cov2 = T S T^T
+            u0 = t00 * s00 + t01 * s01 + t02 * s02
+            u1 = t00 * s01 + t01 * s11 + t02 * s12
+            u2 = t00 * s02 + t01 * s12 + t02 * s22
+            a = u0 * t00 + u1 * t01 + u2 * t02 + eps2d
+            b = u0 * t10 + u1 * t11 + u2 * t12
+            v0 = t10 * s00 + t11 * s01 + t12 * s02
+            v1 = t10 * s01 + t11 * s11 + t12 * s12
+            v2 = t10 * s02 + t11 * s12 + t12 * s22
+            cc = v0 * t10 + v1 * t11 + v2 * t12 + eps2d
+            det = a * cc - b * b
+            u = fx * x * rz + cx
+            v = fy * y * rz + cy
+            out_m2d[c, n, 0] = u
+            out_m2d[c, n, 1] = v
+            if not (det > 0.0):
+                for q in range(3):
+                    out_conic[c, n, q] = 0.0
+                continue
+            out_conic[c, n, 0] = cc / det
+            out_conic[c, n, 1] = -b / det
+            out_conic[c, n, 2] = a / det
+            half = 0.5 * (a + cc)
+            lam = half + math.sqrt(max(half * half - det, 0.01))
+            radius = math.ceil(3.0 * math.sqrt(lam))
+            if not (radius > 0.0 and radius < 1e9):
+                continue
+            if u + radius <= 0 or u - radius >= width or v + radius <= 0 or v - radius >= height:
+                continue
+            out_radii[c, n] = int(radius)
+            rt = radius / _TS
+            gx = u / _TS
+            gy = v / _TS
+            x0 = min(max(math.floor(gx - rt), 0.0), float(tw))
+            x1 = min(max(math.ceil(gx + rt), 0.0), float(tw))
+            y0 = min(max(math.floor(gy - rt), 0.0), float(th))
+            y1 = min(max(math.ceil(gy + rt), 0.0), float(th))
+            out_rect[c, n, 0] = int(x0)
+            out_rect[c, n, 1] = int(y0)
+            out_rect[c, n, 2] = int(x1)
+            out_rect[c, n, 3] = int(y1)
