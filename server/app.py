@@ -35,6 +35,7 @@ from .imaging import decode_image, decode_mask
 from .logs import install_token_redaction
 from .metrics import CONTENT_TYPE_LATEST
 from .protocol import ProtocolError, loads_strict
+from .samples import make_samples_router
 from .settings import Settings, get_settings
 from .store import AvatarStore
 from .streaming import _safe_close, stream_endpoint
@@ -448,6 +449,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return Response(status_code=204)
 
     app.add_api_websocket_route("/v1/avatars/{avatar_id}/stream", stream_endpoint)
+    # Shipped sample subjects for the browser demo; before the static mount at "/" so it can't hide them.
+    app.include_router(make_samples_router())
 
     static = s.resolved_static_dir()
     if static is not None:
