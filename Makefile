@@ -1,5 +1,6 @@
 # Two commands on a fresh Linux machine (README): `make demo` and `make test`.
 # Both create/refresh .venv idempotently; torch==2.13.0 goes in first (CPU build on these machines).
+# The faces extra (dlib) is included so that tracking and CSIM/AKD work and are tested.
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
@@ -11,7 +12,7 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet torch==2.13.0
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	$(BIN)/python -m pip install --quiet -e '.[dev,faces]'
 	touch $(STAMP)
 
 install: $(STAMP)
