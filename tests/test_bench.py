@@ -1,0 +1,93 @@
+"""``fastgha bench recon|frame|mlp --quick``: they run and write the documented JSON keys.
+
+No timing assertions (the machine is shared); sizes are cut down so the file stays quick.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+
+from fastgha_core.cli import main
+
+SUMMARY_KEYS = {"recon_s_4views", "fps_256", "fps_512", "per_frame_vs_rerun_ratio", "mlp_fraction_of_matmul", "bytes_per_avatar"}
+
+
+def _bench(tmp_path, target: str, *options: str) -> dict:
+    out = tmp_path / f"{target}.json"
+    assert main(["bench", target, "--quick", "--json", str(out), *options]) == 0
+    return json.loads(out.read_text())
+
+
+def _positive(x) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x) and x > 0
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("bench")
+    return {
+        "recon": _bench(tmp, "recon", "--recon-views", "1,4", "--recon-avatars", "1,2"),
+        "frame": _bench(tmp, "frame", "--frame-views", "4", "--frame-resolutions", "256,512", "--frame-frames", "3"),
+        "mlp": _bench(tmp, "mlp", "--mlp-gaussians", "4096", "--mlp-batch", "2", "--mlp-compile", "off"),
+    }
+
+
+def test_summary_has_the_documented_keys(results):
+    summary = {}
+    for res in results.values():
+        summary.update(res["summary"])
+    assert SUMMARY_KEYS <= set(summary)
+    for key in SUMMARY_KEYS:
+        assert _positive(summary[key]), (key, summary[key])
+
+
+def test_recon_rows_and_memory(results):
+    r = results["recon"]["recon"]
+    rows = {row["views"]: row for row in r["rows"]}
+    assert set(rows) == {1, 4}
+    assert rows[4]["gaussians"] == 4 * rows[1]["gaussians"]  # one Gaussian per input pixel, none pruned at random init or fewer
+    mem = r["memory"]
+    assert mem["per_avatar"]["bytes"] == mem["per_avatar"]["gaussian_bytes"] + mem["per_avatar"]["deform_cache_bytes"]
+    probe = mem["process"]
+    assert "error" not in probe, probe
+    assert [row["avatars"] for row in probe["rows"]] == [1, 2]
+    assert all(row["peak_rss_mib"] >= 0.98 * row["rss_mib"] > 0 for row in probe["rows"])  # KiB vs pages: rounding
+
+
+def test_frame_breakdown_and_design_comparison(results):
+    f = results["frame"]["frame"]
+    assert {row["resolution"] for row in f["rows"]} == {256, 512}
+    for row in f["rows"]:
+        for stage in ("deform", "render", "quantize", "jpeg", "message"):
+            assert _positive(row[f"{stage}_ms"]), stage
+        assert row["jpeg_bytes"] > 0 and _positive(row["e2e_fps"])
+    comp = f["design_comparison"]
+    assert comp["rerun_frame_ms_256"] > comp["ours_frame_ms_256"]
+    assert comp["ratio_256"] == pytest.approx(comp["rerun_frame_ms_256"] / comp["ours_frame_ms_256"])
+    assert f["bf16"]["psnr_bf16_vs_fp32_db"] > 20
+    assert f["prune"][0]["min_opacity"] == 0.0 and math.isinf(f["prune"][0]["psnr_vs_unpruned_db"])
+
+
+def test_mlp_configurations_and_matmul_reference(results):
+    m = results["mlp"]["mlp"]
+    names = {row["config"] for row in m["rows"]}
+    assert {"fp32_plain", "fp32_split", "bf16_split", "fp32_split_batch2"} <= names
+    assert _positive(m["matmul_gflops"]["fp32"]) and _positive(m["matmul_gflops"]["bf16"])
+    for row in m["rows"]:
+        assert row["fraction_of_matmul"] == pytest.approx(row["gflops"] / m["matmul_gflops"][row["precision"]])
+    plain = next(r for r in m["rows"] if r["config"] == "fp32_plain")
+    split = next(r for r in m["rows"] if r["config"] == "fp32_split")
+    assert split["gflop"] < plain["gflop"]  # the split skips the first layer's big matmul
+
+
+def test_mlp_flop_count_by_hand():
+    from fastgha_core.bench.mlp import mlp_flops
+    from fastgha_core.config import DeformConfig
+    from fastgha_core.model.deform import DeformationMLP
+
+    d = DeformationMLP(8, 5, DeformConfig(hidden_size=16, num_layers=3, pe_freqs=2))  # input 8 + 15 + 5 = 28
+    assert mlp_flops(d, 10, split=False) == 2 * 10 * (28 * 16 + 2 * 16 * 16 + 6 * 16)
+    assert mlp_flops(d, 10, split=True) == 2 * (10 * (2 * 16 * 16 + 6 * 16) + 5 * 16) + 10 * 16
