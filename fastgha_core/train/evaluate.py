@@ -62,6 +62,7 @@ class EvalConfig:
     seed: int = 0  # the protocol's random choices (first camera)
     backend: str = "auto"  # render backend
     grid_subjects: int = 4  # subjects shown in the comparison grid
+    resolution: int = 0  # side of the rendered/ground-truth target images (0 = the model's render_size)
 
     def __post_init__(self) -> None:
         if self.ablation not in ABLATIONS:
@@ -182,7 +183,7 @@ def evaluate(
 
     cfg = config or EvalConfig()
     device = next(model.parameters()).device
-    size = int(model.config.render_size)
+    size = int(cfg.resolution or model.config.render_size)
     available = {"psnr": True, "ssim": True, "lpips": lpips is not None, "csim": faces is not None, "akd": faces is not None}
     all_rows: list[dict[str, Any]] = []
     subjects: list[dict[str, Any]] = []
