@@ -107,6 +107,7 @@ class GaussianHeadConfig:
     min_scale_px: float = 0.25  # smallest scale, in pixel footprints at the Gaussian's depth
     max_scale_px: float = 16.0  # largest scale, in pixel footprints at the Gaussian's depth
     prune_opacity: float = 0.005  # reconstruct() drops Gaussians less opaque than this (0 = keep all)
+    rgb_residual: bool = False  # colour = sigmoid(raw + logit(input pixel)): predict a residual on the pixel's own colour
 
     @property
     def channels(self) -> int:
@@ -230,7 +231,9 @@ def _tiny() -> FastGHAConfig:
         vae=VAEConfig(block_out_channels=(32, 64, 64, 64), layers_per_block=1, norm_num_groups=16, frozen=False),
         transformer=TransformerConfig(hidden_size=192, num_layers=4, num_heads=4),
         decoder=DecoderConfig(block_out_channels=(32, 64, 64, 64), layers_per_block=1, norm_num_groups=16, init_from_vae=False),
-        gaussians=GaussianHeadConfig(feature_dim=32, prune_opacity=0.005),
+        # rgb_residual: a CPU training budget buys ~2k steps; starting every Gaussian at its own input
+        # pixel's colour lets them go to geometry and expression instead of relearning colour copying.
+        gaussians=GaussianHeadConfig(feature_dim=32, prune_opacity=0.005, rgb_residual=True),
         deform=DeformConfig(hidden_size=48, num_layers=4, pe_freqs=4),  # ~8 ms/frame fp32 at 65k Gaussians on 2 cores
     )
 

@@ -39,6 +39,7 @@ from .samples import make_samples_router
 from .settings import Settings, get_settings
 from .store import AvatarStore
 from .streaming import _safe_close, stream_endpoint
+from .tracking import PhotoTracker
 
 __all__ = ["create_app"]
 
@@ -226,12 +227,13 @@ async def _part_bytes(part: Any, what: str) -> bytes:
     raise ApiError(400, "invalid_multipart", f"{what} must be a file part, got a text field")
 
 
-def _decode_inputs(blobs: list[bytes], mask_blobs: list[bytes] | None, cams: list[Cameras], max_pixels: int):
+def _decode_inputs(blobs: list[bytes], mask_blobs: list[bytes] | None, cams: list[Cameras] | None, max_pixels: int):
     images, masks = [], []
-    for i, (data, cam) in enumerate(zip(blobs, cams)):
+    for i, data in enumerate(blobs):
         img, alpha = decode_image(data, f"image {i}", max_pixels)
         h, w = img.shape[-2:]
-        if (cam.width, cam.height) != (w, h):
+        cam = cams[i] if cams is not None else None  # None: the server tracks the photos (server/tracking.py)
+        if cam is not None and (cam.width, cam.height) != (w, h):
             raise ApiError(
                 400,
                 "camera_size_mismatch",
@@ -251,7 +253,16 @@ def _decode_inputs(blobs: list[bytes], mask_blobs: list[bytes] | None, cams: lis
     return images, [m if m is not None else torch.ones(1, *img.shape[-2:]) for m, img in zip(masks, images)]
 
 
-def _reconstruct(ctx: ServerContext, images: list, cams: list[Cameras], masks: list | None):
+def _track_and_reconstruct(ctx: ServerContext, tracker: PhotoTracker, images: list, masks: list | None):
+    """Photos without cameras: track them (crops, cameras, masks), then reconstruct; times both."""
+    t0 = time.perf_counter()
+    crops, cams, crop_masks, _ = tracker.track(images, masks, int(ctx.model.config.input_size))
+    track_ms = 1e3 * (time.perf_counter() - t0)
+    avatar, recon_ms = _reconstruct(ctx, crops, cams, crop_masks)
+    return avatar, recon_ms, track_ms
+
+
+def _reconstruct(ctx: ServerContext, images, cams, masks):
     model = ctx.model
     t0 = time.perf_counter()
     try:
@@ -280,10 +291,14 @@ _CREATE_OPENAPI = {
             "multipart/form-data": {
                 "schema": {
                     "type": "object",
-                    "required": ["images", "cameras"],
+                    "required": ["images"],
                     "properties": {
                         "images": {"type": "array", "items": {"type": "string", "format": "binary"}, "description": "1-8 JPEG/PNG photos"},
-                        "cameras": {"type": "string", "description": "JSON array of camera objects {K, w2c, width, height}, one per image"},
+                        "cameras": {
+                            "type": "string",
+                            "description": "JSON array of camera objects {K, w2c, width, height}, one per image; "
+                            "when absent the server tracks the photos (needs the 'faces' extra)",
+                        },
                         "masks": {"type": "array", "items": {"type": "string", "format": "binary"}, "description": "optional foreground masks, one per image"},
                     },
                 }
@@ -304,6 +319,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=_lifespan,
     )
     app.state.ctx = ServerContext(settings=s)
+    tracker = PhotoTracker()  # photos without cameras (server/tracking.py); loads dlib on first use
 
     if s.cors_origin_list:
         from fastapi.middleware.cors import CORSMiddleware
@@ -372,17 +388,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         if not 1 <= len(parts) <= max_images:
             raise ApiError(400, "invalid_image_count", f"send 1 to {max_images} 'images' parts, got {len(parts)}")
         cam_field = form.get("cameras")
-        if cam_field is None:
-            raise ApiError(400, "invalid_cameras", "the 'cameras' field (a JSON array of camera objects) is missing")
-        cam_text = await cam_field.read() if isinstance(cam_field, UploadFile) else cam_field
-        try:
-            cams = cameras_from_json(loads_strict(cam_text))
-        except ProtocolError as e:
-            raise ApiError(400, "non_finite_number" if e.code == "non_finite_number" else "invalid_cameras", e.message) from None
-        except ValueError as e:
-            raise ApiError(400, "invalid_cameras", str(e)) from None
-        if len(cams) != len(parts):
-            raise ApiError(400, "camera_count_mismatch", f"{len(parts)} images but {len(cams)} cameras; send one camera per image")
+        cams: list[Cameras] | None = None
+        if cam_field is None:  # no cameras: the server tracks the photos, if it can (server/tracking.py)
+            await ctx.run_work(tracker.check_available)
+        else:
+            cam_text = await cam_field.read() if isinstance(cam_field, UploadFile) else cam_field
+            try:
+                cams = cameras_from_json(loads_strict(cam_text))
+            except ProtocolError as e:
+                raise ApiError(400, "non_finite_number" if e.code == "non_finite_number" else "invalid_cameras", e.message) from None
+            except ValueError as e:
+                raise ApiError(400, "invalid_cameras", str(e)) from None
+            if len(cams) != len(parts):
+                raise ApiError(400, "camera_count_mismatch", f"{len(parts)} images but {len(cams)} cameras; send one camera per image")
         mask_parts = form.getlist("masks")
         if mask_parts and len(mask_parts) != len(parts):
             raise ApiError(400, "mask_count_mismatch", f"{len(parts)} images but {len(mask_parts)} masks; send none or one per image")
@@ -390,8 +408,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         mask_blobs = [await _part_bytes(p, f"mask {i}") for i, p in enumerate(mask_parts)] if mask_parts else None
         await form.close()
         images, masks = await ctx.run_work(_decode_inputs, blobs, mask_blobs, cams, s.max_image_pixels)
+        track_ms = None
         async with ctx.reconstruct_slots:
-            avatar, recon_ms = await ctx.run_work(_reconstruct, ctx, images, cams, masks)
+            if cams is None:
+                avatar, recon_ms, track_ms = await ctx.run_work(_track_and_reconstruct, ctx, tracker, images, masks)
+            else:
+                avatar, recon_ms = await ctx.run_work(_reconstruct, ctx, images, cams, masks)
         ctx.metrics.reconstruct_seconds.observe(recon_ms / 1e3)
         avatar_id, token = auth.new_avatar_id(), auth.new_token()
         n = len(avatar.gaussians)
@@ -405,6 +427,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             "reconstruction_ms": round(recon_ms, 1),
             "created_at": time.time(),
         }
+        if track_ms is not None:
+            meta["tracking_ms"] = round(track_ms, 1)
         await ctx.run_work(ctx.store.put, avatar_id, avatar, meta)
         ctx.metrics.avatars_created.inc()
         log.info("created avatar %s: %d Gaussians from %d images in %.0f ms", avatar_id, n, len(images), recon_ms)
@@ -415,6 +439,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 "num_gaussians": n,
                 "reconstruction_ms": round(recon_ms, 1),
                 "expression_space": meta["expression_space"],
+                **({"tracking_ms": meta["tracking_ms"]} if track_ms is not None else {}),
             },
             status_code=201,
         )
@@ -450,7 +475,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     app.add_api_websocket_route("/v1/avatars/{avatar_id}/stream", stream_endpoint)
     # Shipped sample subjects for the browser demo; before the static mount at "/" so it can't hide them.
-    app.include_router(make_samples_router())
+    app.include_router(make_samples_router(s.samples_dir))
 
     static = s.resolved_static_dir()
     if static is not None:

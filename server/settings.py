@@ -71,6 +71,9 @@ class Settings(BaseSettings):
     static_dir: Path | None = Field(
         None, description="folder served at / (the browser demo); default client_demo/static when it exists"
     )
+    samples_dir: Path | None = Field(
+        None, description="sample subjects served under /v1/samples; default: the shipped fastgha_core/assets/samples"
+    )
 
     @field_validator("model")
     @classmethod

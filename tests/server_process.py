@@ -1,9 +1,8 @@
 """Shared helpers of the client and browser tests: a small model folder, a synthetic sample
 subject, and a real uvicorn server process on 127.0.0.1.
 
-The server runs ``create_app_with_samples`` (below): the normal app plus the
-``/v1/samples`` router over the folder named by ``FASTGHA_TEST_SAMPLES_DIR``, placed before
-the static mount at ``/``. When ``server.app`` already includes the router, it is not added twice.
+The server runs ``create_app_with_samples`` (below), i.e. the normal app, with its
+``/v1/samples`` routes pointed at a test folder through ``FASTGHA_SAMPLES_DIR``.
 """
 
 from __future__ import annotations
@@ -77,17 +76,11 @@ def make_sample_dir(root: Path, name: str = SAMPLE_NAME, frames: int = 12) -> Pa
 
 
 def create_app_with_samples():
-    """uvicorn factory: ``create_app()`` plus the samples router (tests only)."""
-    from starlette.routing import Mount
-
+    """uvicorn factory for tests: the normal ``create_app()``; the samples it serves come from
+    ``FASTGHA_SAMPLES_DIR`` (set by ``ServerProcess``)."""
     from server.app import create_app
-    from server.samples import make_samples_router
 
-    app = create_app()
-    if not any(getattr(r, "path", "") == "/v1/samples" for r in app.router.routes):
-        app.include_router(make_samples_router(os.environ.get("FASTGHA_TEST_SAMPLES_DIR") or None))
-        app.router.routes.sort(key=lambda r: isinstance(r, Mount))  # stable: the static mount at / goes last
-    return app
+    return create_app()
 
 
 def free_port() -> int:
@@ -111,9 +104,10 @@ class ServerProcess:
             FASTGHA_WARMUP="true",
             FASTGHA_WARMUP_FRAMES="1",
             FASTGHA_RENDER_WORKERS="2",
-            FASTGHA_TEST_SAMPLES_DIR=str(samples_dir or ""),
             PYTHONPATH=os.pathsep.join([str(REPO), str(REPO / "tests"), env.get("PYTHONPATH", "")]),
         )
+        if samples_dir is not None:
+            env["FASTGHA_SAMPLES_DIR"] = str(samples_dir)
         env.update(env_overrides)
         self.log_path = log_path
         self.log = open(log_path, "ab")

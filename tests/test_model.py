@@ -347,6 +347,22 @@ def test_gaussian_head_zero_maps_geometry():
     assert_close(g.opacities, torch.full_like(g.opacities, 0.5))
 
 
+def test_gaussian_head_rgb_residual_starts_at_the_input_pixel_colour():
+    cams = orbit_cameras(2, width=8, height=6)
+    maps = torch.zeros(1, 2, 16, 6, 8)
+    images = torch.rand(1, 2, 3, 6, 8)
+    (g,) = GaussianHead(GaussianHeadConfig(feature_dim=4, rgb_residual=True))(maps, cams[None], images)
+    expect = images[0].clamp(0.01, 0.99).permute(0, 2, 3, 1).reshape(-1, 3)  # pixel order of the Gaussians
+    assert_close(g.colors, expect, atol=1e-6, rtol=0)
+    maps[:, :, 1:4] = 2.0  # a positive residual brightens every colour
+    (g2,) = GaussianHead(GaussianHeadConfig(feature_dim=4, rgb_residual=True))(maps, cams[None], images)
+    assert bool((g2.colors > g.colors).all())
+    (g3,) = GaussianHead(GaussianHeadConfig(feature_dim=4, rgb_residual=False))(maps * 0, cams[None])
+    assert_close(g3.colors, torch.full_like(g3.colors, 0.5))
+    with pytest.raises(ValueError, match="rgb_residual needs the input images"):
+        GaussianHead(GaussianHeadConfig(feature_dim=4, rgb_residual=True))(maps, cams[None])
+
+
 # ---------------------------------------------------------------- prepare / reconstruct / animate
 def test_prepare_crops_resizes_and_mattes(toy_model):
     cam = Cameras.look_at([0.2, 0.1, 1.0], fov_deg=25, width=48, height=40)

@@ -1,7 +1,16 @@
-"""``fastgha client``: create an avatar on a running server, stream a sequence, save frames + MP4."""
+"""``fastgha client``: create an avatar on a running server, stream a sequence, save frames + MP4.
+
+The sequence is an expression file, a built-in clip, or a video (``--from-video clip.mp4`` /
+``--webcam``): then every frame is tracked (``fastgha_core.tracking.VideoTracker``: ``ict53``
+expression + head pose, smoothed) and streamed with the head pose folded into the render camera
+(``fastgha_core.tracking.drive``). See docs/tracking.md.
+"""
 
 NAME = "client"
-HELP = "stream an expression sequence from a running server: create an avatar, save the frames and an MP4, print FPS and latency"
+HELP = (
+    "stream an expression sequence (or expressions and head pose tracked from a video or webcam) from a running server: "
+    "create an avatar, save the frames and an MP4, print FPS and latency"
+)
 
 
 def add_arguments(parser) -> None:
@@ -14,11 +23,33 @@ def add_arguments(parser) -> None:
         "default: expressions.npy beside the request folder, else a built-in jaw/blink/smile clip",
     )
     parser.add_argument("--orbit", action="store_true", help="swing the camera around the head during the sequence")
+    src = parser.add_mutually_exclusive_group()
+    src.add_argument(
+        "--from-video",
+        default=None,
+        metavar="CLIP",
+        help="drive the avatar from a video: track the ict53 expression and head pose of every frame (needs the 'faces' extra)",
+    )
+    src.add_argument(
+        "--webcam",
+        nargs="?",
+        const="/dev/video0",
+        default=None,
+        metavar="DEVICE",
+        help="drive the avatar live from a V4L2 webcam (Linux; default device /dev/video0); stop with Ctrl-C or --frames",
+    )
+    parser.add_argument(
+        "--pose-reference",
+        choices=("first", "camera"),
+        default="first",
+        help="video driving: which head pose shows the avatar frontally: the first tracked frame (default) or facing the camera",
+    )
+    parser.add_argument("--save-track", default=None, metavar="NPZ", help="video driving: save the tracked expressions, poses and cameras (.npz)")
     parser.add_argument("--out", required=True, help="output MP4 path")
     parser.add_argument("--frames-dir", default=None, help="also save every received frame here as JPEG")
     parser.add_argument("--size", type=int, default=256, help="frame width and height (default 256)")
-    parser.add_argument("--fps", type=float, default=25.0, help="frame rate of the MP4 (default 25)")
-    parser.add_argument("--frames", type=int, default=None, help="use at most this many frames of the sequence")
+    parser.add_argument("--fps", type=float, default=None, help="frame rate of the MP4 (default: the video's, else 25)")
+    parser.add_argument("--frames", type=int, default=None, help="use at most this many frames of the sequence or video")
     parser.add_argument("--api-key", default=None, help="API key for creating avatars (default: $FASTGHA_API_KEY)")
     parser.add_argument(
         "--in-flight", type=int, default=1, help="unanswered requests at a time: 1 renders every frame, 2 is faster but may drop some (default 1)"
@@ -78,8 +109,113 @@ def _load_sequence(path, dim: int) -> list:
     return obj
 
 
+class _VideoDriver:
+    """Video frames -> tracked stream requests, with timings.
+
+    A worker thread tracks up to ``ahead`` frames ahead of the stream, so tracking the next frame
+    overlaps with the server rendering the current one; ``requests()`` is the generator the
+    client pulls. Frames before the first face send nothing; a frame without a face repeats the
+    last request.
+    """
+
+    def __init__(self, frames, width: int, height: int, reference: str, ahead: int = 2) -> None:
+        from ..tracking.drive import DriveConfig, HeadPoseCamera
+        from ..tracking.video import VideoTracker
+
+        self.frames = frames  # iterator of (frame [H, W, 3] uint8, timestamp s)
+        self.tracker = VideoTracker()
+        self.camera = HeadPoseCamera(DriveConfig(width=width, height=height, reference=reference))
+        self.ahead = ahead
+        self.track_seconds = 0.0
+        self.read = self.tracked = self.lost = 0
+        self.record: dict[str, list] = {"frame": [], "expression": [], "R": [], "t": [], "w2c": [], "K": [], "detected": [], "rms_px": []}
+
+    def _track(self, index: int, frame, ts: float) -> dict | None:
+        import time
+
+        t0 = time.perf_counter()
+        self.read += 1
+        ft = self.tracker.track(frame, ts)
+        req = None
+        if ft is not None:
+            cam = self.camera.camera_object(ft.R, ft.t)
+            req = {"expression": ft.expression.astype("float32").tolist(), "camera": cam}
+            self.tracked += 1
+            for k, v in (("frame", index), ("expression", ft.expression), ("R", ft.R), ("t", ft.t), ("w2c", cam["w2c"]),
+                         ("K", cam["K"]), ("detected", ft.detected), ("rms_px", ft.rms_px)):  # fmt: skip
+                self.record[k].append(v)
+        else:
+            self.lost += 1
+        self.track_seconds += time.perf_counter() - t0
+        return req
+
+    def requests(self):
+        import queue
+        import threading
+
+        q: queue.Queue = queue.Queue(maxsize=self.ahead)
+        stop = threading.Event()
+
+        def put(item) -> None:
+            while not stop.is_set():
+                try:
+                    q.put(item, timeout=0.1)
+                    return
+                except queue.Full:
+                    continue
+
+        def work() -> None:
+            try:
+                for index, (frame, ts) in enumerate(self.frames):
+                    if stop.is_set():
+                        break
+                    put(("frame", self._track(index, frame, ts)))
+                put(("end", None))
+            except BaseException as e:  # handed to the consumer
+                put(("error", e))
+            finally:
+                close = getattr(self.frames, "close", None)
+                if close is not None:
+                    close()
+
+        worker = threading.Thread(target=work, name="fastgha-video-track", daemon=True)
+        worker.start()
+        last = None
+        try:
+            while True:
+                kind, item = q.get()
+                if kind == "end":
+                    return
+                if kind == "error":
+                    raise item
+                last = item if item is not None else last
+                if last is not None:
+                    yield last
+        finally:
+            stop.set()
+            worker.join(timeout=10.0)
+
+    def save(self, path) -> None:
+        import numpy as np
+
+        np.savez(path, **{k: np.asarray(v) for k, v in self.record.items()})
+
+
+def _open_video_source(args, stop):
+    from ..cli import CLIError
+    from ..tracking.drive import video_frames, webcam_frames
+
+    try:
+        if args.from_video:
+            return video_frames(args.from_video, max_frames=args.frames)
+        return webcam_frames(args.webcam, max_frames=args.frames, stop=stop)
+    except ValueError as e:
+        raise CLIError(str(e)) from None
+
+
 def run(args) -> int:
     import os
+    import threading
     from pathlib import Path
 
     import numpy as np
@@ -92,8 +228,15 @@ def run(args) -> int:
         raise CLIError(f"--size must be in 16..4096, got {args.size}")
     if not 1 <= args.in_flight <= 16:
         raise CLIError(f"--in-flight must be in 1..16, got {args.in_flight}")
-    if not 0 < args.fps <= 240:
+    if args.fps is not None and not 0 < args.fps <= 240:
         raise CLIError(f"--fps must be in (0, 240], got {args.fps}")
+    if args.frames is not None and args.frames < 1:
+        raise CLIError(f"--frames must be >= 1, got {args.frames}")
+    video = bool(args.from_video or args.webcam)
+    if video and (args.expressions or args.orbit):
+        raise CLIError("--expressions and --orbit cannot be combined with --from-video / --webcam (the video drives expression and pose)")
+    if args.save_track and not video:
+        raise CLIError("--save-track needs --from-video or --webcam")
     out = Path(args.out)
     if out.suffix.lower() != ".mp4":
         raise CLIError(f"--out must be an .mp4 path, got {out}")
@@ -107,17 +250,28 @@ def run(args) -> int:
     except Exception as e:
         raise CLIError(f"cannot reach the server at {args.url}: {e}") from None
     dim = int(info["expression_dim"])
-    if args.expressions:
-        seq = _load_sequence(args.expressions, dim)
-    elif (Path(args.input).parent / "expressions.npy").is_file():
-        seq = _load_sequence(Path(args.input).parent / "expressions.npy", dim)
+    driver, stop, fps_out = None, threading.Event(), args.fps
+    if video:
+        if info["expression_space"] != "ict53":
+            raise CLIError(f"video driving tracks ict53 expressions, but the server's model uses {info['expression_space']!r}")
+        vinfo, frames = _open_video_source(args, stop)
+        try:
+            driver = _VideoDriver(frames, args.size, args.size, args.pose_reference)
+        except ImportError as e:  # FacesUnavailableError names the extra
+            raise CLIError(str(e)) from None
+        fps_out = fps_out or (vinfo.fps if 0 < vinfo.fps <= 240 else 25.0)
+        src = args.from_video or args.webcam
+        print(f"driving from {src}: {vinfo.width}x{vinfo.height} at {vinfo.fps:.1f} fps" + ("" if args.from_video else " (Ctrl-C stops)"))
     else:
-        seq = _builtin_sequence(_BUILTIN_FRAMES)
-    if args.frames is not None:
-        if args.frames < 1:
-            raise CLIError(f"--frames must be >= 1, got {args.frames}")
-        seq = seq[: args.frames]
-    n = len(seq)
+        if args.expressions:
+            seq = _load_sequence(args.expressions, dim)
+        elif (Path(args.input).parent / "expressions.npy").is_file():
+            seq = _load_sequence(Path(args.input).parent / "expressions.npy", dim)
+        else:
+            seq = _builtin_sequence(_BUILTIN_FRAMES)
+        if args.frames is not None:
+            seq = seq[: args.frames]
+    fps_out = fps_out or 25.0
 
     try:
         avatar = client.create_avatar(images, cams, masks)
@@ -125,20 +279,42 @@ def run(args) -> int:
         raise CLIError(str(e)) from None
     print(f"avatar {avatar.avatar_id}: {avatar.num_gaussians} Gaussians, reconstruction {avatar.reconstruction_ms:.0f} ms "
           f"(round trip {avatar.round_trip_ms:.0f} ms)")  # fmt: skip
-    requests = []
-    for i, expr in enumerate(seq):
-        yaw = 30.0 * np.sin(2 * np.pi * i / max(1, n)) if args.orbit else 0.0
-        cam = orbit_camera(yaw, 0.0, 1.0, width=args.size, height=args.size) if (args.orbit or i == 0) else None
-        requests.append({"expression": expr, "camera": cam})
+    if driver is not None:
+        requests = driver.requests()
+    else:
+        n = len(seq)
+        requests = []
+        for i, expr in enumerate(seq):
+            yaw = 30.0 * np.sin(2 * np.pi * i / max(1, n)) if args.orbit else 0.0
+            cam = orbit_camera(yaw, 0.0, 1.0, width=args.size, height=args.size) if (args.orbit or i == 0) else None
+            requests.append({"expression": expr, "camera": cam})
     stats = StreamStats()
     frames_dir = Path(args.frames_dir) if args.frames_dir else None
     if frames_dir:
         frames_dir.mkdir(parents=True, exist_ok=True)
+    restore = None
+    if args.webcam:  # Ctrl-C ends the live stream cleanly (the frames so far are still written)
+        import signal
+
+        restore = signal.signal(signal.SIGINT, lambda *_: stop.set())
     try:
         frames = client.stream_sync(avatar, requests, stats=stats, max_in_flight=args.in_flight)
+    except ValueError as e:  # e.g. the webcam stopped sending
+        raise CLIError(str(e)) from None
     finally:
+        stop.set()
+        if restore is not None:
+            import signal
+
+            signal.signal(signal.SIGINT, restore)
         if not args.keep:
             client.delete(avatar)
+    if driver is not None:
+        n = stats.sent
+        if args.save_track:
+            driver.save(args.save_track)
+        if not driver.tracked:
+            raise CLIError(f"no face was found in the {driver.read} video frame(s) read")
     if not frames:
         raise CLIError("the server returned no frames")
     if frames_dir:
@@ -151,7 +327,7 @@ def run(args) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     first = frames[0].image()
     h, w = first.shape[:2]
-    writer = imageio_ffmpeg.write_frames(str(out), (w, h), fps=args.fps, codec="libx264", macro_block_size=2, quality=7)
+    writer = imageio_ffmpeg.write_frames(str(out), (w, h), fps=fps_out, codec="libx264", macro_block_size=2, quality=7)
     writer.send(None)
     img = first
     for i in range(n):
@@ -161,5 +337,12 @@ def run(args) -> int:
     writer.close()
     print(f"{stats.received} frames of {n} requested ({stats.dropped} dropped) at {w}x{h} in {stats.finished - stats.started:.2f} s: "
           f"{stats.fps:.1f} fps, latency p50 {stats.latency_percentile(50):.1f} ms, p95 {stats.latency_percentile(95):.1f} ms")  # fmt: skip
+    if driver is not None:
+        ms = 1e3 * driver.track_seconds / max(1, driver.read)
+        print(f"tracking: {driver.tracked} of {driver.read} video frames tracked ({driver.lost} without a face), "
+              f"{ms:.1f} ms per frame ({1e3 / ms if ms > 0 else float('inf'):.1f} FPS alone); "
+              f"tracking + streaming end to end: {stats.fps:.1f} FPS")  # fmt: skip
+        if args.save_track:
+            print(f"wrote the tracked poses and expressions to {args.save_track}")
     print(f"wrote {out}" + (f" and {len(frames)} frames to {frames_dir}" if frames_dir else ""))
     return 0

@@ -188,7 +188,7 @@ class FastGHA(nn.Module):
         tokens = torch.cat([f_dino, f_enc.to(f_dino.dtype), p_cam.to(f_dino.dtype)], dim=2)
         x = self.transformer(tokens)  # [B, V, D, H/8, W/8]
         maps = self.decoder(x)  # [B, V, 12+F, H, W]
-        return self.head(maps, cameras)
+        return self.head(maps, cameras, images)
 
     def forward(self, images: Tensor, K: Tensor, w2c: Tensor, expression: Tensor) -> FastGHAOutput:
         """Training forward.

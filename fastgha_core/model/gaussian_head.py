@@ -7,7 +7,8 @@ map ``[12+F, H, W]``:
   camera's distance to the world origin (the head centre). Zero raw output puts the point on the
   sphere around the camera through the origin, and the parameterisation works for any camera
   distance. The Gaussian centre is ``origin + t * direction`` (``Cameras.pixel_rays``).
-- rgb 3: sigmoid.
+- rgb 3: sigmoid; with ``rgb_residual`` the raw value is a residual on the logit of the map
+  pixel's own input colour, ``sigmoid(raw + logit(clamp(image, 0.01, 0.99)))``.
 - quat 4: wxyz in the *camera* frame, ``normalize(raw + (1, 0, 0, 0))`` (identity at zero), rotated to
   world by the camera-to-world rotation.
 - scale 3: bounded exp in units of the pixel footprint at that depth,
@@ -93,18 +94,21 @@ def matrix_to_quaternion(R: Tensor) -> Tensor:
 
 
 class GaussianHead:
-    """Stateless: ``GaussianHead(cfg)(maps [B, V, 12+F, H, W], cameras [B, V]) -> list[Gaussians]``."""
+    """Stateless: ``GaussianHead(cfg)(maps [B, V, 12+F, H, W], cameras [B, V], images) -> list[Gaussians]``."""
 
     def __init__(self, cfg: GaussianHeadConfig):
         self.cfg = cfg
         self.layout = GaussianLayout(cfg.feature_dim)
 
-    def __call__(self, maps: Tensor, cameras: Cameras) -> list[Gaussians]:
-        """Raw maps ``[B, V, 12+F, H, W]`` (any float dtype) -> float32 Gaussians, computed without autocast."""
-        with torch.autocast(device_type=maps.device.type, enabled=False):
-            return self._activate(maps.float(), cameras)
+    def __call__(self, maps: Tensor, cameras: Cameras, images: Tensor | None = None) -> list[Gaussians]:
+        """Raw maps ``[B, V, 12+F, H, W]`` (any float dtype) -> float32 Gaussians, computed without autocast.
 
-    def _activate(self, maps: Tensor, cameras: Cameras) -> list[Gaussians]:
+        ``images [B, V, 3, H, W]`` (the inputs, at the maps' size) are required when ``cfg.rgb_residual``.
+        """
+        with torch.autocast(device_type=maps.device.type, enabled=False):
+            return self._activate(maps.float(), cameras, images)
+
+    def _activate(self, maps: Tensor, cameras: Cameras, images: Tensor | None = None) -> list[Gaussians]:
         lay = self.layout
         if maps.ndim != 5 or maps.shape[2] != lay.channels:
             raise ValueError(f"GaussianHead: maps must have shape [B, V, {lay.channels}, H, W], got {list(maps.shape)}")
@@ -127,7 +131,13 @@ class GaussianHead:
         q_c2w = matrix_to_quaternion(cams.c2w[..., :3, :3])[..., None, None, :]  # [B, V, 1, 1, 4]
         quats = F.normalize(quaternion_multiply(q_c2w.expand_as(q_cam), q_cam), dim=-1)
 
-        colors = torch.sigmoid(x[..., lay.rgb])
+        raw_rgb = x[..., lay.rgb]  # [B, V, H, W, 3]
+        if self.cfg.rgb_residual:
+            if images is None or tuple(images.shape) != (b, v, 3, h, w):
+                got = None if images is None else list(images.shape)
+                raise ValueError(f"GaussianHead: rgb_residual needs the input images [{b}, {v}, 3, {h}, {w}], got {got}")
+            raw_rgb = raw_rgb + torch.logit(images.float().clamp(0.01, 0.99)).permute(0, 1, 3, 4, 2)
+        colors = torch.sigmoid(raw_rgb)
         opac = torch.sigmoid(x[..., lay.opacity])[..., 0]  # [B, V, H, W]
         feats = x[..., lay.feature]
         out = []
