@@ -231,9 +231,9 @@ def _tiny() -> FastGHAConfig:
         vae=VAEConfig(block_out_channels=(32, 64, 64, 64), layers_per_block=1, norm_num_groups=16, frozen=False),
         transformer=TransformerConfig(hidden_size=192, num_layers=4, num_heads=4),
         decoder=DecoderConfig(block_out_channels=(32, 64, 64, 64), layers_per_block=1, norm_num_groups=16, init_from_vae=False),
-        # rgb_residual: a CPU training budget buys ~2k steps; starting every Gaussian at its own input
-        # pixel's colour lets them go to geometry and expression instead of relearning colour copying.
-        gaussians=GaussianHeadConfig(feature_dim=32, prune_opacity=0.005, rgb_residual=True),
+        # rgb_residual stays off: tried for the shipped model, it trained worse in the first 300 steps
+        # (white background pixels become white Gaussians in front of the face until opacity learns).
+        gaussians=GaussianHeadConfig(feature_dim=32, prune_opacity=0.005),
         deform=DeformConfig(hidden_size=48, num_layers=4, pe_freqs=4),  # ~8 ms/frame fp32 at 65k Gaussians on 2 cores
     )
 
