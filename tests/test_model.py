@@ -363,6 +363,21 @@ def test_gaussian_head_rgb_residual_starts_at_the_input_pixel_colour():
         GaussianHead(GaussianHeadConfig(feature_dim=4, rgb_residual=True))(maps, cams[None])
 
 
+def test_gaussian_head_foreground_opacity_zeroes_background_pixels():
+    from fastgha_core.model.gaussian_head import foreground_weight
+
+    cams = orbit_cameras(1, width=4, height=2)
+    images = torch.ones(1, 1, 3, 2, 4)  # the white matting background ...
+    images[..., 0, 1] = torch.tensor([0.5, 0.3, 0.2])  # ... one skin pixel at (row 0, col 1)
+    images[..., 1, 2] = torch.tensor([0.99, 0.99, 0.99])  # ... one anti-aliased edge pixel, 1/3 foreground
+    maps = torch.zeros(1, 1, 16, 2, 4)
+    (g,) = GaussianHead(GaussianHeadConfig(feature_dim=4, foreground_opacity=True))(maps, cams[None], images)
+    expect = torch.zeros(2, 4)
+    expect[0, 1], expect[1, 2] = 0.5, 0.5 * (0.01 / 0.03)
+    assert_close(g.opacities, expect.reshape(-1), atol=1e-6, rtol=0)
+    assert_close(foreground_weight(images[0, 0]), expect * 2, atol=1e-6, rtol=0)
+
+
 # ---------------------------------------------------------------- prepare / reconstruct / animate
 def test_prepare_crops_resizes_and_mattes(toy_model):
     cam = Cameras.look_at([0.2, 0.1, 1.0], fov_deg=25, width=48, height=40)

@@ -14,7 +14,10 @@ map ``[12+F, H, W]``:
 - scale 3: bounded exp in units of the pixel footprint at that depth,
   ``footprint * exp(log(min) + (log(max) - log(min)) * sigmoid(raw))`` with
   ``footprint = t / f`` (metres per map pixel, ``f`` the mean focal length of the map's camera).
-- opacity 1: sigmoid.
+- opacity 1: sigmoid; with ``foreground_opacity`` multiplied by the input pixel's foreground
+  weight ``clamp((1 - min_c |image_c - bg_c| ...)``, see ``foreground_weight``: inputs are matted on
+  ``BACKGROUND_RGB``, so a pixel of exactly the background colour is background and makes a
+  transparent Gaussian (pruned by ``reconstruct``).
 - feature F: raw (the deformation MLP's input).
 
 All views of a sample are concatenated into one set of ``V*H*W`` Gaussians.
@@ -31,9 +34,22 @@ from torch import Tensor
 
 from ..cameras import Cameras
 from ..config import GaussianHeadConfig
+from ..constants import BACKGROUND_RGB
 from ..gaussians import Gaussians
 
-__all__ = ["GaussianLayout", "GaussianHead", "matrix_to_quaternion", "quaternion_multiply"]
+__all__ = ["GaussianLayout", "GaussianHead", "foreground_weight", "matrix_to_quaternion", "quaternion_multiply"]
+
+FOREGROUND_SOFTNESS = 0.03  # colour distance from the background at which a pixel counts as fully foreground
+
+
+def foreground_weight(images: Tensor) -> Tensor:
+    """Foreground weight ``[..., H, W]`` in [0, 1] of images ``[..., 3, H, W]`` matted on ``BACKGROUND_RGB``.
+
+    ``clamp(max_c |image_c - bg_c| / FOREGROUND_SOFTNESS, 0, 1)``: 0 on the background colour, 1 once
+    any channel differs by 0.03 or more, a ramp on anti-aliased matte edges.
+    """
+    bg = images.new_tensor(BACKGROUND_RGB).view(3, 1, 1)
+    return ((images - bg).abs().amax(dim=-3) / FOREGROUND_SOFTNESS).clamp(0.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -139,6 +155,11 @@ class GaussianHead:
             raw_rgb = raw_rgb + torch.logit(images.float().clamp(0.01, 0.99)).permute(0, 1, 3, 4, 2)
         colors = torch.sigmoid(raw_rgb)
         opac = torch.sigmoid(x[..., lay.opacity])[..., 0]  # [B, V, H, W]
+        if self.cfg.foreground_opacity:
+            if images is None or tuple(images.shape) != (b, v, 3, h, w):
+                got = None if images is None else list(images.shape)
+                raise ValueError(f"GaussianHead: foreground_opacity needs the input images [{b}, {v}, 3, {h}, {w}], got {got}")
+            opac = opac * foreground_weight(images.float())
         feats = x[..., lay.feature]
         out = []
         for i in range(b):
