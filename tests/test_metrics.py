@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 import pytest
 import torch
 import torch.nn.functional as F
@@ -131,3 +133,21 @@ def test_lpips_matches_plain_formula(tmp_path):
         w = heads[f"lin{i}.model.1.weight"].view(1, -1, 1, 1)
         expected += ((a - b) ** 2 * w).sum(1).mean(dim=(1, 2))
     torch.testing.assert_close(model(x, y), expected, atol=1e-5, rtol=1e-4)
+
+
+def test_face_metrics_on_a_real_photo_identical_and_shifted():
+    from fastgha_core.train.faces import load_face_metrics
+
+    faces = load_face_metrics()
+    if faces is None:
+        pytest.skip("needs the 'faces' extra (dlib-bin, face-recognition-models)")
+    import matplotlib.cbook
+    from PIL import Image
+
+    img = np.asarray(Image.open(matplotlib.cbook.get_sample_data("grace_hopper.jpg")).convert("RGB").resize((256, 320)))
+    t = torch.from_numpy(img).permute(2, 0, 1).float() / 255.0  # [3, H, W], a non-contiguous view once converted back
+    csim, akd = faces.compare(t, t)
+    assert csim == pytest.approx(1.0, abs=1e-6) and akd == pytest.approx(0.0, abs=1e-9)
+    shifted = torch.roll(t, shifts=6, dims=2)  # the face moves 6 px right
+    csim2, akd2 = faces.compare(shifted, t)
+    assert 3.0 < akd2 < 9.0 and csim2 > 0.8

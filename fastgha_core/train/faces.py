@@ -49,7 +49,8 @@ class FaceMetrics:
     def compare(self, pred: Tensor, target: Tensor) -> tuple[float | None, float | None]:
         """``(csim, akd)`` for one pair of ``[3, H, W]`` images; ``(None, None)`` when no face is
         detected on the ground truth."""
-        p, t = to_uint8_hwc(pred), to_uint8_hwc(target)
+        # dlib's pybind11 bindings accept only C-contiguous uint8 HxWx3 arrays
+        p, t = np.ascontiguousarray(to_uint8_hwc(pred)), np.ascontiguousarray(to_uint8_hwc(target))
         box = self._box(t)
         if box is None:
             return None, None
