@@ -1,8 +1,8 @@
 """Shared helpers of the client and browser tests: a small model folder, a synthetic sample
 subject, and a real uvicorn server process on 127.0.0.1.
 
-The server runs ``create_app_with_samples`` (below), i.e. the normal app, with its
-``/v1/samples`` routes pointed at a test folder through ``FASTGHA_SAMPLES_DIR``.
+The server is the normal ``server.app:create_app``; its ``/v1/samples`` routes point at a test
+folder through ``FASTGHA_SAMPLES_DIR``. Keyword arguments override any ``FASTGHA_*`` setting.
 """
 
 from __future__ import annotations
@@ -75,14 +75,6 @@ def make_sample_dir(root: Path, name: str = SAMPLE_NAME, frames: int = 12) -> Pa
     return d
 
 
-def create_app_with_samples():
-    """uvicorn factory for tests: the normal ``create_app()``; the samples it serves come from
-    ``FASTGHA_SAMPLES_DIR`` (set by ``ServerProcess``)."""
-    from server.app import create_app
-
-    return create_app()
-
-
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -90,11 +82,12 @@ def free_port() -> int:
 
 
 class ServerProcess:
-    """``uvicorn --factory server_process:create_app_with_samples`` on a free loopback port."""
+    """``uvicorn --factory server.app:create_app`` on a free loopback port."""
 
     def __init__(self, model_dir: Path, data_dir: Path, samples_dir: Path | None, log_path: Path, **env_overrides: str) -> None:
         self.port = free_port()
         self.base = f"http://127.0.0.1:{self.port}"
+        self.ws_base = f"ws://127.0.0.1:{self.port}"
         env = dict(os.environ)
         env.update(
             FASTGHA_MODEL=str(model_dir),
@@ -112,7 +105,7 @@ class ServerProcess:
         self.log_path = log_path
         self.log = open(log_path, "ab")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "--factory", "server_process:create_app_with_samples", "--host", "127.0.0.1",
+            [sys.executable, "-m", "uvicorn", "--factory", "server.app:create_app", "--host", "127.0.0.1",
              "--port", str(self.port), "--timeout-graceful-shutdown", "5"],
             cwd=REPO, env=env, stdout=self.log, stderr=subprocess.STDOUT,
         )  # fmt: skip
@@ -131,9 +124,12 @@ class ServerProcess:
             time.sleep(0.3)
         raise RuntimeError(f"server did not start:\n{self.log_path.read_text()[-3000:]}")
 
-    def stop(self) -> int:
+    def alive(self) -> bool:
+        return self.proc.poll() is None and httpx.get(self.base + "/healthz", timeout=5).json()["status"] == "ok"
+
+    def stop(self, sig: int = signal.SIGTERM) -> int:
         if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
+            self.proc.send_signal(sig)
             try:
                 self.proc.wait(timeout=30)
             except subprocess.TimeoutExpired:

@@ -11,12 +11,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
-import os
 import signal
-import socket
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import httpx
@@ -29,6 +24,7 @@ from websockets.sync.client import connect
 
 from fastgha_core.cameras import Cameras, cameras_to_json, load_request_folder, orbit_cameras
 from server.protocol import pack_binary_request, unpack_frame
+from server_process import ServerProcess as _ServerProcess
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -58,67 +54,18 @@ def model_dir(tmp_path_factory) -> Path:
     return d
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class ServerProcess:
-    def __init__(self, model_dir: Path, data_dir: Path, log_path: Path, warmup: bool = True) -> None:
-        self.port = _free_port()
-        self.base = f"http://127.0.0.1:{self.port}"
-        self.ws_base = f"ws://127.0.0.1:{self.port}"
-        env = dict(os.environ)
-        env.update(
-            FASTGHA_MODEL=str(model_dir),
-            FASTGHA_DEVICE="cpu",
-            FASTGHA_DATA_DIR=str(data_dir),
-            FASTGHA_API_KEYS=f"other-key,{API_KEY}",
-            FASTGHA_WARMUP="true" if warmup else "false",
-            FASTGHA_WARMUP_FRAMES="1",
-            FASTGHA_MAX_UPLOAD_BYTES=str(MAX_UPLOAD),
-            FASTGHA_MAX_IMAGE_PIXELS=str(MAX_PIXELS),
-            FASTGHA_MAX_OUTPUT_SIZE="96",
-            FASTGHA_WS_MAX_MESSAGE_BYTES=str(MAX_WS_BYTES),
-            FASTGHA_MAX_STREAMS_PER_AVATAR="3",
-            FASTGHA_RENDER_WORKERS="2",
-        )
-        self.log = open(log_path, "ab")
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "--factory", "server.app:create_app", "--host", "127.0.0.1",
-             "--port", str(self.port), "--timeout-graceful-shutdown", "5"],
-            cwd=REPO, env=env, stdout=self.log, stderr=subprocess.STDOUT,
-        )  # fmt: skip
-        self.log_path = log_path
-        self._wait_ready()
-
-    def _wait_ready(self, timeout: float = 240.0) -> None:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"server exited with {self.proc.returncode}:\n{self.log_path.read_text()[-3000:]}")
-            try:
-                if httpx.get(self.base + "/healthz", timeout=2).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.3)
-        raise RuntimeError(f"server did not start:\n{self.log_path.read_text()[-3000:]}")
-
-    def alive(self) -> bool:
-        return self.proc.poll() is None and httpx.get(self.base + "/healthz", timeout=5).json()["status"] == "ok"
-
-    def stop(self, sig=signal.SIGTERM) -> int:
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-            try:
-                self.proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self.log.close()
-        return self.proc.returncode
+def ServerProcess(model_dir: Path, data_dir: Path, log_path: Path, warmup: bool = True) -> _ServerProcess:
+    """The shared test server (``tests/server_process.py``) with this module's keys and limits."""
+    return _ServerProcess(
+        model_dir, data_dir, None, log_path,
+        FASTGHA_WARMUP="true" if warmup else "false",
+        FASTGHA_API_KEYS=f"other-key,{API_KEY}",
+        FASTGHA_MAX_UPLOAD_BYTES=str(MAX_UPLOAD),
+        FASTGHA_MAX_IMAGE_PIXELS=str(MAX_PIXELS),
+        FASTGHA_MAX_OUTPUT_SIZE="96",
+        FASTGHA_WS_MAX_MESSAGE_BYTES=str(MAX_WS_BYTES),
+        FASTGHA_MAX_STREAMS_PER_AVATAR="3",
+    )  # fmt: skip
 
 
 @pytest.fixture(scope="module")

@@ -683,7 +683,7 @@ def open_nersemble(
         frame_base = sdir / "timesteps" if (sdir / "timesteps").is_dir() else sdir
         frame_dirs = {int(p.name.split("_")[-1]): p for p in sorted(frame_base.glob("frame_*")) if p.is_dir()}
         if not use_video and not frame_dirs:
-            raise ValueError(f"NeRSemble {root.name}/{seq}: neither images/cam_<serial>.mp4 for every camera nor frame_XXXXX folders")
+            raise ValueError(f"NeRSemble {root.name}/{seq}: neither images/cam_<serial>.mp4 for every camera nor frame_<5 digits> folders")
         trk_path = sdir / tracking
         if trk_path.exists():
             trk = _nersemble_tracking(trk_path)

@@ -7,8 +7,8 @@ Run layout (``RUN_DIR``)::
 
     train_config.json           the TrainConfig and the model config of this run
     log.csv                     one row per logged step (loss terms, lr, throughput, timings)
-    val.csv, val/step_XXXXXXXX.png   validation PSNR and render grids (inputs | ground truth | ours)
-    checkpoints/step_XXXXXXXX/  model.safetensors, trainer_state.pt (optimizer, scheduler, RNG, step)
+    val.csv, val/step_<step:08d>.png   validation PSNR and render grids (inputs | ground truth | ours)
+    checkpoints/step_<step:08d>/  model.safetensors, trainer_state.pt (optimizer, scheduler, RNG, step)
     model/                      the final model (FastGHA.save_pretrained)
 
 Data order is a pure function of (seed, step, rank): sample ``p`` of the global stream is index
@@ -381,7 +381,7 @@ class Trainer:
 
     # ------------------------------------------------------------ checkpoints
     def save_checkpoint(self) -> Path | None:
-        """Write ``checkpoints/step_XXXXXXXX`` atomically (rank 0) and prune old ones."""
+        """Write ``checkpoints/step_<step:08d>`` atomically (rank 0) and prune old ones."""
         rng = capture_rng(self.device)
         if self.dist.distributed:  # every rank's RNG streams go into the checkpoint
             all_rng: list[Any] = [None] * self.dist.world_size
@@ -561,7 +561,7 @@ class Trainer:
     # ------------------------------------------------------------ validation
     @torch.no_grad()
     def validate(self) -> dict[str, float]:
-        """Render the first ``val_samples`` validation samples, write ``val/step_XXXXXXXX.png``
+        """Render the first ``val_samples`` validation samples, write ``val/step_<step:08d>.png``
         (rows: inputs | ground truth | ours) and a ``val.csv`` row with their PSNR. The training
         RNG streams are left untouched."""
         from .metrics import psnr
