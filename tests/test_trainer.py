@@ -127,3 +127,20 @@ def test_evaluate_protocol_report_and_ablations(tmp_path, toy_data):
     # an untrained deformation MLP is the identity (zero-initialised output), so static == none
     static = evaluate(model, [seq], EvalConfig(num_inputs=4, num_target_timesteps=2, num_target_views=2, backend="cpu", ablation="static"), progress=False)
     assert static["summary"]["psnr"] == pytest.approx(report["summary"]["psnr"], abs=1e-4)
+
+
+def test_cosine_schedule_warms_up_then_anneals_to_the_floor(tmp_path, toy_data):
+    tr = _trainer(tmp_path, toy_data, steps=10, warmup_steps=2, lr_schedule="cosine", min_lr_ratio=0.1)
+    lrs = []
+    for _ in range(10):
+        lrs.append(tr.optimizer.param_groups[0]["lr"])
+        tr.optimizer.step()
+        tr.scheduler.step()
+    base = 2e-3
+    assert lrs[0] == pytest.approx(base / 2) and lrs[1] == pytest.approx(base)
+    # after warmup the rate falls monotonically: halfway it is the mean of start and floor
+    assert all(a >= b for a, b in zip(lrs[1:], lrs[2:]))
+    assert lrs[6] == pytest.approx(base * (0.1 + 0.9 * 0.5))
+    assert tr.optimizer.param_groups[0]["lr"] == pytest.approx(base * 0.1)
+    with pytest.raises(ValueError, match="lr_schedule"):
+        _trainer(tmp_path / "bad", toy_data, lr_schedule="linear")

@@ -14,6 +14,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--ckpt-every", type=int, default=None, help="checkpoint every N steps")
     parser.add_argument("--lr", type=float, default=None, help="learning rate of the network (paper: 5e-5)")
     parser.add_argument("--lr-deform", type=float, default=None, help="learning rate of the deformation MLP (paper: 5e-4)")
+    parser.add_argument("--warmup-steps", type=int, default=None, help="linear learning-rate warmup over this many steps")
+    parser.add_argument("--lr-schedule", choices=("constant", "cosine"), default=None, help="after warmup: constant, or cosine annealing to --min-lr-ratio x lr at --steps")
+    parser.add_argument("--min-lr-ratio", type=float, default=None, help="final learning rate of the cosine schedule as a fraction of the initial one (default 0.1)")
     parser.add_argument("--seed", type=int, default=None, help="model init and data order seed")
     parser.add_argument("--render-backend", default=None, help="rasterizer backend (auto | cpu | reference | torch_tiles | gsplat)")
     parser.add_argument("--device", default=None, help="torch device (default: cuda:LOCAL_RANK when available, else cpu)")
@@ -37,6 +40,9 @@ def run(args) -> int:
         "ckpt_every": args.ckpt_every,
         "lr": args.lr,
         "lr_deform": args.lr_deform,
+        "warmup_steps": args.warmup_steps,
+        "lr_schedule": args.lr_schedule,
+        "min_lr_ratio": args.min_lr_ratio,
         "seed": args.seed,
         "render_backend": args.render_backend,
         "vgg_weights": args.vgg_weights,
@@ -44,6 +50,8 @@ def run(args) -> int:
     for k, v in overrides.items():
         if v is not None:
             setattr(cfg, k, v)
+    if not 0.0 <= cfg.min_lr_ratio <= 1.0:
+        raise CLIError(f"--min-lr-ratio must be in [0, 1], got {cfg.min_lr_ratio}")
     if cfg.steps < 1 or cfg.batch_size < 1:
         raise CLIError(f"--steps and --batch-size must be >= 1, got {cfg.steps} and {cfg.batch_size}")
     dist = init_distributed(args.device)

@@ -69,6 +69,8 @@ class TrainConfig:
     betas: tuple[float, float] = (0.9, 0.999)  # Adam betas
     weight_decay: float = 0.0  # Adam (L2) weight decay
     warmup_steps: int = 0  # linear learning-rate warmup from 0 over this many steps
+    lr_schedule: str = "constant"  # after warmup: "constant" | "cosine" (anneal to min_lr_ratio * lr at `steps`)
+    min_lr_ratio: float = 0.1  # final learning rate of the cosine schedule, as a fraction of lr
     grad_clip: float = 1.0  # max global gradient norm (0 = no clipping)
     num_inputs: int = 4  # input images per sample (paper: 4)
     num_targets: int = 8  # supervision views per sample (paper: 8 = 4 input cameras + 4 novel)
@@ -87,6 +89,12 @@ class TrainConfig:
     synthetic_cameras: int = 16  # cameras per synthetic sequence
     vgg_weights: str | None = None  # torchvision VGG16 weights file for L_perc (None: L_perc off)
     loss: LossConfig = field(default_factory=LossConfig)
+
+    def __post_init__(self) -> None:
+        if self.lr_schedule not in ("constant", "cosine"):
+            raise ValueError(f"train config: lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
+        if not 0.0 <= self.min_lr_ratio <= 1.0:
+            raise ValueError(f"train config: min_lr_ratio must be in [0, 1], got {self.min_lr_ratio}")
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -110,6 +118,20 @@ class TrainConfig:
         if "betas" in kw:
             kw["betas"] = tuple(kw["betas"])
         return cls(**kw)
+
+
+def lr_factor(config: TrainConfig, step: int) -> float:
+    """Learning-rate multiplier at optimiser step ``step`` (0-based): linear warmup, then constant or cosine."""
+    warm = max(0, int(config.warmup_steps))
+    if step < warm:
+        return (step + 1) / warm
+    if config.lr_schedule == "constant":
+        return 1.0
+    if config.lr_schedule == "cosine":
+        span = max(1, int(config.steps) - warm)
+        t = min(1.0, (step - warm) / span)
+        return config.min_lr_ratio + (1.0 - config.min_lr_ratio) * 0.5 * (1.0 + math.cos(math.pi * t))
+    raise ValueError(f"train config: lr_schedule must be 'constant' or 'cosine', got {config.lr_schedule!r}")
 
 
 def _paper_train() -> TrainConfig:
@@ -360,8 +382,7 @@ class Trainer:
             raise ValueError("the model has no trainable parameters")
         self.trainable = [p for g in groups for p in g["params"]]
         self.optimizer = torch.optim.Adam(groups, betas=tuple(config.betas), weight_decay=config.weight_decay)
-        warm = max(0, int(config.warmup_steps))
-        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda s: min(1.0, (s + 1) / warm) if warm else 1.0)
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda s: lr_factor(config, s))
         vgg = None
         if config.vgg_weights and config.loss.w_perc > 0:
             from .vgg import load_vgg16
