@@ -187,3 +187,26 @@ def describe_machine() -> dict:
         "numba": numba.__version__,
         "cuda": torch.cuda.is_available(),
     }
+
+
+def fast_bf16(device: str = "cpu", flags: set[str] | None = None) -> bool:
+    """Whether bf16 matmuls run natively here: a CUDA device with bf16 support, or a CPU with
+    AVX512-BF16 or AMX (elsewhere bf16 is emulated and slower than fp32)."""
+    import torch
+
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        return bool(torch.cuda.is_available() and torch.cuda.is_bf16_supported())
+    if flags is None:
+        flags = cpu_flags()[1]
+    return bool({"avx512_bf16", "amx_bf16"} & set(flags))
+
+
+def cpp_compiler() -> str | None:
+    """Path of the C++ compiler torch.compile's inductor would use on CPU (``CXX``, then c++/g++/clang++), or None."""
+    import shutil
+
+    for name in (os.environ.get("CXX"), "c++", "g++", "clang++"):
+        if name and (path := shutil.which(name)):
+            return path
+    return None

@@ -71,7 +71,12 @@ def _load(ctx: ServerContext) -> None:
     t0 = time.perf_counter()
     ctx.model = load_model(s.model, device=ctx.device)
     log.info("loaded model %r on %s in %.1f s", ctx.model.config.name, ctx.device, time.perf_counter() - t0)
-    ctx.renderer = FrameRenderer(ctx.model, ctx.device, s.default_camera_distance, s.default_camera_fov_deg)
+    bf16 = s.resolved_bf16(ctx.device)
+    ctx.renderer = FrameRenderer(ctx.model, ctx.device, s.default_camera_distance, s.default_camera_fov_deg, bf16=bf16)
+    if s.resolved_compile(ctx.device):
+        _compile_deformation(ctx)
+    else:
+        log.info("deformation MLP: %s, eager (FASTGHA_COMPILE=%s)", "bf16" if bf16 else "fp32", s.compile)
     # animate() caches an [N, hidden] first-layer term on each avatar: count it in the budget
     hidden = int(getattr(getattr(ctx.model.config, "deform", None), "hidden_size", 0))
 
@@ -82,6 +87,17 @@ def _load(ctx: ServerContext) -> None:
     ctx.metrics.bind_cache(lambda: ctx.store.cached_count, lambda: ctx.store.cached_bytes)
     if s.warmup:
         _warmup(ctx)
+
+
+def _compile_deformation(ctx: ServerContext) -> None:
+    """torch.compile the per-frame MLP now, so that no client waits for it; eager when it fails."""
+    bf16 = ctx.renderer.bf16
+    try:
+        secs = ctx.model.compile_deformation(bf16=bf16)
+    except Exception as e:  # inductor needs a working C++ toolchain; the eager MLP gives the same frames
+        log.warning("torch.compile of the deformation MLP failed, running it eagerly: %s: %s", type(e).__name__, str(e).splitlines()[0][:300] if str(e) else "")
+        return
+    log.info("deformation MLP: %s, compiled in %.1f s", "bf16" if bf16 else "fp32", secs)
 
 
 def _warmup(ctx: ServerContext) -> None:
@@ -356,7 +372,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.get("/healthz", tags=["service"])
     async def healthz(request: Request):
         ctx = _ctx(request)
-        return {"status": "ok" if ctx.ready else "starting", "version": __version__, "model": ctx.model.config.name if ctx.model else None}
+        mlp = None
+        if ctx.model is not None and ctx.renderer is not None:
+            mlp = {"precision": "bf16" if ctx.renderer.bf16 else "fp32", "compiled": ctx.model.deform.compiled}
+        return {
+            "status": "ok" if ctx.ready else "starting",
+            "version": __version__,
+            "model": ctx.model.config.name if ctx.model else None,
+            "mlp": mlp,
+        }
 
     @app.get("/metrics", tags=["service"], response_class=Response)
     async def metrics(request: Request):

@@ -55,9 +55,12 @@ def fit_camera(cam: Cameras, max_size: int) -> Cameras:
 class FrameRenderer:
     """Renders frames of avatars with one loaded model."""
 
-    def __init__(self, model, device: str | torch.device, camera_distance: float = 1.0, fov_deg: float = 20.0) -> None:
+    def __init__(
+        self, model, device: str | torch.device, camera_distance: float = 1.0, fov_deg: float = 20.0, bf16: bool = False
+    ) -> None:
         self.model = model
         self.device = torch.device(device)
+        self.bf16 = bool(bf16)  # deformation MLP under bf16 autocast (see Settings.mlp_precision)
         self.width, self.height = render_size_of(model.config)
         self.default_camera = Cameras.look_at(
             (0.0, 0.0, float(camera_distance)), (0.0, 0.0, 0.0), fov_deg=fov_deg, width=self.width, height=self.height
@@ -69,7 +72,7 @@ class FrameRenderer:
 
         t0 = time.perf_counter()
         with torch.inference_mode():
-            g = self.model.animate(avatar, expression.to(self.device))
+            g = self.model.animate(avatar, expression.to(self.device), bf16=self.bf16)
             if self.device.type == "cuda":
                 torch.cuda.synchronize(self.device)
             t1 = time.perf_counter()

@@ -8,6 +8,7 @@ takes an explicit ``Settings`` (tests and ``fastgha serve`` build one and pass i
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -32,6 +33,13 @@ class Settings(BaseSettings):
     data_dir: Path = Field(Path("fastgha-data"), description="folder where avatars are persisted")
     warmup: bool = Field(True, description="reconstruct once and render a few frames at start-up")
     warmup_frames: int = Field(3, ge=0, le=100)
+    mlp_precision: Literal["auto", "fp32", "bf16"] = Field(
+        "auto", description='deformation MLP precision: "auto" = bf16 where the hardware runs it natively (AVX512-BF16/AMX, CUDA), else fp32'
+    )
+    compile: Literal["auto", "on", "off"] = Field(
+        "auto",
+        description='torch.compile the deformation MLP at start-up: "auto" = on when a C++ compiler is found (CPU) or on CUDA; needs warmup',
+    )
 
     # ------------------------------------------------------------ security
     api_keys: str = Field(
@@ -94,6 +102,22 @@ class Settings(BaseSettings):
         """The folder to serve at ``/``, or None when there is none."""
         d = self.static_dir if self.static_dir is not None else _REPO_STATIC
         return d if d.is_dir() else None
+
+    def resolved_bf16(self, device: str) -> bool:
+        if self.mlp_precision != "auto":
+            return self.mlp_precision == "bf16"
+        from fastgha_core.perf import fast_bf16
+
+        return fast_bf16(device)
+
+    def resolved_compile(self, device: str) -> bool:
+        if self.compile != "auto":
+            return self.compile == "on"
+        if device.startswith("cuda"):
+            return True
+        from fastgha_core.perf import cpp_compiler
+
+        return cpp_compiler() is not None
 
     def resolved_device(self) -> str:
         if self.device != "auto":

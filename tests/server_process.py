@@ -97,6 +97,7 @@ class ServerProcess:
             FASTGHA_WARMUP="true",
             FASTGHA_WARMUP_FRAMES="1",
             FASTGHA_RENDER_WORKERS="2",
+            FASTGHA_COMPILE="off",  # tests/test_server.py turns it on once; compiling costs seconds per start
             PYTHONPATH=os.pathsep.join([str(REPO), str(REPO / "tests"), env.get("PYTHONPATH", "")]),
         )
         if samples_dir is not None:

@@ -108,3 +108,39 @@ def test_shape_errors():
         mlp(feats[:, :4], xyz, torch.zeros(11))
     with pytest.raises(ValueError, match=r"partial must have shape \[N, 24\]"):
         mlp.forward_split(torch.zeros(N, 5), torch.zeros(11))
+
+
+@pytest.mark.skipif(
+    __import__("fastgha_core.perf", fromlist=["cpp_compiler"]).cpp_compiler() is None,
+    reason="torch.compile (inductor) needs a C++ compiler on CPU",
+)
+def test_compiled_tail_equals_eager_for_any_size_and_keeps_autograd_eager():
+    mlp = _mlp()
+    feats, xyz, g = _inputs()
+    expr = torch.randn(E_DIM, generator=g)
+    with torch.no_grad():
+        partial = mlp.precompute(feats, xyz)
+        ref = mlp.forward_split(partial, expr, chunk_size=64)
+        ref_small = mlp.forward_split(partial[:37], expr, chunk_size=64)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            ref_bf16 = mlp.forward_split(partial, expr, chunk_size=64)
+    mlp.compile_tail()
+    assert mlp.compiled
+    with torch.no_grad():
+        got = mlp.forward_split(partial, expr, chunk_size=64)  # 5 chunks, the last padded from 44 to 64 rows
+        got_small = mlp.forward_split(partial[:37], expr, chunk_size=64)  # fewer rows than one chunk: padded too
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            got_bf16 = mlp.forward_split(partial, expr, chunk_size=64)
+    for a, b in [*zip(ref, got), *zip(ref_small, got_small)]:
+        assert b.shape == a.shape
+        assert_close(b, a, rtol=1e-5, atol=1e-6)
+    for a, b in zip(ref_bf16, got_bf16):
+        assert b.shape == a.shape
+        assert (b.float() - a.float()).abs().max() <= 0.02 * a.float().abs().max()
+    # with autograd the compiled tail is not used: gradients flow as in the plain MLP
+    p = partial.clone().requires_grad_(True)
+    dxyz, drgb = mlp.forward_split(p, expr, chunk_size=64)
+    (dxyz.sum() + drgb.sum()).backward()
+    assert p.grad is not None and torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0
+    mlp.compile_tail(False)
+    assert not mlp.compiled

@@ -54,11 +54,16 @@ def model_dir(tmp_path_factory) -> Path:
     return d
 
 
-def ServerProcess(model_dir: Path, data_dir: Path, log_path: Path, warmup: bool = True) -> _ServerProcess:
-    """The shared test server (``tests/server_process.py``) with this module's keys and limits."""
+def ServerProcess(model_dir: Path, data_dir: Path, log_path: Path, warmup: bool = True, fast_mlp: bool = False) -> _ServerProcess:
+    """The shared test server (``tests/server_process.py``) with this module's keys and limits.
+
+    ``fast_mlp``: the deformation MLP in bf16 and compiled (``torch.compile`` at start-up), the
+    production path on CPUs with AVX512-BF16 and a C++ compiler."""
     return _ServerProcess(
         model_dir, data_dir, None, log_path,
         FASTGHA_WARMUP="true" if warmup else "false",
+        FASTGHA_MLP_PRECISION="bf16" if fast_mlp else "fp32",
+        FASTGHA_COMPILE="on" if fast_mlp else "off",
         FASTGHA_API_KEYS=f"other-key,{API_KEY}",
         FASTGHA_MAX_UPLOAD_BYTES=str(MAX_UPLOAD),
         FASTGHA_MAX_IMAGE_PIXELS=str(MAX_PIXELS),
@@ -75,7 +80,7 @@ def data_dir(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def server(model_dir, data_dir, tmp_path_factory):
-    srv = ServerProcess(model_dir, data_dir, tmp_path_factory.mktemp("logs") / "server.log")
+    srv = ServerProcess(model_dir, data_dir, tmp_path_factory.mktemp("logs") / "server.log", fast_mlp=True)
     yield srv
     srv.stop()
 
@@ -169,7 +174,12 @@ def _error(r: httpx.Response, status: int, code: str) -> None:
 
 # ---------------------------------------------------------------- HTTP basics
 def test_health_model_docs(server):
-    assert httpx.get(server.base + "/healthz").json()["status"] == "ok"
+    from fastgha_core.perf import cpp_compiler
+
+    health = httpx.get(server.base + "/healthz").json()
+    assert health["status"] == "ok"
+    # the module's server asked for a bf16, compiled MLP; compiling needs a C++ compiler, else it runs eagerly
+    assert health["mlp"] == {"precision": "bf16", "compiled": cpp_compiler() is not None}, health
     m = httpx.get(server.base + "/v1/model").json()
     assert m["expression_space"] == "ict53" and m["expression_dim"] == len(m["expression_names"]) == 53
     assert m["input_size"] == [64, 64] and m["output_size"] == [64, 64]

@@ -65,12 +65,20 @@ def bench_model(name: str = "tiny"):
 def input_views(model, views: int, seed: int = 0):
     """``views`` input images ``[V, 3, S, S]`` and cameras ``[V]`` at the model's input size.
 
-    Uses the shipped sample subjects when they exist (``fastgha_core/assets/samples``), else
-    random images on orbit cameras (the network's cost does not depend on the pixel values).
+    Uses the first shipped sample subject (``fastgha_core/assets/samples``) when it exists, so that
+    a trained model reconstructs a real head (its foreground gate decides how many Gaussians
+    survive); beyond the sample's views its photos repeat (the network's cost does not depend on
+    the pixel values). Without samples: random images on orbit cameras.
     """
     from ..cameras import orbit_cameras
+    from ..data.samples import list_samples, load_sample
 
     s = int(model.config.input_size)
+    if list_samples():
+        sample = load_sample(gt=False)
+        images, cams = model.prepare(sample.request_images, sample.request_cameras, sample.request_masks)
+        idx = [i % len(images) for i in range(views)]
+        return images[idx], cams[idx]
     g = torch.Generator().manual_seed(seed)
     cams = orbit_cameras(views, radius=1.0, fov_deg=20.0, width=s, height=s)
     images = torch.rand(views, 3, s, s, generator=g)  # [V, 3, S, S]

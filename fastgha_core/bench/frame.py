@@ -13,9 +13,14 @@ Design comparison: a model conditioned on the expression inside the reconstructi
 (Avat3r-style) has to re-run reconstruction for every frame; its per-frame cost is
 ``reconstruct + render + encode``. ``per_frame_vs_rerun_ratio`` is that over ours (4 views, 256²).
 
+The stages and the end-to-end loop run the MLP the way the server does (``--frame-precision`` and
+``--frame-compile``, default ``auto`` like ``FASTGHA_MLP_PRECISION`` / ``FASTGHA_COMPILE``).
+
 Optimisations measured side by side: bf16 autocast in the MLP (``animate(bf16=True)``: time, and
 PSNR of the frame against fp32) and pruning transparent Gaussians (opacity below a threshold:
-render time and PSNR against the unpruned render).
+render time and PSNR against the unpruned render). With a shipped sample subject, both are also
+scored against ground truth on its held-out frames (novel views and expressions): the PSNR of
+fp32, bf16 and each pruning threshold, and their change from fp32 (``heldout``).
 """
 
 from __future__ import annotations
@@ -41,6 +46,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--frame-resolutions", default=None, help="comma-separated square output sizes (default 256,512)")
     parser.add_argument("--frame-frames", type=int, default=None, help="frames in the end-to-end loop (default 60, --quick 10)")
     parser.add_argument("--frame-jpeg-quality", type=int, default=85, help="JPEG quality (default 85, the server default)")
+    parser.add_argument("--frame-precision", choices=("auto", "fp32", "bf16"), default="auto",
+                        help="deformation MLP precision, as FASTGHA_MLP_PRECISION (auto: bf16 where native)")
+    parser.add_argument("--frame-compile", choices=("auto", "on", "off"), default="auto",
+                        help="torch.compile the MLP, as FASTGHA_COMPILE (auto: when a C++ compiler is found)")
+    parser.add_argument("--frame-heldout", type=int, default=None, help="held-out sample frames scored against ground truth (default 16, --quick 4; 0 = skip)")
 
 
 def _ints(text, default):
@@ -75,7 +85,50 @@ def _with_live_deformation(model):
     return m, True
 
 
-def stage_times(model, avatar, cam, quality: int, repeats: int) -> dict:
+def heldout_quality(model, frames: int, thresholds=PRUNE_THRESHOLDS) -> dict | None:
+    """PSNR against ground truth on a shipped sample's held-out frames: fp32, bf16 and pruned.
+
+    The first sample subject is reconstructed from its 4 photos; ``frames`` frames of its expression
+    sequence are rendered from its orbit cameras (novel views and expressions) at the ground truth's
+    resolution. None when no sample is shipped."""
+    from ..constants import BACKGROUND_RGB
+    from ..data.samples import list_samples, load_sample
+    from ..render import render
+
+    if frames <= 0 or not list_samples():
+        return None
+    sample = load_sample()
+    images, cams = model.prepare(sample.request_images, sample.request_cameras, sample.request_masks)
+    with torch.inference_mode():
+        avatar = model.reconstruct(images, cams)
+    t_max = min(len(sample.expressions), sample.orbit_cameras.K.shape[0], len(sample.gt_frames))
+    idx = torch.linspace(0, t_max - 1, min(frames, t_max)).round().long().tolist()
+    variants = {"fp32": (False, 0.0), "bf16": (True, 0.0), **{f"prune_{t:g}": (False, t) for t in thresholds}}
+    scores: dict[str, list[float]] = {k: [] for k in variants}
+    counts: dict[str, int] = {}
+    with torch.inference_mode():
+        for t in idx:
+            cam = sample.orbit_cameras[t : t + 1]
+            gt = sample.gt_frames[t]  # [3, H, W]
+            for name, (bf16, thr) in variants.items():
+                g = model.animate(avatar, sample.expressions[t], bf16=bf16)
+                if thr > 0:
+                    g = g.prune(thr)
+                counts[name] = len(g)
+                rgb = render(g, cam, background=BACKGROUND_RGB).rgb[0]  # [3, H, W]
+                scores[name].append(psnr(rgb, gt))
+    mean = {k: sum(v) / len(v) for k, v in scores.items()}
+    return {
+        "sample": sample.name,
+        "frames": len(idx),
+        "resolution": [int(sample.gt_frames.shape[-1]), int(sample.gt_frames.shape[-2])],
+        "psnr_db": mean,
+        "psnr_change_db": {k: mean[k] - mean["fp32"] for k in mean if k != "fp32"},
+        "gaussians": counts,
+    }
+
+
+def stage_times(model, avatar, cam, quality: int, repeats: int, bf16: bool = False) -> dict:
     """Median ms of each per-frame stage."""
     from server.imaging import encode_jpeg, frame_to_uint8
     from server.protocol import pack_frame
@@ -94,7 +147,7 @@ def stage_times(model, avatar, cam, quality: int, repeats: int) -> dict:
 
     def deform():
         with torch.inference_mode():
-            model.animate(avatar, expr)
+            model.animate(avatar, expr, bf16=bf16)
 
     def raster():
         with torch.inference_mode():
@@ -114,12 +167,12 @@ def stage_times(model, avatar, cam, quality: int, repeats: int) -> dict:
     return res
 
 
-def end_to_end(model, avatar, cam, quality: int, frames: int) -> dict:
+def end_to_end(model, avatar, cam, quality: int, frames: int, bf16: bool = False) -> dict:
     """The server's ``FrameRenderer.render`` + ``pack_frame`` back to back: frames per second."""
     from server.frames import FrameRenderer
     from server.protocol import pack_frame
 
-    renderer = FrameRenderer(model, "cpu")
+    renderer = FrameRenderer(model, "cpu", bf16=bf16)
     exprs = _expressions(model, frames + 2, seed=2)
     for e in exprs[:2]:  # warm-up
         renderer.render(avatar, e, cam, quality)
@@ -178,6 +231,23 @@ def prune_check(model, avatar, cam, repeats: int, thresholds=PRUNE_THRESHOLDS) -
     return rows
 
 
+def served_mlp(model, precision: str = "auto", compile_opt: str = "auto") -> dict:
+    """Set the model's MLP up as the server would (``Settings.resolved_bf16`` / ``resolved_compile``)."""
+    from server.settings import Settings
+
+    s = Settings(mlp_precision=precision, compile=compile_opt)
+    bf16 = s.resolved_bf16("cpu")
+    out = {"precision": "bf16" if bf16 else "fp32", "compiled": False, "compile_s": None, "compile_error": None}
+    if s.resolved_compile("cpu"):
+        try:
+            out["compile_s"] = model.compile_deformation(bf16=bf16)
+            out["compiled"] = True
+        except Exception as e:  # inductor needs a C++ toolchain; report and measure eagerly
+            out["compile_error"] = f"{type(e).__name__}: {str(e).splitlines()[0][:200] if str(e) else ''}"
+            log.warning("torch.compile failed, measuring the eager MLP: %s", out["compile_error"])
+    return out
+
+
 def run(args) -> dict:
     from server.frames import FrameRenderer
 
@@ -188,11 +258,16 @@ def run(args) -> dict:
     frames = getattr(args, "frame_frames", None) or (10 if quick else 60)
     quality = int(getattr(args, "frame_jpeg_quality", 85) or 85)
     repeats = 3 if quick else 15
+    heldout_frames = getattr(args, "frame_heldout", None)
+    heldout_frames = (4 if quick else 16) if heldout_frames is None else int(heldout_frames)
     model = bench_model(name)
     base_cam = FrameRenderer(model, "cpu").default_camera
     load0 = load_average()
+    mlp = served_mlp(model, getattr(args, "frame_precision", "auto") or "auto", getattr(args, "frame_compile", "auto") or "auto")
+    bf16 = mlp["precision"] == "bf16"
     print(f"frame benchmark: model {model.config.name!r}, torch threads {torch.get_num_threads()}, "
-          f"stage medians of {repeats}, end-to-end over {frames} frames")
+          f"stage medians of {repeats}, end-to-end over {frames} frames; MLP {mlp['precision']}"
+          f"{', compiled in %.1f s' % mlp['compile_s'] if mlp['compiled'] else ', eager'}")
     print(f"{'views':>5} {'N':>7} {'res':>5} | {'deform':>7} {'render':>7} {'quant':>6} {'jpeg':>6} {'msg':>6} | {'fps':>6} {'frame ms':>9}")
     rows = []
     avatars = {}
@@ -200,8 +275,8 @@ def run(args) -> dict:
         avatars[v] = bench_avatar(model, v)
         for res in resolutions:
             cam = base_cam.resize(res, res)
-            st = stage_times(model, avatars[v], cam, quality, repeats)
-            e2e = end_to_end(model, avatars[v], cam, quality, frames)
+            st = stage_times(model, avatars[v], cam, quality, repeats, bf16)
+            e2e = end_to_end(model, avatars[v], cam, quality, frames, bf16)
             row = {"views": v, "gaussians": len(avatars[v]), "resolution": res, **st, **{f"e2e_{k}": x for k, x in e2e.items()}}
             rows.append(row)
             print(f"{v:>5} {len(avatars[v]):>7} {res:>5} | {st['deform_ms']:>7.1f} {st['render_ms']:>7.1f} {st['quantize_ms']:>6.2f} "
@@ -239,6 +314,10 @@ def run(args) -> dict:
     print(f"bf16 deform: {bf16['deform_bf16_ms']:.1f} ms vs fp32 {bf16['deform_fp32_ms']:.1f} ms, PSNR {bf16['psnr_bf16_vs_fp32_db']:.1f} dB")
     for p in prune:
         print(f"prune opacity < {p['min_opacity']}: {p['gaussians']} Gaussians, render {p['render_ms']:.1f} ms, PSNR {p['psnr_vs_unpruned_db']:.1f} dB")
+    heldout = heldout_quality(model, heldout_frames, PRUNE_THRESHOLDS[:1] if quick else PRUNE_THRESHOLDS)
+    if heldout is not None:
+        print(f"held-out {heldout['sample']} ({heldout['frames']} frames vs ground truth): "
+              + ", ".join(f"{k} {v:.2f} dB ({heldout['gaussians'][k]} G)" for k, v in heldout["psnr_db"].items()))
 
     def fps_at(res):
         r = next((r for r in rows if r["views"] == 4 and r["resolution"] == res), None)
@@ -252,6 +331,8 @@ def run(args) -> dict:
         "design_comparison": comparison,
         "bf16": bf16,
         "prune": prune,
+        "heldout": heldout,
+        "mlp": mlp,
         "load_average_start": load0,
         "load_average_end": load_average(),
         "summary": summary,

@@ -56,6 +56,7 @@ class DeformationMLP(nn.Module):
         self.out = nn.Linear(hdim, 6)  # dxyz 3 + drgb 3
         nn.init.zeros_(self.out.weight)
         nn.init.zeros_(self.out.bias)
+        self._tail_compiled = None  # set by compile_tail(): torch.compile of _tail_raw on [chunk, H]
 
     # ------------------------------------------------------------ helpers
     def _act(self, x: Tensor) -> Tensor:
@@ -105,6 +106,32 @@ class DeformationMLP(nn.Module):
             inp = torch.cat([base, expr[:, None, :].expand(b, n, -1)], dim=-1)  # [B, N, F+P+E]
         return self._tail(self.first(inp))
 
+    # ------------------------------------------------------------ torch.compile
+    def compile_tail(self, enabled: bool = True) -> None:
+        """Run the per-chunk tail of ``forward_split`` through ``torch.compile`` when there is no autograd.
+
+        Every chunk, the last one included, is zero-padded to ``chunk_size`` rows, so that one compiled
+        graph (per precision) serves avatars of any size. Compilation happens on the first call: call
+        once at start-up (the server's warm-up does). Inductor needs a C++ compiler on CPU.
+        """
+        self._tail_compiled = torch.compile(self._tail_raw, dynamic=False) if enabled else None
+
+    @property
+    def compiled(self) -> bool:
+        return self._tail_compiled is not None
+
+    def _chunks_compiled(self, partial: Tensor, ez: Tensor, chunk_size: int) -> Tensor:
+        """Padded fixed-size chunks through the compiled tail: ``partial [N, H]``, ``ez [H]`` -> ``[N, 6]``."""
+        n = partial.shape[0]
+        outs = []
+        for s in range(0, n, chunk_size):
+            h = partial[s : s + chunk_size] + ez  # [c, H]
+            c = h.shape[0]
+            if c < chunk_size:
+                h = F.pad(h, (0, 0, 0, chunk_size - c))
+            outs.append(self._tail_compiled(h)[:c])
+        return torch.cat(outs, dim=0)
+
     # ------------------------------------------------------------ real-time split
     def precompute(self, features: Tensor, xyz: Tensor) -> Tensor:
         """Expression-independent first-layer terms ``W_f f + W_pe PE(x) + b``: ``[N, H]``."""
@@ -128,6 +155,9 @@ class DeformationMLP(nn.Module):
             ez = ez[:, None, :]  # [B, 1, H]
             partial = partial[None]  # [1, N, H]
         n = partial.shape[-2]
+        if self._tail_compiled is not None and not torch.is_grad_enabled() and expr.ndim == 1:
+            o = self._chunks_compiled(partial, ez, chunk_size)  # [N, 6]
+            return o[:, :3], o[:, 3:]
         if torch.is_grad_enabled() or n <= chunk_size:
             return self._tail(partial + ez)  # [N, H] or [B, N, H] pre-activations
         chunks = [self._tail_raw(partial[..., s : s + chunk_size, :] + ez) for s in range(0, n, chunk_size)]

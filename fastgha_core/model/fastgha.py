@@ -16,6 +16,7 @@ Entry points: ``forward`` (training), ``prepare`` + ``reconstruct`` (inference, 
 
 from __future__ import annotations
 
+import time
 import copy
 import json
 import logging
@@ -323,6 +324,23 @@ class FastGHA(nn.Module):
                 cache = self.deform.precompute(g.features.to(self.device), g.means.to(self.device))
             avatar.deform_cache, avatar.deform_cache_owner = cache, id(self.deform)
         return cache
+
+    def compile_deformation(self, bf16: bool = False) -> float:
+        """``torch.compile`` the per-frame deformation layers and compile them now, with one dummy call in
+        the mode ``animate(bf16=bf16)`` uses. Returns the seconds it took; on failure (no C++ compiler
+        for inductor, ...) the MLP stays eager and the error is raised."""
+        t0 = time.perf_counter()
+        self.deform.compile_tail(True)
+        try:
+            partial = torch.zeros(8192, self.config.deform.hidden_size, device=self.device)  # one full chunk
+            z = torch.zeros(self.config.expression_dim, device=self.device)
+            ctx = torch.autocast(device_type=self.device.type, dtype=torch.bfloat16) if bf16 else nullcontext()
+            with torch.no_grad(), ctx:
+                self.deform.forward_split(partial, z)
+        except Exception:
+            self.deform.compile_tail(False)
+            raise
+        return time.perf_counter() - t0
 
     @torch.no_grad()
     def animate(self, avatar: CanonicalAvatar, expression: Any, bf16: bool = False) -> Gaussians | list[Gaussians]:
