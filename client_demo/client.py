@@ -78,6 +78,7 @@ class Avatar:
     reconstruction_ms: float
     expression_space: str
     round_trip_ms: float = 0.0  # client-side time of the create call (upload + reconstruction)
+    tracking_ms: float | None = None  # server-side photo tracking, when the photos came without cameras
 
 
 @dataclass
@@ -197,23 +198,25 @@ def unpack_frame(data: bytes) -> tuple[dict, bytes]:
 
 
 # ---------------------------------------------------------------- request folders
-def load_request_dir(folder: str | Path) -> tuple[list[Path], list[dict], list[Path] | None]:
-    """``(image paths, camera objects, mask paths | None)`` of a request folder.
+def load_request_dir(folder: str | Path) -> tuple[list[Path], list[dict] | None, list[Path] | None]:
+    """``(image paths, camera objects | None, mask paths | None)`` of a request folder.
 
     Images are the JPEG/PNG files sorted by name, ``cameras.json`` holds one camera object per
     image in the same order, and masks are ``<stem>_mask.png`` beside them or ``masks/<stem>.png``.
+    Without ``cameras.json`` the cameras are None: the server then tracks the photos (its
+    ``faces`` extra), as ``fastgha track`` would.
     """
     folder = Path(folder)
     if not folder.is_dir():
         raise ValueError(f"request folder {folder} does not exist or is not a folder")
     cam_file = folder / "cameras.json"
-    if not cam_file.is_file():
-        raise ValueError(f"request folder {folder} has no cameras.json")
     images = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.stem.endswith("_mask"))
-    cams = json.loads(cam_file.read_text())
+    if not images:
+        raise ValueError(f"request folder {folder} has no .jpg/.jpeg/.png photos")
+    cams = json.loads(cam_file.read_text()) if cam_file.is_file() else None
     if isinstance(cams, dict) and "cameras" in cams:
         cams = cams["cameras"]
-    if not isinstance(cams, list) or len(cams) != len(images):
+    if cams is not None and (not isinstance(cams, list) or len(cams) != len(images)):
         n = len(cams) if isinstance(cams, list) else type(cams).__name__
         raise ValueError(f"request folder {folder}: {len(images)} images but cameras.json holds {n} cameras")
     masks = []
@@ -290,9 +293,13 @@ class FastGHAClient:
         """``GET /v1/model``: name, expression space and names, sizes, device."""
         return self._check(httpx.get(self.url + "/v1/model", timeout=self.timeout)).json()
 
-    def create_avatar(self, images: Sequence[Any], cameras: Sequence[dict], masks: Sequence[Any] | None = None) -> Avatar:
-        """Reconstruct an avatar from 1-8 photos (paths, bytes, PIL images or uint8 arrays) and their cameras."""
-        if len(images) != len(cameras):
+    def create_avatar(self, images: Sequence[Any], cameras: Sequence[dict] | None = None, masks: Sequence[Any] | None = None) -> Avatar:
+        """Reconstruct an avatar from 1-8 photos (paths, bytes, PIL images or uint8 arrays) and their cameras.
+
+        Without ``cameras`` the server finds the face in each photo and estimates them (it needs its
+        ``faces`` extra, and answers ``cameras_required`` otherwise).
+        """
+        if cameras is not None and len(images) != len(cameras):
             raise ValueError(f"need one camera per image, got {len(images)} images and {len(cameras)} cameras")
         if masks is not None and len(masks) != len(images):
             raise ValueError(f"need none or one mask per image, got {len(images)} images and {len(masks)} masks")
@@ -305,12 +312,15 @@ class FastGHAClient:
             files.append(("masks", (f"{i}_mask.{ctype.split('/')[1]}", data, ctype)))
         headers = {"X-API-Key": self.api_key} if self.api_key else {}
         t0 = time.perf_counter()
-        r = httpx.post(
-            self.url + "/v1/avatars", files=files, data={"cameras": json.dumps(list(cameras))}, headers=headers, timeout=self.timeout
-        )
+        data = {"cameras": json.dumps(list(cameras))} if cameras is not None else {}
+        r = httpx.post(self.url + "/v1/avatars", files=files, data=data, headers=headers, timeout=self.timeout)
         rt = 1e3 * (time.perf_counter() - t0)
         d = self._check(r).json()
-        return Avatar(d["avatar_id"], d["token"], int(d["num_gaussians"]), float(d["reconstruction_ms"]), d["expression_space"], rt)
+        tracking = d.get("tracking_ms")
+        return Avatar(
+            d["avatar_id"], d["token"], int(d["num_gaussians"]), float(d["reconstruction_ms"]), d["expression_space"], rt,
+            float(tracking) if tracking is not None else None,
+        )
 
     def create_avatar_from_dir(self, folder: str | Path) -> Avatar:
         images, cams, masks = load_request_dir(folder)

@@ -96,8 +96,18 @@ def test_load_request_dir(request_dir, tmp_path):
     images, cams, masks = load_request_dir(request_dir)
     assert [p.name for p in images] == ["00.jpg", "01.jpg", "02.jpg", "03.jpg"]
     assert len(cams) == 4 and masks is not None and [m.name for m in masks] == [f"{i:02d}_mask.png" for i in range(4)]
-    with pytest.raises(ValueError, match="cameras.json"):
+    with pytest.raises(ValueError, match="no .jpg"):
         load_request_dir(tmp_path)
+    # photos without cameras.json: the cameras are left to the server's tracker
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    for p in images[:2]:
+        (bare / p.name).write_bytes(p.read_bytes())
+    got_images, got_cams, got_masks = load_request_dir(bare)
+    assert [p.name for p in got_images] == ["00.jpg", "01.jpg"] and got_cams is None and got_masks is None
+    (bare / "cameras.json").write_text("[{}]")
+    with pytest.raises(ValueError, match="2 images but cameras.json holds 1"):
+        load_request_dir(bare)
 
 
 def test_loadtest_target_and_bounds():

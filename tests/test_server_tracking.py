@@ -72,6 +72,17 @@ def test_photo_without_cameras_is_tracked_and_reconstructed(server):
 
 
 @needs_faces
+def test_python_client_creates_an_avatar_from_a_photo_without_cameras(server):
+    from client_demo.client import FastGHAClient
+
+    client = FastGHAClient(server.base, api_key=API_KEY, timeout=120)
+    avatar = client.create_avatar([_portrait_jpeg()])
+    assert avatar.num_gaussians > 0 and avatar.tracking_ms is not None and avatar.tracking_ms > 0
+    assert client.avatar_info(avatar)["num_images"] == 1
+    client.delete(avatar)
+
+
+@needs_faces
 def test_photo_without_face_gets_no_face_with_its_index(server):
     blank = _png(np.full((240, 320, 3), 128, np.uint8))
     r = _post(server, [("images", ("blank.png", blank, "image/png"))])

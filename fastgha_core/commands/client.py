@@ -15,7 +15,7 @@ HELP = (
 
 def add_arguments(parser) -> None:
     parser.add_argument("--url", default="http://127.0.0.1:8000", help="server base URL (default http://127.0.0.1:8000)")
-    parser.add_argument("--input", required=True, help="request folder: photos + cameras.json (+ *_mask.png)")
+    parser.add_argument("--input", required=True, help="request folder: photos (+ cameras.json, + *_mask.png); without cameras.json the server tracks the photos (its 'faces' extra)")
     parser.add_argument(
         "--expressions",
         default=None,
