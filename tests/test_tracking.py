@@ -34,6 +34,12 @@ def _grace_hopper() -> np.ndarray:
     return np.asarray(Image.open(cbook.get_sample_data("grace_hopper.jpg", asfileobj=False)).convert("RGB"))
 
 
+def _astronaut() -> np.ndarray:
+    import skimage.data
+
+    return skimage.data.astronaut()  # [512, 512, 3] uint8: Eileen Collins' official NASA portrait
+
+
 # ------------------------------------------------------------------ fitter on synthetic truth
 def test_fitter_recovers_pose_and_expression_on_synthetic_landmarks():
     r = evaluate(renders=8, views=4, noise_px=1.5, seed=3)
@@ -147,16 +153,18 @@ def test_one_euro_filter_smooths_noise_and_follows_steps():
 
 # ------------------------------------------------------------------ dlib pipeline on a real photo
 @needs_faces
-def test_grace_hopper_is_near_frontal_and_masked():
+@pytest.mark.parametrize("photo", [_astronaut, _grace_hopper], ids=["astronaut", "grace_hopper"])
+def test_portrait_is_near_frontal_and_masked(photo):
     from fastgha_core.tracking import track_request
 
-    img = _grace_hopper()
+    img = photo()
     crops, cams, masks, expr = track_request([img], size=128)
     assert crops.shape == (1, 3, 128, 128) and masks.shape == (1, 1, 128, 128) and expr.shape == (1, 53)
     assert cams.width == 128 and len(cams) == 1
     R = cams.R[0].double().numpy()
-    # the official portrait faces the camera: within 15 degrees of frontal (fitter error ~1-2 deg,
-    # plus the sitter's slight head turn)
+    # official portraits face the camera: within 15 degrees of frontal (fitter error ~1-2 deg, plus
+    # the sitter's slight head turn and tilt: astronaut 7.5 deg, Grace Hopper 2.9 deg). The astronaut
+    # photo also has a weak false detection on the suit (score 0.12 vs 1.16), which must be ignored
     assert rotation_error_deg(R, FRONTAL_R) < 15.0
     z = float(cams.t[0, 2])
     assert 0.3 < z < 3.0  # plausible distance for a head filling a portrait with the 30-degree assumption
