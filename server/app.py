@@ -92,12 +92,16 @@ def _load(ctx: ServerContext) -> None:
 def _compile_deformation(ctx: ServerContext) -> None:
     """torch.compile the per-frame MLP now, so that no client waits for it; eager when it fails."""
     bf16 = ctx.renderer.bf16
+    graphs = ctx.settings.cuda_graphs
+    if graphs and not str(ctx.device).startswith("cuda"):
+        log.warning("FASTGHA_CUDA_GRAPHS is set but the device is %s: ignored", ctx.device)
+        graphs = False
     try:
-        secs = ctx.model.compile_deformation(bf16=bf16)
+        secs = ctx.model.compile_deformation(bf16=bf16, cuda_graphs=graphs)
     except Exception as e:  # inductor needs a working C++ toolchain; the eager MLP gives the same frames
         log.warning("torch.compile of the deformation MLP failed, running it eagerly: %s: %s", type(e).__name__, str(e).splitlines()[0][:300] if str(e) else "")
         return
-    log.info("deformation MLP: %s, compiled in %.1f s", "bf16" if bf16 else "fp32", secs)
+    log.info("deformation MLP: %s, compiled%s in %.1f s", "bf16" if bf16 else "fp32", " (CUDA graphs)" if graphs else "", secs)
 
 
 def _warmup(ctx: ServerContext) -> None:

@@ -36,6 +36,9 @@ class Settings(BaseSettings):
     mlp_precision: Literal["auto", "fp32", "bf16"] = Field(
         "auto", description='deformation MLP precision: "auto" = bf16 where the hardware runs it natively (AVX512-BF16/AMX, CUDA), else fp32'
     )
+    cuda_graphs: bool = Field(
+        False, description="with a compiled MLP on CUDA: replay it as CUDA graphs (torch.compile mode reduce-overhead)"
+    )
     compile: Literal["auto", "on", "off"] = Field(
         "auto",
         description='torch.compile the deformation MLP at start-up: "auto" = on when a C++ compiler is found (CPU) or on CUDA; needs warmup',

@@ -144,3 +144,32 @@ def test_compiled_tail_equals_eager_for_any_size_and_keeps_autograd_eager():
     assert p.grad is not None and torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0
     mlp.compile_tail(False)
     assert not mlp.compiled
+
+
+def test_cuda_graphs_need_a_cuda_device():
+    from fastgha_core.config import get_preset
+    from fastgha_core.model.fastgha import FastGHA
+
+    cfg = get_preset("tiny")
+    cfg.input_size = cfg.render_size = 32
+    model = FastGHA(cfg).eval()
+    with pytest.raises(ValueError, match="CUDA graphs need a CUDA device"):
+        model.compile_deformation(cuda_graphs=True)
+    assert not model.deform.compiled
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_graph_tail_equals_eager_across_calls():
+    mlp = _mlp().cuda()
+    feats, xyz, g = _inputs()
+    feats, xyz = feats.cuda(), xyz.cuda()
+    exprs = [torch.randn(E_DIM, generator=g).cuda() for _ in range(3)]
+    with torch.no_grad():
+        partial = mlp.precompute(feats, xyz)
+        refs = [mlp.forward_split(partial, e, chunk_size=64) for e in exprs]
+        mlp.compile_tail(mode="reduce-overhead")
+        # several calls: each replay reuses the graph's output memory, earlier results must survive
+        got = [mlp.forward_split(partial, e, chunk_size=64) for e in exprs * 2]
+    for i, out in enumerate(got):
+        for a, b in zip(refs[i % 3], out):
+            assert_close(b, a, rtol=1e-4, atol=1e-5)

@@ -57,6 +57,7 @@ class DeformationMLP(nn.Module):
         nn.init.zeros_(self.out.weight)
         nn.init.zeros_(self.out.bias)
         self._tail_compiled = None  # set by compile_tail(): torch.compile of _tail_raw on [chunk, H]
+        self._tail_mode: str | None = None  # its torch.compile mode ("reduce-overhead" = CUDA graphs)
 
     # ------------------------------------------------------------ helpers
     def _act(self, x: Tensor) -> Tensor:
@@ -107,14 +108,17 @@ class DeformationMLP(nn.Module):
         return self._tail(self.first(inp))
 
     # ------------------------------------------------------------ torch.compile
-    def compile_tail(self, enabled: bool = True) -> None:
+    def compile_tail(self, enabled: bool = True, mode: str | None = None) -> None:
         """Run the per-chunk tail of ``forward_split`` through ``torch.compile`` when there is no autograd.
 
         Every chunk, the last one included, is zero-padded to ``chunk_size`` rows, so that one compiled
         graph (per precision) serves avatars of any size. Compilation happens on the first call: call
         once at start-up (the server's warm-up does). Inductor needs a C++ compiler on CPU.
+        ``mode="reduce-overhead"`` (CUDA only) replays the chunk as a CUDA graph; its outputs live in
+        the graph's memory pool and are copied out before the next replay.
         """
-        self._tail_compiled = torch.compile(self._tail_raw, dynamic=False) if enabled else None
+        self._tail_compiled = torch.compile(self._tail_raw, dynamic=False, mode=mode) if enabled else None
+        self._tail_mode = mode if enabled else None
 
     @property
     def compiled(self) -> bool:
@@ -129,7 +133,8 @@ class DeformationMLP(nn.Module):
             c = h.shape[0]
             if c < chunk_size:
                 h = F.pad(h, (0, 0, 0, chunk_size - c))
-            outs.append(self._tail_compiled(h)[:c])
+            o = self._tail_compiled(h)[:c]
+            outs.append(o.clone() if self._tail_mode == "reduce-overhead" else o)  # a CUDA graph reuses its output
         return torch.cat(outs, dim=0)
 
     # ------------------------------------------------------------ real-time split

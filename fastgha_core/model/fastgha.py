@@ -325,18 +325,23 @@ class FastGHA(nn.Module):
             avatar.deform_cache, avatar.deform_cache_owner = cache, id(self.deform)
         return cache
 
-    def compile_deformation(self, bf16: bool = False) -> float:
+    def compile_deformation(self, bf16: bool = False, cuda_graphs: bool = False) -> float:
         """``torch.compile`` the per-frame deformation layers and compile them now, with one dummy call in
         the mode ``animate(bf16=bf16)`` uses. Returns the seconds it took; on failure (no C++ compiler
-        for inductor, ...) the MLP stays eager and the error is raised."""
+        for inductor, ...) the MLP stays eager and the error is raised.
+
+        ``cuda_graphs``: compile with ``mode="reduce-overhead"`` (CUDA graphs; a CUDA device only)."""
+        if cuda_graphs and self.device.type != "cuda":
+            raise ValueError(f"CUDA graphs need a CUDA device, the model is on {self.device}")
         t0 = time.perf_counter()
-        self.deform.compile_tail(True)
+        self.deform.compile_tail(True, mode="reduce-overhead" if cuda_graphs else None)
         try:
             partial = torch.zeros(8192, self.config.deform.hidden_size, device=self.device)  # one full chunk
             z = torch.zeros(self.config.expression_dim, device=self.device)
             ctx = torch.autocast(device_type=self.device.type, dtype=torch.bfloat16) if bf16 else nullcontext()
             with torch.no_grad(), ctx:
-                self.deform.forward_split(partial, z)
+                for _ in range(3 if cuda_graphs else 1):  # CUDA graphs record on a later call than the first
+                    self.deform.forward_split(partial, z)
         except Exception:
             self.deform.compile_tail(False)
             raise
