@@ -639,30 +639,43 @@ def bin_sorted(trect, n_tiles, tw, n_chunks):
 
 
 @njit(cache=True, fastmath=False, inline="always")
-def _composite_row(S, colx, lo, hi, mx, hA, cy, by, o, v0, v1, v2, v3):
-    """One splat over columns ``[lo, hi)`` of a 16-pixel tile row ``S [6, 16]`` (T, live, acc x4).
+def _composite_px(S, jj, dx, hA, cy, by, o, v0, v1, v2, v3):
+    """One splat at column ``jj`` of a tile row ``S [6, 16]`` (T, live, acc x4); 1 when it stops the pixel."""
+    sig = hA * dx * dx + cy + by * dx
+    al = min(_AMAX, o * _exp_neg32(max(sig, _ZERO)))
+    Tp = S[0, jj]
+    nT = Tp * (_ONE - al)
+    ok = (sig >= _ZERO) & (al >= _AMIN) & (S[1, jj] > _ZERO)
+    stop = ok & (nT <= _TMIN)
+    comp = ok & (nT > _TMIN)
+    w = al * Tp if comp else _ZERO
+    S[2, jj] += w * v0
+    S[3, jj] += w * v1
+    S[4, jj] += w * v2
+    S[5, jj] += w * v3
+    S[0, jj] = nT if comp else Tp
+    S[1, jj] = _ZERO if stop else S[1, jj]
+    return np.int32(stop)
 
-    Returns the number of pixels it stopped. Callers pass windows of 8 or 16 columns (fixed trip
-    counts vectorise fully); pixels in the window but outside the splat's box get alpha < ALPHA_MIN.
-    """
-    stopped = 0
-    for jj in range(lo, hi):
-        dx = mx - colx[jj]
-        sig = hA * dx * dx + cy + by * dx
-        al = min(_AMAX, o * _exp_neg32(max(sig, _ZERO)))
-        Tp = S[0, jj]
-        nT = Tp * (_ONE - al)
-        ok = (sig >= _ZERO) & (al >= _AMIN) & (S[1, jj] > _ZERO)
-        stop = ok & (nT <= _TMIN)
-        comp = ok & (nT > _TMIN)
-        w = al * Tp if comp else _ZERO
-        S[2, jj] += w * v0
-        S[3, jj] += w * v1
-        S[4, jj] += w * v2
-        S[5, jj] += w * v3
-        S[0, jj] = nT if comp else Tp
-        S[1, jj] = _ZERO if stop else S[1, jj]
-        stopped += np.int32(stop)
+
+# Two window widths with trip counts fixed at compile time: LLVM then vectorises the row without
+# runtime trip-count and remainder code, which for 8-16 iterations cost more than the work. The
+# pixel centre is ``xb + q`` (exact in float32), the same value as ``float32(x) + 0.5``.
+@njit(cache=True, fastmath=False, inline="always")
+def _composite_row8(S, lo, xb, mx, hA, cy, by, o, v0, v1, v2, v3):
+    """Columns ``[lo, lo + 8)`` of a tile row; ``xb`` = centre of column ``lo``. Returns pixels stopped."""
+    stopped = np.int32(0)
+    for q in range(8):
+        stopped += _composite_px(S, lo + q, mx - (xb + _F32(q)), hA, cy, by, o, v0, v1, v2, v3)
+    return stopped
+
+
+@njit(cache=True, fastmath=False, inline="always")
+def _composite_row16(S, xb, mx, hA, cy, by, o, v0, v1, v2, v3):
+    """All 16 columns of a tile row; ``xb`` = centre of column 0. Returns pixels stopped."""
+    stopped = np.int32(0)
+    for q in range(16):
+        stopped += _composite_px(S, q, mx - (xb + _F32(q)), hA, cy, by, o, v0, v1, v2, v3)
     return stopped
 
 
@@ -688,9 +701,6 @@ def raster_forward_fast(rec, offsets, ids, width, height, tw, n_chunks, out_acc,
         # outside the image), acc rgb+depth. One array (not six) so LLVM can prove no aliasing
         # and vectorise the row loop.
         S = np.zeros((_TS, 6, _TS), np.float32)
-        colx = np.empty(_TS, np.float32)
-        for jj in range(_TS):
-            colx[jj] = _F32(x0 + jj) + _HALF
         rowlive = np.zeros(_TS, np.int32)  # live pixels per row (rows with none are skipped)
         n_live = 0
         for i in range(y0, y1):
@@ -720,16 +730,17 @@ def raster_forward_fast(rec, offsets, ids, width, height, tw, n_chunks, out_acc,
             v3 = rec[r, 9]
             c0 = max(bx0 - x0, 0)
             c1 = min(bx1 - x0, _TS)
-            if c1 - c0 <= _TS // 2:  # one 8-column window holds the box
-                lo = min(c0, _TS // 2)
-                hi = lo + _TS // 2
-            else:
-                lo, hi = 0, _TS
+            narrow = c1 - c0 <= _TS // 2  # one 8-column window holds the box
+            lo = min(c0, _TS // 2) if narrow else 0
+            xb = _F32(x0 + lo) + _HALF
             for i in range(iy0, iy1):
                 if rowlive[i - y0] == 0:
                     continue
                 dy = my - (_F32(i) + _HALF)
-                st = _composite_row(S[i - y0], colx, lo, hi, mx, hA, hC * dy * dy, B * dy, o, v0, v1, v2, v3)
+                if narrow:
+                    st = _composite_row8(S[i - y0], lo, xb, mx, hA, hC * dy * dy, B * dy, o, v0, v1, v2, v3)
+                else:
+                    st = _composite_row16(S[i - y0], xb, mx, hA, hC * dy * dy, B * dy, o, v0, v1, v2, v3)
                 rowlive[i - y0] -= st
                 n_live -= st
             if n_live == 0:
