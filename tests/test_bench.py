@@ -73,6 +73,17 @@ def test_frame_breakdown_and_design_comparison(results):
     assert f["prune"][0]["min_opacity"] == 0.0 and math.isinf(f["prune"][0]["psnr_vs_unpruned_db"])
 
 
+def test_render_breakdown_names_every_kernel(results):
+    rows = results["frame"]["frame"]["render_breakdown"]
+    assert [r["resolution"] for r in rows] == [[256, 256], [512, 512]]
+    for r in rows:
+        for stage in ("project", "pack", "sort", "gather", "bin", "composite", "finish"):
+            assert _positive(r[f"{stage}_ms"]), stage
+        assert r["sum_ms"] == pytest.approx(sum(v for k, v in r.items() if k.endswith("_ms") and k != "sum_ms"))
+        assert 0 < r["composited_splats"] <= r["gaussians"] and r["composited_splats"] <= r["intersections"]
+    assert rows[1]["intersections"] > rows[0]["intersections"]  # larger splats in pixels: more tiles each
+
+
 def test_bf16_and_pruning_against_ground_truth_on_held_out_frames(results):
     # the shipped model on a shipped held-out subject: bf16 may cost at most 0.1 dB (issue 10's budget)
     h = results["frame"]["frame"]["heldout"]

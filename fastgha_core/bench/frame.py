@@ -128,6 +128,61 @@ def heldout_quality(model, frames: int, thresholds=PRUNE_THRESHOLDS) -> dict | N
     }
 
 
+def render_breakdown(gaussians, cam, repeats: int) -> dict:
+    """Where the CPU render of one frame goes, kernel by kernel (the no-gradient float32 path that
+    ``render`` takes for served frames): projection, record packing, depth sort, gather, tile
+    binning, compositing and the torch ops that finish the image. Medians in ms, each stage timed
+    on its own inputs; ``intersections`` = (tile, splat) pairs composited."""
+    import numba
+    import numpy as np
+
+    from ..constants import BACKGROUND_RGB
+    from ..render import _background, _finish
+    from ..render import cpu_kernels as K
+    from ..render.cpu_backend import _np, num_threads, project_cpu
+    from ..render.projection import TILE_SIZE
+
+    g, c = gaussians, cam.flatten()
+    w, h = c.width, c.height
+    tw, th = (w + TILE_SIZE - 1) // TILE_SIZE, (h + TILE_SIZE - 1) // TILE_SIZE
+    prev = numba.get_num_threads()
+    numba.set_num_threads(num_threads())
+    try:
+        with torch.inference_mode():
+            proj, rects = project_cpu(g.means, g.quats, g.scales, c.K, c.w2c, w, h)
+            values = torch.cat([g.colors.expand(1, -1, 3), proj.depths[..., None]], dim=-1)  # [1, N, 4]
+        n, nch = len(g), numba.get_num_threads()
+        op, m2d, con, rect, val = (_np(x) for x in (g.opacities.float(), proj.means2d[0], proj.conics[0], rects[0], values[0]))
+        bits = _np(proj.depths[0].float()).view(np.uint32)
+        rec_all, vis = np.empty((n, K.N_REC), np.float32), np.empty(n, np.uint8)
+        K.pack_splats(m2d, con, rect, op, val, rec_all, vis)
+        idx = K.sort_visible(bits, vis)
+        rec, trect = K.gather_rows(rec_all, rect, idx)
+        offsets, ids = K.bin_sorted(trect, th * tw, tw, nch)
+        acc, T = torch.empty(1, h, w, 4), torch.empty(1, h, w)
+        bg = _background(BACKGROUND_RGB, 1, torch.float32, torch.device("cpu"))
+
+        def project():
+            with torch.inference_mode():
+                project_cpu(g.means, g.quats, g.scales, c.K, c.w2c, w, h)
+
+        stages = {
+            "project": project,
+            "pack": lambda: K.pack_splats(m2d, con, rect, op, val, rec_all, vis),
+            "sort": lambda: K.sort_visible(bits, vis),
+            "gather": lambda: K.gather_rows(rec_all, rect, idx),
+            "bin": lambda: K.bin_sorted(trect, th * tw, tw, nch),
+            "composite": lambda: K.raster_forward_fast(rec, offsets, ids, w, h, tw, nch, acc[0].numpy(), T[0].numpy()),
+            "finish": lambda: _finish(acc, 1.0 - T, bg),
+        }
+        out = {f"{k}_ms": time_fn(f, repeats).wall_ms for k, f in stages.items()}
+    finally:
+        numba.set_num_threads(prev)
+    out["sum_ms"] = sum(out.values())
+    out.update({"gaussians": n, "composited_splats": int(len(idx)), "intersections": int(len(ids)), "resolution": [w, h]})
+    return out
+
+
 def stage_times(model, avatar, cam, quality: int, repeats: int, bf16: bool = False) -> dict:
     """Median ms of each per-frame stage."""
     from server.imaging import encode_jpeg, frame_to_uint8
@@ -314,6 +369,14 @@ def run(args) -> dict:
     print(f"bf16 deform: {bf16['deform_bf16_ms']:.1f} ms vs fp32 {bf16['deform_fp32_ms']:.1f} ms, PSNR {bf16['psnr_bf16_vs_fp32_db']:.1f} dB")
     for p in prune:
         print(f"prune opacity < {p['min_opacity']}: {p['gaussians']} Gaussians, render {p['render_ms']:.1f} ms, PSNR {p['psnr_vs_unpruned_db']:.1f} dB")
+    breakdown = []
+    with torch.inference_mode():
+        g_opt = model.animate(avatars[v_opt], _expressions(model, 1)[0], bf16=bf16)
+    for res in resolutions:
+        b = render_breakdown(g_opt, base_cam.resize(res, res), repeats)
+        breakdown.append(b)
+        print(f"render at {res}²: " + ", ".join(f"{k[:-3]} {v:.2f}" for k, v in b.items() if k.endswith("_ms"))
+              + f" ms; {b['intersections']} tile intersections")
     heldout = heldout_quality(model, heldout_frames, PRUNE_THRESHOLDS[:1] if quick else PRUNE_THRESHOLDS)
     if heldout is not None:
         print(f"held-out {heldout['sample']} ({heldout['frames']} frames vs ground truth): "
@@ -332,6 +395,7 @@ def run(args) -> dict:
         "bf16": bf16,
         "prune": prune,
         "heldout": heldout,
+        "render_breakdown": breakdown,
         "mlp": mlp,
         "load_average_start": load0,
         "load_average_end": load_average(),
