@@ -173,3 +173,40 @@ def test_cuda_graph_tail_equals_eager_across_calls():
     for i, out in enumerate(got):
         for a, b in zip(refs[i % 3], out):
             assert_close(b, a, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.skipif(
+    __import__("fastgha_core.perf", fromlist=["cpp_compiler"]).cpp_compiler() is None,
+    reason="torch.compile (inductor) needs a C++ compiler on CPU",
+)
+def test_compile_deformation_warms_up_the_graph_that_animate_uses():
+    # the server compiles at start-up; a first frame that recompiled would stall a client for seconds
+    from torch._dynamo.utils import counters
+
+    from fastgha_core.config import get_preset
+    from fastgha_core.model.fastgha import FastGHA
+
+    cfg = get_preset("tiny")
+    cfg.input_size = cfg.render_size = 32
+    torch.manual_seed(0)
+    model = FastGHA(cfg).eval()
+    torch.nn.init.normal_(model.deform.out.weight, std=0.2)  # a live deformation, not the identity
+    from fastgha_core.cameras import orbit_cameras
+
+    with torch.no_grad():
+        avatar = model.reconstruct(torch.rand(2, 3, 32, 32), orbit_cameras(2, width=32, height=32))
+    expr = model.expression_space.neutral() + 0.2
+    eager = model.animate(avatar, expr, bf16=True)
+    model.compile_deformation(bf16=True)
+    graphs = counters["stats"]["unique_graphs"]
+    with torch.no_grad():
+        a = model.animate(avatar, expr, bf16=True)
+    with torch.inference_mode():
+        b = model.animate(avatar, expr, bf16=True)
+    c = model.animate(avatar, expr, bf16=True)
+    assert (eager.means - avatar.gaussians.means).abs().max() > 1e-3  # the deformation is live
+    assert counters["stats"]["unique_graphs"] == graphs  # no recompilation in any grad mode
+    for g in (a, b, c):
+        assert_close(g.means, eager.means, rtol=0, atol=1e-3)
+        assert_close(g.colors, eager.colors, rtol=0, atol=1e-2)
+    model.deform.compile_tail(False)

@@ -339,7 +339,7 @@ class FastGHA(nn.Module):
             partial = torch.zeros(8192, self.config.deform.hidden_size, device=self.device)  # one full chunk
             z = torch.zeros(self.config.expression_dim, device=self.device)
             ctx = torch.autocast(device_type=self.device.type, dtype=torch.bfloat16) if bf16 else nullcontext()
-            with torch.no_grad(), ctx:
+            with torch.inference_mode(), ctx:
                 for _ in range(3 if cuda_graphs else 1):  # CUDA graphs record on a later call than the first
                     self.deform.forward_split(partial, z)
         except Exception:
@@ -347,7 +347,7 @@ class FastGHA(nn.Module):
             raise
         return time.perf_counter() - t0
 
-    @torch.no_grad()
+    @torch.inference_mode()  # one grad mode for every caller: a compiled MLP then never recompiles
     def animate(self, avatar: CanonicalAvatar, expression: Any, bf16: bool = False) -> Gaussians | list[Gaussians]:
         """Deform the avatar to ``expression [E]`` (-> ``Gaussians``) or ``[B, E]`` (-> ``list[Gaussians]``).
 
