@@ -7,6 +7,7 @@ or ``server``), so it can be copied into an application as one file::
 
     client = FastGHAClient("http://127.0.0.1:8000", api_key="...")
     avatar = client.create_avatar(["0.jpg", "1.jpg", "2.jpg", "3.jpg"], cameras)   # cameras: list of dicts
+    avatar = client.create_avatar(["me.jpg"])   # no cameras: the server tracks the photo (its `faces` extra)
     cam = orbit_camera(yaw_deg=20, width=256, height=256)
     frames = client.stream_sync(avatar, [{"expression": {"jawOpen": w}, "camera": cam} for w in (0, .5, 1)])
     frames[0].image()            # uint8 [H, W, 3]
