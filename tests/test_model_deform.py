@@ -10,6 +10,9 @@ from torch.testing import assert_close
 
 from fastgha_core.config import DeformConfig
 from fastgha_core.model.deform import DeformationMLP, positional_encoding
+from fastgha_core.perf import cpp_compiler
+
+needs_compiler = pytest.mark.skipif(cpp_compiler() is None, reason="torch.compile (inductor) needs a C++ compiler on CPU")
 
 F_DIM, E_DIM, N = 8, 11, 300
 
@@ -110,10 +113,7 @@ def test_shape_errors():
         mlp.forward_split(torch.zeros(N, 5), torch.zeros(11))
 
 
-@pytest.mark.skipif(
-    __import__("fastgha_core.perf", fromlist=["cpp_compiler"]).cpp_compiler() is None,
-    reason="torch.compile (inductor) needs a C++ compiler on CPU",
-)
+@needs_compiler
 def test_compiled_tail_equals_eager_for_any_size_and_keeps_autograd_eager():
     mlp = _mlp()
     feats, xyz, g = _inputs()
@@ -175,14 +175,12 @@ def test_cuda_graph_tail_equals_eager_across_calls():
             assert_close(b, a, rtol=1e-4, atol=1e-5)
 
 
-@pytest.mark.skipif(
-    __import__("fastgha_core.perf", fromlist=["cpp_compiler"]).cpp_compiler() is None,
-    reason="torch.compile (inductor) needs a C++ compiler on CPU",
-)
+@needs_compiler
 def test_compile_deformation_warms_up_the_graph_that_animate_uses():
     # the server compiles at start-up; a first frame that recompiled would stall a client for seconds
     from torch._dynamo.utils import counters
 
+    from fastgha_core.cameras import orbit_cameras
     from fastgha_core.config import get_preset
     from fastgha_core.model.fastgha import FastGHA
 
@@ -191,8 +189,6 @@ def test_compile_deformation_warms_up_the_graph_that_animate_uses():
     torch.manual_seed(0)
     model = FastGHA(cfg).eval()
     torch.nn.init.normal_(model.deform.out.weight, std=0.2)  # a live deformation, not the identity
-    from fastgha_core.cameras import orbit_cameras
-
     with torch.no_grad():
         avatar = model.reconstruct(torch.rand(2, 3, 32, 32), orbit_cameras(2, width=32, height=32))
     expr = model.expression_space.neutral() + 0.2

@@ -129,57 +129,45 @@ def heldout_quality(model, frames: int, thresholds=PRUNE_THRESHOLDS) -> dict | N
 
 
 def render_breakdown(gaussians, cam, repeats: int) -> dict:
-    """Where the CPU render of one frame goes, kernel by kernel (the no-gradient float32 path that
-    ``render`` takes for served frames): projection, record packing, depth sort, gather, tile
-    binning, compositing and the torch ops that finish the image. Medians in ms, each stage timed
-    on its own inputs; ``intersections`` = (tile, splat) pairs composited."""
+    """Where the CPU render of one frame goes, kernel by kernel, on the path ``render`` takes for
+    served frames: ``project_cpu``, then ``rasterize_fast``'s own stage clock (pack, depth sort,
+    gather, tile binning, compositing), then the torch ops that finish the image. Medians over
+    ``repeats`` renders in ms; ``intersections`` = (tile, splat) pairs composited."""
+    import statistics
+
     import numba
-    import numpy as np
 
     from ..constants import BACKGROUND_RGB
     from ..render import _background, _finish
-    from ..render import cpu_kernels as K
-    from ..render.cpu_backend import _np, num_threads, project_cpu
-    from ..render.projection import TILE_SIZE
+    from ..render.cpu_backend import num_threads, project_cpu, rasterize_fast
 
     g, c = gaussians, cam.flatten()
     w, h = c.width, c.height
-    tw, th = (w + TILE_SIZE - 1) // TILE_SIZE, (h + TILE_SIZE - 1) // TILE_SIZE
+    bg = _background(BACKGROUND_RGB, 1, torch.float32, torch.device("cpu"))
     prev = numba.get_num_threads()
     numba.set_num_threads(num_threads())
+    runs: list[dict] = []
     try:
         with torch.inference_mode():
-            proj, rects = project_cpu(g.means, g.quats, g.scales, c.K, c.w2c, w, h)
-            values = torch.cat([g.colors.expand(1, -1, 3), proj.depths[..., None]], dim=-1)  # [1, N, 4]
-        n, nch = len(g), numba.get_num_threads()
-        op, m2d, con, rect, val = (_np(x) for x in (g.opacities.float(), proj.means2d[0], proj.conics[0], rects[0], values[0]))
-        bits = _np(proj.depths[0].float()).view(np.uint32)
-        rec_all, vis = np.empty((n, K.N_REC), np.float32), np.empty(n, np.uint8)
-        K.pack_splats(m2d, con, rect, op, val, rec_all, vis)
-        idx = K.sort_visible(bits, vis)
-        rec, trect = K.gather_rows(rec_all, rect, idx)
-        offsets, ids = K.bin_sorted(trect, th * tw, tw, nch)
-        acc, T = torch.empty(1, h, w, 4), torch.empty(1, h, w)
-        bg = _background(BACKGROUND_RGB, 1, torch.float32, torch.device("cpu"))
-
-        def project():
-            with torch.inference_mode():
-                project_cpu(g.means, g.quats, g.scales, c.K, c.w2c, w, h)
-
-        stages = {
-            "project": project,
-            "pack": lambda: K.pack_splats(m2d, con, rect, op, val, rec_all, vis),
-            "sort": lambda: K.sort_visible(bits, vis),
-            "gather": lambda: K.gather_rows(rec_all, rect, idx),
-            "bin": lambda: K.bin_sorted(trect, th * tw, tw, nch),
-            "composite": lambda: K.raster_forward_fast(rec, offsets, ids, w, h, tw, nch, acc[0].numpy(), T[0].numpy()),
-            "finish": lambda: _finish(acc, 1.0 - T, bg),
-        }
-        out = {f"{k}_ms": time_fn(f, repeats).wall_ms for k, f in stages.items()}
+            for _ in range(repeats + 1):  # the first is a warm-up
+                st: dict[str, float] = {}
+                t0 = time.perf_counter()
+                proj, rects = project_cpu(g.means, g.quats, g.scales, c.K, c.w2c, w, h)
+                values = torch.cat([g.colors.expand(1, -1, 3), proj.depths[..., None]], dim=-1)  # [1, N, 4]
+                st["project"] = time.perf_counter() - t0
+                acc, alpha = rasterize_fast(proj, g.opacities, values, w, h, rects, stages=st)
+                t1 = time.perf_counter()
+                _finish(acc, alpha, bg)
+                st["finish"] = time.perf_counter() - t1
+                runs.append(st)
     finally:
         numba.set_num_threads(prev)
+    runs = runs[1:]
+    names = ("project", "pack", "sort", "gather", "bin", "composite", "finish")
+    out = {f"{k}_ms": 1e3 * statistics.median(r[k] for r in runs) for k in names}
     out["sum_ms"] = sum(out.values())
-    out.update({"gaussians": n, "composited_splats": int(len(idx)), "intersections": int(len(ids)), "resolution": [w, h]})
+    out.update({"gaussians": len(g), "composited_splats": int(runs[0]["composited_splats"]),
+                "intersections": int(runs[0]["intersections"]), "resolution": [w, h]})
     return out
 
 

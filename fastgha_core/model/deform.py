@@ -57,7 +57,6 @@ class DeformationMLP(nn.Module):
         nn.init.zeros_(self.out.weight)
         nn.init.zeros_(self.out.bias)
         self._tail_compiled = None  # set by compile_tail(): torch.compile of _tail_raw on [chunk, H]
-        self._tail_mode: str | None = None  # its torch.compile mode ("reduce-overhead" = CUDA graphs)
 
     # ------------------------------------------------------------ helpers
     def _act(self, x: Tensor) -> Tensor:
@@ -115,10 +114,9 @@ class DeformationMLP(nn.Module):
         graph (per precision) serves avatars of any size. Compilation happens on the first call: call
         once at start-up (the server's warm-up does). Inductor needs a C++ compiler on CPU.
         ``mode="reduce-overhead"`` (CUDA only) replays the chunk as a CUDA graph; its outputs live in
-        the graph's memory pool and are copied out before the next replay.
+        the graph's memory pool, which is why every chunk is copied out before the next call.
         """
         self._tail_compiled = torch.compile(self._tail_raw, dynamic=False, mode=mode) if enabled else None
-        self._tail_mode = mode if enabled else None
 
     @property
     def compiled(self) -> bool:
@@ -127,15 +125,17 @@ class DeformationMLP(nn.Module):
     def _chunks_compiled(self, partial: Tensor, ez: Tensor, chunk_size: int) -> Tensor:
         """Padded fixed-size chunks through the compiled tail: ``partial [N, H]``, ``ez [H]`` -> ``[N, 6]``."""
         n = partial.shape[0]
-        outs = []
+        out = None  # [N, 6], in the dtype the tail returns (bf16 under autocast)
         for s in range(0, n, chunk_size):
             h = partial[s : s + chunk_size] + ez  # [c, H]
             c = h.shape[0]
             if c < chunk_size:
                 h = F.pad(h, (0, 0, 0, chunk_size - c))
-            o = self._tail_compiled(h)[:c]
-            outs.append(o.clone() if self._tail_mode == "reduce-overhead" else o)  # a CUDA graph reuses its output
-        return torch.cat(outs, dim=0)
+            o = self._tail_compiled(h)  # [chunk, 6]
+            if out is None:
+                out = o.new_empty(n, o.shape[1])
+            out[s : s + c] = o[:c]  # one copy per chunk, before the next call can reuse o's memory
+        return out
 
     # ------------------------------------------------------------ real-time split
     def precompute(self, features: Tensor, xyz: Tensor) -> Tensor:

@@ -14,6 +14,7 @@ is applied per call (``numba.set_num_threads`` is thread-local), never at import
 from __future__ import annotations
 
 import os
+import time
 
 import numba
 import numpy as np
@@ -125,10 +126,13 @@ def rasterize_fast(
     width: int,
     height: int,
     rects: Tensor | None = None,  # [C, N, 4]
+    stages: dict[str, float] | None = None,
 ) -> tuple[Tensor, Tensor]:
     """The no-gradient float32 path (see the module docstring): ``acc [C, H, W, 4]``, ``alpha [C, H, W]``.
 
     Call it inside the thread setting of ``rasterize_cpu`` (or use that, which picks this path).
+    ``stages``: when given, the seconds of each kernel (pack, sort, gather, bin, composite) are
+    added to it, and the counts of composited splats and tile intersections (``fastgha bench frame``).
     """
     C, N, D = values.shape
     if values.dtype != torch.float32 or D != 4:
@@ -145,13 +149,39 @@ def rasterize_fast(
     bits_all = _np(proj.depths.float()).view(np.uint32)  # [C, N] depth bits
     rec_all = np.empty((N, _K.N_REC), np.float32)
     vis = np.empty(N, np.uint8)
+    clock = _StageClock(stages)
     for c in range(C):
         _K.pack_splats(m2d_all[c], con_all[c], rect_all[c], op, val_all[c], rec_all, vis)
+        clock.lap("pack")
         idx = _K.sort_visible(bits_all[c], vis)
+        clock.lap("sort")
         rec, trect = _K.gather_rows(rec_all, rect_all[c], idx)
+        clock.lap("gather")
         offsets, ids = _K.bin_sorted(trect, th * tw, tw, n_chunks)
+        clock.lap("bin")
         _K.raster_forward_fast(rec, offsets, ids, width, height, tw, n_chunks, acc[c].numpy(), T[c].numpy())
+        clock.lap("composite")
+        clock.count("composited_splats", len(idx))
+        clock.count("intersections", len(ids))
     return acc, T.neg_().add_(1.0)
+
+
+class _StageClock:
+    """Adds the time since the previous lap to ``stages[name]``; does nothing when ``stages`` is None."""
+
+    def __init__(self, stages: dict[str, float] | None) -> None:
+        self.stages = stages
+        self.t = time.perf_counter() if stages is not None else 0.0
+
+    def lap(self, name: str) -> None:
+        if self.stages is not None:
+            t = time.perf_counter()
+            self.stages[name] = self.stages.get(name, 0.0) + (t - self.t)
+            self.t = t
+
+    def count(self, name: str, n: int) -> None:
+        if self.stages is not None:
+            self.stages[name] = self.stages.get(name, 0) + n
 
 
 def _wants_fast(opacities: Tensor, values: Tensor, *more: Tensor) -> bool:
