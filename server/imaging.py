@@ -1,76 +1,75 @@
-"""Safe decoding of uploaded photos and masks, and JPEG encoding of frames (Pillow).
+"""Decoding of uploaded photos and masks, and JPEG encoding of frames (Pillow).
 
-Decoding reads the header first and refuses images over the pixel limit *before* any pixel
-is decompressed (decompression bombs), accepts only JPEG and PNG, and turns every Pillow
-failure into an ``ApiError`` 400. Pixels are used as stored: EXIF orientation is ignored,
-because the client's ``K`` describes the stored pixel grid.
+Decoding goes through ``fastgha_core.images`` (the one decoder every ingest path uses): the pixel
+limit is checked from the header *before* any pixel is decompressed (decompression bombs), only
+JPEG and PNG are accepted, EXIF orientation is applied (the client's ``K`` describes the *upright*
+image, as a photo viewer shows it), every pixel mode is normalised to correct 8-bit values or
+refused, and every failure becomes a typed ``ApiError``:
+
+| status | code | when |
+|---|---|---|
+| 400 | ``invalid_image`` | empty, not JPEG/PNG, truncated or corrupt |
+| 400 | ``unsupported_image_mode`` | a pixel mode that has no faithful 8-bit reading (the message names it) |
+| 413 | ``image_too_large`` | more stored pixels than ``max_pixels`` |
 """
 
 from __future__ import annotations
 
 import io
-import warnings
 
 import numpy as np
 import torch
 from PIL import Image
 from torch import Tensor
 
+from fastgha_core.images import DecodedImage, ImageDecodeError, decode_image_bytes, decode_mask_bytes
+
 from .errors import ApiError
 
-__all__ = ["decode_image", "decode_mask", "encode_jpeg", "frame_to_uint8"]
+__all__ = ["decode_image", "decode_image_full", "decode_mask", "encode_jpeg", "frame_to_uint8"]
 
 _FORMATS = ("JPEG", "PNG")
+_STATUS = {"image_too_large": 413}
 
 
-def _open(data: bytes, what: str, max_pixels: int) -> Image.Image:
-    if not data:
-        raise ApiError(400, "invalid_image", f"{what} is empty")
+def _api_error(e: ImageDecodeError) -> ApiError:
+    return ApiError(_STATUS.get(e.code, 400), e.code, e.message)
+
+
+def decode_image_full(data: bytes, what: str, max_pixels: int, max_side: int | None = None) -> DecodedImage:
+    """The :class:`~fastgha_core.images.DecodedImage` of a JPEG/PNG upload (uint8, upright, EXIF focal length)."""
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("error", Image.DecompressionBombWarning)
-            im = Image.open(io.BytesIO(data), formats=_FORMATS)
-            w, h = im.size
-            if w * h > max_pixels:
-                raise ApiError(413, "image_too_large", f"{what} has {w}x{h} = {w * h} pixels; the limit is {max_pixels}")
-            im.load()
-    except ApiError:
-        raise
-    except (Image.DecompressionBombError, Image.DecompressionBombWarning):
-        raise ApiError(413, "image_too_large", f"{what} is too large to decode") from None
-    except Exception as e:  # Pillow raises many types (OSError, SyntaxError, ValueError, ...)
-        raise ApiError(400, "invalid_image", f"{what} is not a readable JPEG or PNG image ({type(e).__name__}: {e})") from None
-    return im
+        return decode_image_bytes(data, what, max_pixels=max_pixels, max_side=max_side, formats=_FORMATS)
+    except ImageDecodeError as e:
+        raise _api_error(e) from None
 
 
-def decode_image(data: bytes, what: str, max_pixels: int) -> tuple[Tensor, Tensor | None]:
-    """Decode a JPEG/PNG upload.
+def decode_image(data: bytes, what: str, max_pixels: int, max_side: int | None = None) -> tuple[Tensor, Tensor | None]:
+    """Decode a JPEG/PNG upload (upright: EXIF orientation applied).
 
     Returns:
         image: ``[3, H, W]`` float32 in [0, 1].
         alpha: ``[1, H, W]`` float32 in [0, 1] when the image has an alpha channel, else None.
+    Raises:
+        ApiError: 400 ``invalid_image`` / ``unsupported_image_mode``, 413 ``image_too_large``.
     """
-    im = _open(data, what, max_pixels)
-    alpha = None
-    if im.mode in ("RGBA", "LA") or (im.mode == "P" and "transparency" in im.info):
-        im = im.convert("RGBA")
-        arr = np.array(im)  # [H, W, 4] uint8 (writable)
-        alpha = torch.from_numpy(arr[..., 3]).float().div_(255.0)[None]
-        rgb = arr[..., :3]
-    else:
-        rgb = np.array(im.convert("RGB"))  # [H, W, 3] uint8 (writable)
-    image = torch.from_numpy(rgb).permute(2, 0, 1).float().div_(255.0)  # [3, H, W]
+    d = decode_image_full(data, what, max_pixels, max_side)
+    image = torch.from_numpy(d.rgb).permute(2, 0, 1).float().div_(255.0)  # [3, H, W]
+    alpha = None if d.alpha is None else torch.from_numpy(d.alpha).float().div_(255.0)[None]  # [1, H, W]
     return image, alpha
 
 
-def decode_mask(data: bytes, what: str, max_pixels: int) -> Tensor:
-    """Decode a foreground mask (grey or RGB; white = foreground) to ``[1, H, W]`` in [0, 1]."""
-    im = _open(data, what, max_pixels)
-    if im.mode in ("RGBA", "LA"):
-        arr = np.array(im.convert("RGBA"))[..., 3]
-    else:
-        arr = np.array(im.convert("L"))
-    return torch.from_numpy(arr).float().div_(255.0)[None]  # [1, H, W]
+def decode_mask(data: bytes, what: str, max_pixels: int, max_side: int | None = None) -> Tensor:
+    """Decode a foreground mask (white = foreground; an alpha channel wins) to ``[1, H, W]`` in [0, 1].
+
+    16-bit grey masks are scaled, not clipped (a mask at half intensity reads 0.5). Errors as
+    :func:`decode_image`.
+    """
+    try:
+        m = decode_mask_bytes(data, what, max_pixels=max_pixels, max_side=max_side, formats=_FORMATS)
+    except ImageDecodeError as e:
+        raise _api_error(e) from None
+    return torch.from_numpy(m).float().div_(255.0)[None]  # [1, H, W]
 
 
 def frame_to_uint8(rgb: Tensor) -> np.ndarray:

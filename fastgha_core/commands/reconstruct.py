@@ -15,23 +15,21 @@ def add_arguments(parser) -> None:
 
 
 def _read_image(path):
-    import numpy as np
+    """``[3, H, W]`` uint8, upright (fastgha_core.images: EXIF orientation, every pixel mode)."""
     import torch
-    from PIL import Image
 
-    with Image.open(path) as im:
-        arr = np.asarray(im.convert("RGB"), dtype=np.uint8)
-    return torch.from_numpy(arr.copy()).permute(2, 0, 1)  # [3, H, W] uint8
+    from ..images import read_image
+
+    return torch.from_numpy(read_image(path).rgb).permute(2, 0, 1)  # [3, H, W] uint8
 
 
 def _read_mask(path):
-    import numpy as np
+    """``[H, W]`` uint8 foreground mask, upright (16-bit masks scaled, not clipped)."""
     import torch
-    from PIL import Image
 
-    with Image.open(path) as im:
-        arr = np.asarray(im.convert("L"), dtype=np.uint8)
-    return torch.from_numpy(arr.copy())  # [H, W] uint8
+    from ..images import read_mask
+
+    return torch.from_numpy(read_mask(path))  # [H, W] uint8
 
 
 def run(args) -> int:

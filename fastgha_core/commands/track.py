@@ -16,11 +16,12 @@ def run(args) -> int:
     from pathlib import Path
 
     import numpy as np
-    from PIL import Image, UnidentifiedImageError
+    from PIL import Image
 
     from ..cameras import cameras_to_json
     from ..cli import CLIError
     from ..expressions import ICT53_NAMES
+    from ..images import ImageDecodeError, read_image, read_mask
     from ..tracking import TrackConfig, track_photos
     from ..tracking.faces import FacesUnavailableError
 
@@ -31,13 +32,12 @@ def run(args) -> int:
     for p in map(Path, args.images):
         if not p.is_file():
             raise CLIError(f"{p} does not exist")
-        try:
-            with Image.open(p) as im:
-                photos.append(np.asarray(im.convert("RGB")))
-        except (UnidentifiedImageError, OSError) as e:
-            raise CLIError(f"{p} is not an image file PIL can read ({type(e).__name__}: {e})") from None
         mp = p.with_name(p.stem + "_mask.png")
-        masks.append(np.asarray(Image.open(mp).convert("L")) if mp.is_file() else None)
+        try:  # upright (EXIF orientation applied) 8-bit pixels whatever the file's mode
+            photos.append(read_image(p).rgb)
+            masks.append(read_mask(mp) if mp.is_file() else None)
+        except ImageDecodeError as e:
+            raise CLIError(str(e)) from None
         names.append(str(p))
     try:
         res = track_photos(photos, TrackConfig(size=args.size, fov_deg=args.fov), masks=masks, names=names)

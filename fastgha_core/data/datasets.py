@@ -52,6 +52,7 @@ from ..cameras import (
 )
 from ..constants import BACKGROUND_RGB
 from ..expressions import flame120_from_axis_angle
+from ..images import decode_pixels_bytes
 from .sample import View
 
 __all__ = [
@@ -146,17 +147,10 @@ class _Container:
 
 
 # ---------------------------------------------------------------- decoding helpers
-def _decode_image(data: bytes) -> np.ndarray:
-    """Encoded image -> uint8 ``[H, W, C]`` (C = 1, 3 or 4). AVIF needs Pillow >= 11.2 with libavif."""
-    with Image.open(io.BytesIO(data)) as im:
-        if im.mode in ("I;16", "I;16B", "I;16L", "I"):
-            arr = np.asarray(im).astype(np.float32)
-            arr = np.clip(arr / 256.0, 0, 255).astype(np.uint8)
-            return arr[..., None]
-        if im.mode not in ("L", "RGB", "RGBA"):
-            im = im.convert("RGBA" if "A" in im.mode else "RGB")
-        arr = np.asarray(im)
-    return arr[..., None] if arr.ndim == 2 else arr
+def _decode_image(data: bytes, name: str = "dataset image") -> np.ndarray:
+    """Encoded image -> uint8 ``[H, W, C]`` (C = 1, 3 or 4), upright, 8-bit (``fastgha_core.images``:
+    EXIF orientation applied, 16-bit grey scaled by 255/65535). AVIF needs Pillow >= 11.2 with libavif."""
+    return decode_pixels_bytes(data, name)
 
 
 def _decode_depth(data: bytes, ext: str) -> np.ndarray:

@@ -30,6 +30,7 @@ import torch
 from PIL import Image
 
 from ..cameras import Cameras, cameras_from_json, cameras_to_json
+from ..images import read_image, read_mask
 from .sample import SequenceSource, View
 
 __all__ = [
@@ -75,9 +76,8 @@ def save_image(path: str | Path, image, jpeg_quality: int = 95) -> None:
 
 
 def load_image(path: str | Path) -> torch.Tensor:
-    """``[3, H, W]`` float32 in [0, 1] from an image file."""
-    with Image.open(path) as im:
-        a = np.asarray(im.convert("RGB"), dtype=np.uint8)
+    """``[3, H, W]`` float32 in [0, 1] from an image file (upright and 8-bit: ``fastgha_core.images``)."""
+    a = read_image(path).rgb
     return torch.from_numpy(a.astype(np.float32) / 255.0).permute(2, 0, 1).contiguous()
 
 
@@ -89,9 +89,8 @@ def save_mask(path: str | Path, mask) -> None:
 
 
 def load_mask(path: str | Path) -> torch.Tensor:
-    """``[1, H, W]`` float32 in [0, 1]."""
-    with Image.open(path) as im:
-        a = np.asarray(im.convert("L"), dtype=np.uint8)
+    """``[1, H, W]`` float32 in [0, 1] (16-bit masks scaled, not clipped: ``fastgha_core.images``)."""
+    a = read_mask(path)
     return torch.from_numpy(a.astype(np.float32) / 255.0)[None]
 
 
