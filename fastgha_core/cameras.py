@@ -641,21 +641,46 @@ def opengl_c2w_to_opencv_w2c(c2w_gl: Tensor) -> Tensor:
     return w2c
 
 
-def read_transforms_json(src: Any) -> list[Cameras]:
+def _is_vhap_export(data: Any) -> bool:
+    """VHAP's ``export_as_nerf_dataset.py`` marks its files with per-frame timestep/camera indices."""
+    frames = data.get("frames") if isinstance(data, dict) else None
+    if isinstance(data, dict) and "camera_indices" in data and "timestep_indices" in data:
+        return True
+    return bool(frames) and isinstance(frames[0], dict) and {"timestep_index", "camera_index"} <= set(frames[0])
+
+
+def read_transforms_json(src: Any, *, principal_point_origin: str = "auto") -> list[Cameras]:
     """Cameras from a VHAP / NeRF-style ``transforms.json``, one per entry of ``frames``.
 
     ``transform_matrix`` is camera-to-world with OpenGL camera axes. Intrinsics ``fl_x fl_y cx cy
     w h`` are read from the frame, falling back to the top level; ``camera_angle_x`` (horizontal
     FoV, radians, principal point at the image centre) is accepted when ``fl_x`` is absent and
-    ``fl_y`` defaults to ``fl_x``. ``cx cy`` are taken as they are: nerfstudio / instant-ngp / VHAP
-    already put pixel centres at +0.5, as we do.
+    ``fl_y`` defaults to ``fl_x``.
+
+    Where ``cy`` is measured from (``principal_point_origin``):
+
+    - ``"top"``: nerfstudio / instant-ngp files, ``cy`` from the top row, pixel centres at +0.5
+      (our convention): kept as they are.
+    - ``"bottom"``: VHAP exports. VHAP converts its OpenCV cameras to OpenGL before writing
+      (``vhap/util/camera.py: convert_camera_convention("opencv->opengl")`` flips the camera's y
+      and z axes *and* sets ``K[1, 2] = H - K[1, 2]``), so its ``cy`` is measured from the bottom
+      row: we read ``cy = h - cy_file``. ``cx`` is unchanged by that conversion. (VHAP passes the
+      source calibration's OpenCV principal point through without a half-pixel shift, so a VHAP
+      export of an OpenCV-calibrated rig keeps that source's +-0.5 px ambiguity.)
+    - ``"auto"`` (default): ``"bottom"`` when the file is a VHAP export (frames carry
+      ``timestep_index`` and ``camera_index``, or the top level ``timestep_indices`` and
+      ``camera_indices``), else ``"top"``.
 
     Returns a list of ``Cameras`` (batch shape ``[1]``) in frame order.
+    Raises ``ValueError`` for a malformed file or an unknown ``principal_point_origin``.
     """
+    if principal_point_origin not in ("auto", "top", "bottom"):
+        raise ValueError(f"principal_point_origin must be 'auto', 'top' or 'bottom', got {principal_point_origin!r}")
     data = _read_json_source(src, "transforms.json")
     frames = data.get("frames") if isinstance(data, dict) else None
     if not isinstance(frames, list) or not frames:
         raise ValueError("transforms.json: expected an object with a non-empty 'frames' array")
+    from_bottom = principal_point_origin == "bottom" or (principal_point_origin == "auto" and _is_vhap_export(data))
     out = []
     for i, fr in enumerate(frames):
         what = f"transforms.json frame {i}"
@@ -677,7 +702,8 @@ def read_transforms_json(src: Any) -> list[Cameras]:
         fy = get("fl_y", fx)
         cx, cy = get("cx", 0.5 * float(w)), get("cy", 0.5 * float(h))
         try:
-            K = torch.tensor([[float(fx), 0.0, float(cx)], [0.0, float(fy), float(cy)], [0.0, 0.0, 1.0]], dtype=torch.float64)
+            cy = float(h) - float(cy) if from_bottom else float(cy)
+            K = torch.tensor([[float(fx), 0.0, float(cx)], [0.0, float(fy), cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
         except (TypeError, ValueError) as e:
             raise ValueError(f"{what}: intrinsics must be numbers ({e})") from None
         c2w = _homogeneous(_matrix(fr["transform_matrix"], f"{what} transform_matrix", ((4, 4), (3, 4))))

@@ -208,6 +208,9 @@ KRT_TEXT = """400004
 
 
 def test_ava256_krt_text(tmp_path):
+    # Producer check (facebookresearch/ava-256 data/ava_dataset.py): focal = diag(intrin[:2, :2]),
+    # princpt = intrin[:2, 2] with the KRT rows read as rows, and pixel coordinates np.arange(W) (integer
+    # pixel centres, OpenCV): hence +0.5 to our corner origin; extrinsic rows = world -> camera [R | t].
     path = tmp_path / "KRT"
     path.write_text(KRT_TEXT)
     cams = read_ava256_krt(path, width=600, height=1000)
@@ -273,6 +276,9 @@ def test_ava256_calibration_json():
 
 
 def test_nersemble_camera_params(tmp_path):
+    # Producer check (tobias-kirschstein/nersemble-benchmark README, "Load cameras"): world_2_cam is a 4x4
+    # world -> camera matrix "in OpenCV camera coordinate convention", intrinsics a 3x3 K (OpenCV pixel
+    # centres at integers: +0.5 to our corner origin).
     data = {
         "world_2_cam": {"222200037": [[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 1], [0, 0, 0, 1]]},
         "intrinsics": [[2000, 0, 1100], [0, 2000, 1604], [0, 0, 1]],
@@ -318,6 +324,32 @@ def test_transforms_json_camera_angle_x():
     assert_close(c.K[0], torch.tensor([[100.0, 0, 50], [0, 100, 40], [0, 0, 1]]))
     with pytest.raises(ValueError, match="no focal length"):
         read_transforms_json({"w": 1, "h": 1, "frames": data["frames"]})
+
+
+def test_transforms_json_vhap_cy_from_bottom_hand_worked():
+    """VHAP's export of a NeRSemble camera (ShenhanQian/VHAP vhap/util/camera.py, convert_camera_convention
+    "opencv->opengl": R[:, :3, [1, 2]] *= -1 and K[1, 2] = H - K[1, 2]).
+
+    Source camera (OpenCV): fx = fy = 1000, cx = 550, cy = 700 on 1100 x 1604 images, at (0, 0, 1)
+    looking down -z. VHAP writes cy = 1604 - 700 = 904 and the OpenGL c2w = translate(0, 0, 1).
+    The world point (0.02, -0.1, 0) is at OpenCV camera (0.02, 0.1, 1): u = 20 + 550 = 570,
+    v = 100 + 700 = 800. Reading cy as stored puts it at v = 1004 (204 px off; 2 cy - H in general).
+    """
+    frame = {"timestep_index": 0, "camera_index": 0, "fl_x": 1000.0, "fl_y": 1000.0, "cx": 550.0, "cy": 904.0, "w": 1100, "h": 1604,
+             "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 1], [0, 0, 0, 1]]}  # fmt: skip
+    p = torch.tensor([[0.02, -0.1, 0.0]])
+    (c,) = read_transforms_json({"frames": [frame]})  # auto: a VHAP export (timestep/camera indices)
+    assert_close(c.K[0, 1, 2], torch.tensor(700.0))
+    assert_close(c.project(p)[0][0], torch.tensor([[570.0, 800.0]]))
+    (same,) = read_transforms_json({"frames": [frame]}, principal_point_origin="bottom")
+    assert_close(same.K, c.K)
+    (top,) = read_transforms_json({"frames": [frame]}, principal_point_origin="top")  # nerfstudio reading
+    assert_close(top.project(p)[0][0], torch.tensor([[570.0, 1004.0]]))
+    plain = {k: v for k, v in frame.items() if k not in ("timestep_index", "camera_index")}
+    (ns,) = read_transforms_json({"frames": [plain]})  # a nerfstudio file: cy from the top, kept
+    assert_close(ns.K[0, 1, 2], torch.tensor(904.0))
+    with pytest.raises(ValueError, match="principal_point_origin"):
+        read_transforms_json({"frames": [frame]}, principal_point_origin="middle")
 
 
 def test_flame_pose_opengl_camera():

@@ -320,7 +320,7 @@ def test_vhap_export_cameras_head_pose_and_views(tmp_path):
             Image.fromarray(m).save(root / "fg_masks" / f"{stem}.png")
             frames.append(
                 dict(timestep_index=t, timestep_index_original=t, timestep_id=f"frame_{t:05d}", camera_index=c, camera_id=f"cam{c}",
-                     cx=19.5, cy=29.5, fl_x=50.0, fl_y=52.0, h=H, w=W, transform_matrix=c2ws[c],
+                     cx=19.5, cy=20.0, fl_x=50.0, fl_y=52.0, h=H, w=W, transform_matrix=c2ws[c],
                      file_path=f"images/{stem}.png", fg_mask_path=f"fg_masks/{stem}.png", flame_param_path=f"flame_param/{t:05d}.npz")
             )
         np.savez(
@@ -335,8 +335,8 @@ def test_vhap_export_cameras_head_pose_and_views(tmp_path):
     (out,) = open_vhap(root, root_joint=(0.1, 0.0, 0.0))
     assert out.subject == "074_EMO-1" and out.num_timesteps == 2 and out.num_cameras == 2
     K = out.cameras(0).K[0]
-    # transforms.json intrinsics already use +0.5 pixel centres: kept as they are
-    torch.testing.assert_close(K, torch.tensor([[50.0, 0, 19.5], [0, 52, 29.5], [0, 0, 1]]))
+    # VHAP writes cy from the bottom row (its opencv->opengl conversion: K[1,2] = H - K[1,2]): 60 - 20 = 40
+    torch.testing.assert_close(K, torch.tensor([[50.0, 0, 19.5], [0, 52, 40.0], [0, 0, 1]]))
     # camera 0: OpenCV w2c = [diag(1,-1,-1) | (0, 0, 1)]
     torch.testing.assert_close(out.cameras(0).w2c[0], torch.tensor([[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 1], [0, 0, 0, 1]]))
     # camera 1: OpenCV rows x=(0,0,-1), y=(0,-1,0), z=(-1,0,0); t = -R (1,0,0) = (0,0,1)

@@ -9,7 +9,8 @@ types as the synthetic generator and our on-disk layout:
   mask; ``mask [1, H, W]``; ``depth [1, H, W]`` only when a precomputed depth prior exists;
 - ``K`` in pixels of the image as read, corner pixel convention: calibrations are parsed by the
   converters of ``cameras.py`` (OpenCV calibrations of Ava-256 / NeRSemble get +0.5 on the
-  principal point, ``transforms.json`` intrinsics are kept) and scaled from the calibration size
+  principal point; VHAP ``transforms.json`` stores ``cy`` from the bottom row and is read as
+  ``h - cy``) and scaled from the calibration size
   to the image size.
 
 Precomputed depth priors (VGGT, offline) are read when present: float32 ``.npy`` in metres or
@@ -784,7 +785,8 @@ def open_vhap(
     """Open a VHAP ``export_as_nerf_dataset.py`` folder as one sequence.
 
     ``transforms.json`` (or ``transforms_<division>.json``): ``frames`` with ``timestep_index``,
-    ``camera_index``, ``fl_x fl_y cx cy w h`` (pixel centres at +0.5 already, kept as they are),
+    ``camera_index``, ``fl_x fl_y cx cy w h`` (``cy`` measured from the *bottom* row: VHAP's
+    opencv->opengl conversion sets ``K[1, 2] = H - K[1, 2]``; read back as ``h - cy``),
     ``transform_matrix`` (c2w, OpenGL axes),
     ``file_path``, optional ``fg_mask_path`` and ``flame_param_path``
     (``flame_param/<t:05d>.npz``: ``expr (1,N)``, ``jaw_pose (1,3)``, ``eyes_pose (1,6)``,
@@ -815,8 +817,9 @@ def open_vhap(
     if missing:
         raise ValueError(f"{tpath}: every timestep needs every camera; missing (timestep, camera) {missing[:4]}")
 
-    # cameras in frame order (cameras.read_transforms_json: OpenGL c2w -> OpenCV w2c; cx, cy as is)
-    per_frame = read_transforms_json(db)
+    # cameras in frame order (cameras.read_transforms_json: OpenGL c2w -> OpenCV w2c; VHAP's cy is
+    # measured from the bottom row: its opencv->opengl conversion wrote K[1, 2] = H - K[1, 2])
+    per_frame = read_transforms_json(db, principal_point_origin="bottom")
     cam_of = {(int(f["timestep_index"]), int(f["camera_index"])): per_frame[i] for i, f in enumerate(frames)}
     rig = Cameras.stack([cam_of[(ts[0], c)] for c in cs])
     # VHAP writes the same rig for every timestep; moving cameras are not supported
