@@ -60,7 +60,7 @@ def test_ply_layout_by_hand(tmp_path):
         colors=torch.tensor([[0.5, 0.5 + SH_C0, 0.5 - 2 * SH_C0]]),
     )
     path = tmp_path / "one.ply"
-    save_ply(path, g)
+    save_ply(path, g, axes="fastgha")  # our world axes as they are
     v = PlyData.read(str(path))["vertex"]
     names = list(v.data.dtype.names)
     assert names == ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
@@ -112,9 +112,12 @@ def test_read_degree3_ply_from_other_tool(tmp_path):
     path = tmp_path / "gs3.ply"
     vals = _write_degree3_ply(path, 3, seed=2)
     with pytest.warns(UserWarning, match="SH degree 3; dropping the 45 higher-order"):
-        g = load_ply(path)
+        g = load_ply(path, axes="fastgha")  # the values as stored
     assert len(g) == 3
     assert_close(g.means, torch.from_numpy(np.stack([vals["x"], vals["y"], vals["z"]], 1)))
+    with pytest.warns(UserWarning):  # a file without our axes comment is a standard (COLMAP, y-down) file
+        std = load_ply(path)
+    assert_close(std.means, g.means * torch.tensor([-1.0, -1.0, 1.0]))
     # colour = 0.5 + C0 * f_dc, clamped to [0, 1]
     assert_close(g.colors[:, 0], torch.tensor([0.5, 1.0, 0.0]))
     assert_close(g.colors[:, 1], torch.from_numpy(np.clip(0.5 + SH_C0 * vals["f_dc_1"].astype(np.float64), 0, 1)).float())

@@ -8,13 +8,30 @@ def add_arguments(parser) -> None:
     parser.add_argument(
         "--min-opacity", type=float, default=0.0, help="drop Gaussians with opacity below this value (default: keep all)"
     )
+    parser.add_argument(
+        "--axes",
+        choices=["colmap", "fastgha"],
+        default="colmap",
+        help="axis convention of the file: colmap (default; y down like standard 3DGS scenes, shown upright by "
+        "SuperSplat/PlayCanvas viewers) or fastgha (our head-centric world: +y up, +z out of the face)",
+    )
+    parser.add_argument(
+        "--keep-outliers", action="store_true", help="keep stray Gaussians far from the head (default: drop them)"
+    )
+    parser.add_argument(
+        "--viewer-settings",
+        default=None,
+        help="also write a SuperSplat viewer settings.json whose camera frames the head from the front "
+        "(use with `splat-transform out.ply out.html --viewer-settings FILE`)",
+    )
 
 
 def run(args) -> int:
+    import json
     from pathlib import Path
 
     from ..cli import CLIError
-    from ..io import load_avatar_file, save_ply
+    from ..io import drop_outliers, load_avatar_file, save_ply, viewer_settings
 
     src, dst = Path(args.avatar), Path(args.ply)
     if not src.is_file():
@@ -27,9 +44,17 @@ def run(args) -> int:
     n_in = len(g)
     if args.min_opacity > 0:
         g = g.prune(args.min_opacity)
-    save_ply(dst, g)
+    dropped = 0
+    if not args.keep_outliers:
+        g, dropped = drop_outliers(g)
+    save_ply(dst, g, axes=args.axes, outliers=False)
     print(
-        f"wrote {dst}: {len(g)} Gaussians (of {n_in}) from model {meta.get('model_name', '?')!r}, "
-        f"expression space {meta.get('expression_space', '?')!r}"
+        f"wrote {dst}: {len(g)} Gaussians (of {n_in}; {dropped} stray dropped), axes {args.axes}, from model "
+        f"{meta.get('model_name', '?')!r}, expression space {meta.get('expression_space', '?')!r}"
     )
+    if args.viewer_settings:
+        vs = Path(args.viewer_settings)
+        vs.parent.mkdir(parents=True, exist_ok=True)
+        vs.write_text(json.dumps(viewer_settings(g, axes=args.axes), indent=1))
+        print(f"wrote {vs}: view with `npx @playcanvas/splat-transform {dst} {dst.with_suffix('.html')} --viewer-settings {vs}`")
     return 0
