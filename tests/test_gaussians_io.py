@@ -202,3 +202,132 @@ def test_export_command(tmp_path, capsys):
     assert_close(h.means, g.means, rtol=0, atol=0)
     assert cli_main(["export", "--avatar", str(tmp_path / "nope.safetensors"), "--ply", str(out)]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- PLY axes, outliers, compressed PLY
+def test_ply_colmap_axes_by_hand_and_rotation_of_covariances(tmp_path):
+    from fastgha_core.render.projection import quat_to_rotmat
+
+    g = random_gaussians(50, f=0, seed=7)
+    g = g.replace(means=torch.cat([torch.tensor([[0.01, 0.02, 0.03]]), g.means[1:]]),
+                  quats=torch.cat([torch.tensor([[1.0, 0.0, 0.0, 0.0]]), g.quats[1:]]))  # fmt: skip
+    path = tmp_path / "c.ply"
+    save_ply(path, g)  # default: colmap (y down), what SuperSplat shows upright
+    ply = PlyData.read(str(path))
+    assert "fastgha_axes colmap" in ply.comments
+    v = ply["vertex"]
+    # 180 degrees about z: (x, y, z) -> (-x, -y, z); identity rotation -> q = (0, 0, 0, 1) (rotation about z by pi)
+    assert [float(v[k][0]) for k in "xyz"] == pytest.approx([-0.01, -0.02, 0.03])
+    assert [float(v[f"rot_{i}"][0]) for i in range(4)] == pytest.approx([0.0, 0.0, 0.0, 1.0])
+    Rz = torch.diag(torch.tensor([-1.0, -1.0, 1.0]))
+    q_file = torch.from_numpy(np.stack([np.asarray(v[f"rot_{i}"]) for i in range(4)], 1).astype(np.float32))
+    S = torch.diag_embed(g.scales**2)
+    R, Rf = quat_to_rotmat(g.quats), quat_to_rotmat(q_file)
+    cov, cov_file = R @ S @ R.transpose(1, 2), Rf @ S @ Rf.transpose(1, 2)
+    assert_close(cov_file, Rz @ cov @ Rz.T, rtol=1e-4, atol=1e-9)
+    for axes in ("colmap", "fastgha"):  # both read back exactly (the comment says which)
+        save_ply(tmp_path / f"{axes}.ply", g, axes=axes)
+        h = load_ply(tmp_path / f"{axes}.ply")
+        assert_close(h.means, g.means, rtol=0, atol=0)
+        assert_close(h.quats, g.quats, rtol=0, atol=2e-7)
+    # told otherwise, the reader reinterprets: a fastgha file read as colmap is turned by 180 degrees
+    h = load_ply(tmp_path / "fastgha.ply", axes="colmap")
+    assert_close(h.means, g.means @ Rz, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="axes must be one of"):
+        save_ply(tmp_path / "x.ply", g, axes="opengl")
+
+
+def test_drop_outliers_removes_strays_and_keeps_a_clean_head(tmp_path):
+    from fastgha_core.io import drop_outliers
+
+    head = random_gaussians(400, f=0, seed=3)  # means ~ N(0, 0.1^2): a head-sized cloud
+    kept, n = drop_outliers(head)
+    assert n == 0 and len(kept) == 400
+    far = head.means[:3] * 0 + torch.tensor([[5.0, 0, 0], [0, -30.0, 0], [0.0, 0.0, 1e3]])
+    big = head.scales[:1] * 0 + 2.0  # one splat 2 m wide
+    g = Gaussians(
+        means=torch.cat([head.means, far, torch.zeros(1, 3)]),
+        quats=torch.cat([head.quats, head.quats[:4]]),
+        scales=torch.cat([head.scales, head.scales[:3], big]),
+        opacities=torch.cat([head.opacities, head.opacities[:4]]),
+        colors=torch.cat([head.colors, head.colors[:4]]),
+    )
+    kept, n = drop_outliers(g)
+    assert n == 4 and len(kept) == 400
+    assert float(kept.means.abs().max()) < 1.0
+    save_ply(tmp_path / "o.ply", g)  # the default drops them too
+    h = load_ply(tmp_path / "o.ply")
+    assert len(h) == 400 and float(h.means.abs().max()) < 1.0
+    save_ply(tmp_path / "k.ply", g, outliers=False)
+    assert len(load_ply(tmp_path / "k.ply")) == 404
+
+
+def _pack(vals: np.ndarray, bits: tuple[int, ...]) -> np.ndarray:
+    """Pack unit-range columns [N, k] into uint32 with the given bit widths (first column highest)."""
+    out = np.zeros(len(vals), np.uint64)
+    for j, b in enumerate(bits):
+        q = np.round(np.clip(vals[:, j], 0, 1) * ((1 << b) - 1)).astype(np.uint64)
+        out = (out << np.uint64(b)) | q
+    return out.astype(np.uint32)
+
+
+def test_read_supersplat_compressed_ply_hand_encoded(tmp_path):
+    """SuperSplat's compressed layout, encoded here by hand: 300 Gaussians = 2 chunks of 256."""
+    rng = np.random.default_rng(5)
+    n = 300
+    pos = rng.uniform(-0.1, 0.1, (n, 3))
+    logs = rng.uniform(-6, -4, (n, 3))
+    rgb = rng.uniform(0.1, 0.9, (n, 3))
+    alpha = rng.uniform(0.2, 0.95, n)
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    ci = np.arange(n) // 256
+    chunks = []
+    for c in range(2):
+        s = ci == c
+        lo_p, hi_p, lo_s, hi_s = pos[s].min(0), pos[s].max(0), logs[s].min(0), logs[s].max(0)
+        chunks.append((*lo_p, *hi_p, *lo_s, *hi_s))
+    ch = np.array(chunks)
+    lo_p, hi_p, lo_s, hi_s = ch[ci, 0:3], ch[ci, 3:6], ch[ci, 6:9], ch[ci, 9:12]
+    packed_pos = _pack((pos - lo_p) / (hi_p - lo_p), (11, 10, 11))
+    packed_scale = _pack((logs - lo_s) / (hi_s - lo_s), (11, 10, 11))
+    largest = np.abs(q).argmax(1)
+    q = q * np.sign(q[np.arange(n), largest])[:, None]  # largest component positive
+    rest = np.stack([np.delete(q[i], largest[i]) for i in range(n)])
+    packed_rot = (largest.astype(np.uint32) << np.uint32(30)) | _pack(rest * (np.sqrt(2) * 0.5) + 0.5, (10, 10, 10))
+    packed_col = _pack(np.concatenate([rgb, alpha[:, None]], 1), (8, 8, 8, 8))
+    cdt = [(k, "<f4") for k in ("min_x", "min_y", "min_z", "max_x", "max_y", "max_z", "min_scale_x", "min_scale_y",
+                                 "min_scale_z", "max_scale_x", "max_scale_y", "max_scale_z")]  # fmt: skip
+    carr = np.array([tuple(r) for r in ch], dtype=cdt)
+    varr = np.empty(n, dtype=[(k, "<u4") for k in ("packed_position", "packed_rotation", "packed_scale", "packed_color")])
+    varr["packed_position"], varr["packed_rotation"], varr["packed_scale"], varr["packed_color"] = packed_pos, packed_rot, packed_scale, packed_col
+    path = tmp_path / "scene.compressed.ply"
+    PlyData([PlyElement.describe(carr, "chunk"), PlyElement.describe(varr, "vertex")], byte_order="<").write(str(path))
+    g = load_ply(path, axes="fastgha")  # values as stored
+    span = (ch[:, 3:6] - ch[:, 0:3]).max()
+    assert np.abs(g.means.numpy() - pos).max() < span / 1023 * 0.6 + 1e-6
+    assert np.abs(np.log(g.scales.numpy()) - logs).max() < 2.0 / 1023 * 0.6 + 1e-5
+    assert np.abs(g.colors.numpy() - rgb).max() < 0.6 / 255 + 1e-6
+    assert np.abs(g.opacities.numpy() - alpha).max() < 0.6 / 255 + 1e-6
+    dots = np.abs((g.quats.numpy().astype(np.float64) * q).sum(1))
+    assert dots.min() > 1 - 2e-5  # same rotation (10-bit components)
+    # without the chunk element the file is named, not called "not a 3DGS PLY"
+    PlyData([PlyElement.describe(varr, "vertex")], byte_order="<").write(str(tmp_path / "broken.ply"))
+    with pytest.raises(ValueError, match="compressed PLY needs its 'chunk' element"):
+        load_ply(tmp_path / "broken.ply")
+
+
+def test_viewer_settings_frame_the_head_from_the_front():
+    from fastgha_core.io import viewer_settings
+
+    head = random_gaussians(400, f=0, seed=3)
+    head = head.replace(means=head.means + torch.tensor([0.0, 0.05, 0.0]))
+    s = viewer_settings(head)
+    cam = s["cameras"][0]["initial"]
+    assert s["version"] == 2 and cam["fov"] == 35.0
+    tgt, pos = np.array(cam["target"]), np.array(cam["position"])
+    assert np.allclose(tgt, head.means.median(0).values.numpy(), atol=1e-4)  # viewer = our axes for colmap files
+    d = pos - tgt
+    assert d[0] == 0 and d[1] == 0 and 0.5 < d[2] < 3.0  # in front of the face (+z), about a metre away
+    flipped = viewer_settings(head, axes="fastgha")["cameras"][0]["initial"]["target"]
+    assert np.allclose(flipped, tgt * np.array([-1, -1, 1]), atol=1e-4)
