@@ -360,3 +360,15 @@ def test_eight_exif_orientations_track_to_the_upright_pose(tmp_path):
                  "--out", str(tmp_path / "req6"), "--json", str(report6)]) == 0  # fmt: skip
     r6 = [np.asarray(ph["head_rotation"]) for ph in json.loads(report6.read_text())["photos"]]
     assert _rotation_angle_deg(r6[0], r6[1]) < 3.0  # JPEG noise between the two files, see above
+
+
+@pytest.mark.skipif(not _faces_available(), reason="needs the 'faces' extra (dlib-bin, face-recognition-models)")
+def test_server_without_cameras_tracks_the_exif6_portrait():
+    """The server's no-camera path (server/imaging.py decode, then server/tracking.py) on the field case:
+    the sideways-stored portrait used to give 422 no_face."""
+    from server.imaging import decode_image
+    from server.tracking import PhotoTracker
+
+    img, _ = decode_image((FIX / "grace_hopper_exif6.jpg").read_bytes(), "grace_hopper_exif6.jpg", 10**7)
+    crops, cams, masks, _ = PhotoTracker().track([img], None, 128)
+    assert crops.shape[0] == 1 and len(cams) == 1 and masks.shape[0] == 1
