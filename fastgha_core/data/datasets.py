@@ -309,8 +309,14 @@ class RealSequence:
 
 
 def _read_image_size(data: bytes) -> tuple[int, int]:
+    """(w, h) of the upright image (EXIF orientations 5-8 swap the stored sides), as _decode_image returns it."""
     with Image.open(io.BytesIO(data)) as im:
-        return im.size  # (w, h)
+        w, h = im.size
+        try:
+            o = int(im.getexif().get(0x0112, 1))
+        except Exception:
+            o = 1
+        return (h, w) if o in (5, 6, 7, 8) else (w, h)
 
 
 # ================================================================ Ava-256
