@@ -300,7 +300,8 @@ def test_read_supersplat_compressed_ply_hand_encoded(tmp_path):
                                  "min_scale_z", "max_scale_x", "max_scale_y", "max_scale_z")]  # fmt: skip
     carr = np.array([tuple(r) for r in ch], dtype=cdt)
     varr = np.empty(n, dtype=[(k, "<u4") for k in ("packed_position", "packed_rotation", "packed_scale", "packed_color")])
-    varr["packed_position"], varr["packed_rotation"], varr["packed_scale"], varr["packed_color"] = packed_pos, packed_rot, packed_scale, packed_col
+    for k, val in zip(varr.dtype.names, (packed_pos, packed_rot, packed_scale, packed_col)):
+        varr[k] = val
     path = tmp_path / "scene.compressed.ply"
     PlyData([PlyElement.describe(carr, "chunk"), PlyElement.describe(varr, "vertex")], byte_order="<").write(str(path))
     g = load_ply(path, axes="fastgha")  # values as stored

@@ -309,7 +309,8 @@ def test_reconstruct_and_layout_readers_use_the_decoder(tmp_path):
     Image.fromarray(m).save(tmp_path / "m.png")
     assert float(_read_mask(tmp_path / "m.png").float().mean()) / 255 == pytest.approx(0.25)
     assert float(load_mask(tmp_path / "m.png").mean()) == pytest.approx(0.25)
-    np.testing.assert_allclose(load_image(FIX / "grace_hopper_exif6.jpg").numpy(), read_image(FIX / "grace_hopper_exif6.jpg").rgb.transpose(2, 0, 1) / 255.0)
+    upright = read_image(FIX / "grace_hopper_exif6.jpg").rgb.transpose(2, 0, 1) / 255.0
+    np.testing.assert_allclose(load_image(FIX / "grace_hopper_exif6.jpg").numpy(), upright)
     assert read_mask(tmp_path / "m.png").shape == (8, 8)
 
 
