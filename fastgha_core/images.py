@@ -247,35 +247,38 @@ def _grey16_to_u8(a: np.ndarray) -> np.ndarray:
     return ((a * 255 + 32767) // 65535).astype(np.uint8)
 
 
-def _normalise(im: Image.Image, name: str) -> tuple[np.ndarray, np.ndarray | None]:
-    """Any Pillow mode -> (``[H, W]`` or ``[H, W, 3]`` uint8, alpha ``[H, W]`` uint8 | None)."""
+def _normalise(im: Image.Image, name: str) -> tuple[Image.Image, Image.Image | None]:
+    """Any Pillow mode -> (8-bit ``"RGB"`` or ``"L"`` image, 8-bit ``"L"`` alpha | None).
+
+    Stays in Pillow so that a downscale can follow before the one copy into numpy.
+    """
     mode = im.mode
     if mode in ("RGB", "L"):
-        return np.asarray(im), None
+        return im, None
     if mode == "1":
-        return np.asarray(im.convert("L")), None
+        return im.convert("L"), None
     if mode in ("RGBA", "RGBa", "PA") or (mode == "P" and "transparency" in im.info):
-        a = np.asarray(im.convert("RGBA"))
-        return a[..., :3], np.ascontiguousarray(a[..., 3])
+        rgba = im.convert("RGBA")
+        return rgba.convert("RGB"), rgba.getchannel("A")
     if mode in ("LA", "La"):
-        a = np.asarray(im.convert("LA"))
-        return np.ascontiguousarray(a[..., 0]), np.ascontiguousarray(a[..., 1])
+        la = im.convert("LA")
+        return la.getchannel("L"), la.getchannel("A")
     if mode in ("P", "CMYK", "YCbCr", "RGBX", "HSV"):
         try:
-            return np.asarray(im.convert("RGB")), None
+            return im.convert("RGB"), None
         except Exception as e:
             raise _refuse_mode(name, mode, f" (conversion to RGB failed: {e})") from None
     if mode in _SIXTEEN_BIT:
         a = np.asarray(im)
-        if a.dtype.kind != "u" or a.dtype.itemsize != 2:
-            a = np.asarray(im, dtype=np.uint16) if a.dtype.kind in "ui" else a.astype(np.uint16)
-        return _grey16_to_u8(a), None
+        if a.dtype.kind not in "ui":
+            a = a.astype(np.uint16)
+        return Image.fromarray(_grey16_to_u8(a), mode="L"), None
     if mode == "I":
         a = np.asarray(im)
         lo, hi = int(a.min()), int(a.max())
         if lo < 0 or hi > 65535:
             raise _refuse_mode(name, mode, f" (32-bit integers in [{lo}, {hi}]; only values in [0, 65535] are read, as 16-bit grey)")
-        return _grey16_to_u8(a.astype(np.uint32)), None
+        return Image.fromarray(_grey16_to_u8(a), mode="L"), None
     if mode == "F":
         a = np.asarray(im, dtype=np.float32)
         if not np.isfinite(a).all():
@@ -283,20 +286,49 @@ def _normalise(im: Image.Image, name: str) -> tuple[np.ndarray, np.ndarray | Non
         lo, hi = float(a.min()), float(a.max())
         if lo < 0.0 or hi > 1.0:
             raise _refuse_mode(name, mode, f" (32-bit floats in [{lo:.4g}, {hi:.4g}]; only values in [0, 1] are read)")
-        return np.round(a * 255.0).astype(np.uint8), None
+        return Image.fromarray(np.round(a * 255.0).astype(np.uint8), mode="L"), None
     raise _refuse_mode(name, mode)
 
 
-def _downscale(arr: np.ndarray, max_side: int) -> np.ndarray:
-    """Antialiased downscale of a uint8 ``[H, W]`` / ``[H, W, C]`` array so that its long side is ``max_side``."""
-    h, w = arr.shape[:2]
-    if max(h, w) <= max_side:
-        return arr
-    s = max_side / max(h, w)
-    size = (max(1, round(w * s)), max(1, round(h * s)))
-    im = Image.fromarray(arr)
-    # reducing_gap: integer box reduction first (cheap), then a short antialiased resize
-    return np.asarray(im.resize(size, Image.Resampling.BILINEAR, reducing_gap=2.0))
+def _downscale(im: Image.Image, max_side: int | None) -> Image.Image:
+    """Antialiased downscale of an 8-bit image so that its long side is at most ``max_side``."""
+    w, h = im.size
+    if max_side is None or max(w, h) <= max_side:
+        return im
+    s = max_side / max(w, h)
+    # reducing_gap: an integer box reduction first (cheap, no full-size intermediate), then a short resize
+    return im.resize((max(1, round(w * s)), max(1, round(h * s))), Image.Resampling.BILINEAR, reducing_gap=2.0)
+
+
+_BAND_ROWS = 256
+
+
+def _pixels(im: Image.Image) -> np.ndarray:
+    """A writable uint8 array of an 8-bit ``RGB``/``L`` image, copied in bands of rows.
+
+    ``np.asarray(image)`` goes through ``tobytes()``, which holds the encoded chunks *and* their
+    join (twice the array) on top of Pillow's own 4-bytes-per-pixel copy; bands keep the transient
+    small.
+    """
+    w, h = im.size
+    if w * h <= 1 << 20:
+        return np.array(im)
+    out = np.empty((h, w, 3) if im.mode == "RGB" else (h, w), np.uint8)
+    for y in range(0, h, _BAND_ROWS):
+        out[y : y + _BAND_ROWS] = np.asarray(im.crop((0, y, w, min(h, y + _BAND_ROWS))))
+    return out
+
+
+def _finish(raw: np.ndarray, orientation: int) -> np.ndarray:
+    """Upright, writable, C-contiguous uint8 (copies at most once; call after the Pillow images are closed)."""
+    arr = apply_orientation(raw, orientation)
+    if not (arr.flags.writeable and arr.flags.c_contiguous):
+        arr = np.array(arr, dtype=np.uint8, order="C", copy=True)
+    return arr
+
+
+def _to_array(im: Image.Image, orientation: int) -> np.ndarray:
+    return _finish(_pixels(im), orientation)
 
 
 def _check_max_side(max_side: int | None) -> None:
@@ -334,22 +366,22 @@ def decode_image_bytes(
         orientation = _orientation(exif)
         focal = _focal_35mm(exif, *im.size)
         _load(im, name, max_side)
-        if getattr(im, "n_frames", 1) > 1:
-            im.seek(0)
-        arr, alpha = _normalise(im, name)
-    if max_side is not None:
-        arr = _downscale(arr, max_side)
-        if alpha is not None:
-            alpha = _downscale(alpha, max_side)
-    if arr.ndim == 2:
-        arr = np.repeat(arr[..., None], 3, axis=2)
-    rgb = apply_orientation(arr, orientation)
-    if alpha is not None:
-        alpha = apply_orientation(alpha, orientation)
-    rgb = np.require(rgb, np.uint8, ["C", "W"])
-    alpha = None if alpha is None else np.require(alpha, np.uint8, ["C", "W"])
+        colour, alpha = _normalise(im, name)
+        colour = _downscale(colour, max_side)
+        raw = _pixels(colour)
+        raw_alpha = None if alpha is None else _pixels(_downscale(alpha, max_side))
+        colour.close()
+        del colour, alpha
+    # the Pillow images are closed: their pixel memory is gone before the last copy
+    if raw.ndim == 2:
+        rgb = apply_orientation(np.repeat(raw[..., None], 3, axis=2), orientation)
+        rgb = np.ascontiguousarray(rgb)
+    else:
+        rgb = _finish(raw, orientation)
+    del raw
+    a = None if raw_alpha is None else _finish(raw_alpha, orientation)
     scale = max(rgb.shape[:2]) / stored_long
-    return DecodedImage(rgb, alpha, name, mode, focal, orientation, 1.0 if scale == 1 else float(scale))
+    return DecodedImage(rgb, a, name, mode, focal, orientation, 1.0 if scale == 1 else float(scale))
 
 
 def decode_mask_bytes(
@@ -369,19 +401,11 @@ def decode_mask_bytes(
     _check_max_side(max_side)
     im = _open(data, name, max_pixels, formats)
     with im:
-        exif = _exif(im)
-        orientation = _orientation(exif)
+        orientation = _orientation(_exif(im))
         _load(im, name, max_side)
-        arr, alpha = _normalise(im, name)
-    if alpha is not None:
-        m = alpha
-    elif arr.ndim == 3:
-        m = np.asarray(Image.fromarray(arr).convert("L"))
-    else:
-        m = arr
-    if max_side is not None:
-        m = _downscale(m, max_side)
-    return np.require(apply_orientation(m, orientation), np.uint8, ["C", "W"])
+        colour, alpha = _normalise(im, name)
+        m = alpha if alpha is not None else colour.convert("L") if colour.mode != "L" else colour
+        return _to_array(_downscale(m, max_side), orientation)
 
 
 def decode_pixels_bytes(
@@ -397,11 +421,12 @@ def decode_pixels_bytes(
     with im:
         orientation = _orientation(_exif(im))
         _load(im, name, None)
-        arr, alpha = _normalise(im, name)
+        colour, alpha = _normalise(im, name)
+        arr = _to_array(colour, orientation)
     arr = arr[..., None] if arr.ndim == 2 else arr
     if alpha is not None:
-        arr = np.concatenate([arr, alpha[..., None]], axis=2)
-    return np.require(apply_orientation(arr, orientation), np.uint8, ["C", "W"])
+        arr = np.concatenate([arr, _to_array(alpha, orientation)[..., None]], axis=2)
+    return arr
 
 
 def _read(path: str | Path) -> tuple[bytes, str]:
