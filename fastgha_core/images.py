@@ -208,8 +208,8 @@ def _open(data: bytes, name: str, max_pixels: int, formats: Sequence[str] | None
     except (Image.DecompressionBombError, Image.DecompressionBombWarning):
         raise ImageDecodeError("image_too_large", f"{name} is too large to decode") from None
     except Exception as e:  # Pillow raises many types (UnidentifiedImageError, OSError, SyntaxError, ...)
-        what = " or ".join(formats) if formats else "an image file Pillow can read"
-        raise ImageDecodeError("invalid_image", f"{name} is not a readable {what} ({type(e).__name__}: {e})") from None
+        what = f"a readable {' or '.join(formats)} image" if formats else "an image file Pillow can read"
+        raise ImageDecodeError("invalid_image", f"{name} is not {what} ({type(e).__name__}: {e})") from None
     w, h = im.size
     if w <= 0 or h <= 0:
         raise ImageDecodeError("invalid_image", f"{name} has an empty size {w}x{h}")
