@@ -11,10 +11,12 @@ Three parts, registered by ``fastgha serve`` (``uvicorn_options``) and ``create_
   ``Content-Length``, say) get the same JSON error body as the app's (``invalid_http``), not
   uvicorn's plain text. Uvicorn itself has no header-read timeout: its keep-alive timer stops
   at the first byte.
-* ``GuardedWebSocketProtocol`` (uvicorn's websockets protocol plus a send deadline): a send that
-  cannot proceed for ``ws_send_timeout_seconds`` because the client reads nothing queues a 4408
-  close frame and aborts the connection, so neither the socket nor its buffers are held; any
-  connection still open ``ws_send_timeout_seconds`` after the app is done is aborted too.
+* ``GuardedWebSocketProtocol`` (uvicorn's websockets protocol plus a bounded send queue and a
+  send deadline): the kernel send buffer of a stream is capped at ``ws_send_buffer_bytes``
+  (Linux would otherwise let a client that reads nothing park ~4 MB there before a send ever
+  waits); a send that cannot proceed for ``ws_send_timeout_seconds`` queues a 4408 close frame
+  and aborts the connection, so neither the socket nor its buffers are held; any connection
+  still open ``ws_send_timeout_seconds`` after the app is done is aborted too.
 * ``install(app, settings)``: HTTP 507 for a full disk, 410 for an unreadable avatar file, a
   quiet end for clients that disconnect mid-upload, and security headers on every HTTP response
   (CSP, anti-framing, nosniff, no referrer).
@@ -29,6 +31,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import socket
 from http import HTTPStatus
 from typing import Any
 
@@ -74,6 +77,7 @@ class _Limits:
     max_url_bytes = 8192
     max_head_bytes = 16384
     ws_send_timeout = 10.0
+    ws_send_buffer = 512 * 1024
     configured = False
 
 
@@ -84,6 +88,7 @@ def configure_protocols(settings: Settings) -> None:
     _Limits.max_url_bytes = int(settings.max_url_bytes)
     _Limits.max_head_bytes = int(settings.max_request_head_bytes)
     _Limits.ws_send_timeout = float(settings.ws_send_timeout_seconds)
+    _Limits.ws_send_buffer = int(settings.ws_send_buffer_bytes)
     _Limits.configured = True
 
 
@@ -212,6 +217,7 @@ class GuardedH11Protocol(H11Protocol):
 
     def _check_head(self, data: bytes) -> bool:
         """Count the bytes of the head being received; refuse an over-long target or head (False)."""
+        before = self._head_bytes
         self._head_bytes += len(data)
         if not self._line_done:
             nl = data.find(b"\n")
@@ -225,10 +231,11 @@ class GuardedH11Protocol(H11Protocol):
                 return False
             if self._line_done:
                 self._first_line.clear()
-        ended = b"\r\n\r\n" in self._tail + data
-        self._tail = data[-3:]
-        if self._head_bytes > self._lim.max_head_bytes and not ended:
-            # a head that ended inside this chunk (a body after it) is h11's to check
+        buf = self._tail + data
+        end = buf.find(b"\r\n\r\n")  # the head may end in this chunk, a body after it
+        head_len = before - len(self._tail) + end + 4 if end >= 0 else self._head_bytes
+        self._tail = buf[-3:]
+        if head_len > self._lim.max_head_bytes:
             self.logger.info("%s:%s - request head over %d bytes: 431", *(self.client or ("?", 0)), self._lim.max_head_bytes)
             self._refuse(431, f"the request line and headers are longer than {self._lim.max_head_bytes} bytes")
             return False
@@ -263,6 +270,15 @@ class GuardedWebSocketProtocol(WebSocketsSansIOProtocol):
         super().__init__(*args, **kwargs)
         self._lim = _limits()
         self.close_timeout = min(self.close_timeout, self._lim.ws_send_timeout)
+
+    def connection_made(self, transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        sock = transport.get_extra_info("socket")
+        if sock is not None and self._lim.ws_send_buffer > 0:
+            try:  # a bounded send queue: the kernel's share (it doubles the value) plus the transport's 64 KiB
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self._lim.ws_send_buffer)
+            except OSError:
+                pass
 
     def _drop(self, code: int, reason: str) -> None:
         """Queue a close frame behind whatever is unread, then abort the connection shortly."""

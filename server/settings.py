@@ -96,6 +96,9 @@ class Settings(BaseSettings):
     ws_send_timeout_seconds: float = Field(
         10.0, gt=0, description="a stream whose client reads nothing for this long is closed with 4408"
     )
+    ws_send_buffer_bytes: int = Field(
+        512 * 1024, ge=0, description="kernel send buffer of a stream's socket (SO_SNDBUF); 0 = the system's autotuning (up to ~4 MB)"
+    )
 
     # ------------------------------------------------------------ upload limits
     max_upload_bytes: int = Field(32 * 1024 * 1024, ge=1024, description="largest POST /v1/avatars body")
@@ -103,7 +106,7 @@ class Settings(BaseSettings):
     max_images: int = Field(8, ge=1, le=64, description="most images per avatar")
     max_concurrent_reconstructions: int = Field(1, ge=1, description="reconstructions running at once; others queue")
     min_avatar_gaussians: int = Field(
-        64, ge=1, description="a reconstruction with fewer Gaussians holds no head (e.g. cameras far from it): 422"
+        256, ge=1, description="a reconstruction with fewer Gaussians holds no head (e.g. cameras far from it): 422"
     )
 
     # ------------------------------------------------------------ streaming
