@@ -57,6 +57,7 @@ def server(tmp_path_factory, sample):
         FASTGHA_CACHE_MAX_BYTES="0",  # every access reads the disk (the corrupt-file test needs it)
     )  # fmt: skip
     srv.data_dir = root / "data"
+    srv.model_dir = root / "model"
     yield srv
     srv.stop()
 
@@ -222,6 +223,66 @@ def test_demo_page_has_csp_and_anti_framing(server):
             continue
         assert "://" not in ref and not ref.startswith("//"), ref
         assert httpx.get(server.base + "/" + ref.lstrip("/")).status_code == 200, ref
+
+
+def _poll(page, js: str, timeout: float = 60.0) -> None:
+    # page.evaluate runs through the debugging protocol, outside the page's CSP (wait_for_function
+    # would eval its predicate in the page, which the CSP rightly forbids)
+    deadline = time.monotonic() + timeout
+    while not page.evaluate(js):
+        assert time.monotonic() < deadline, f"timed out waiting for {js}"
+        time.sleep(0.2)
+
+
+def test_demo_page_works_under_its_csp(server, sample):
+    """The browser demo, with the CSP enforced: it loads a sample, creates an avatar and draws frames,
+    and the browser reports no CSP violation."""
+    if not Path("/usr/bin/chromium").exists():
+        pytest.skip("needs Debian's chromium at /usr/bin/chromium (not installed)")
+    sync_api = pytest.importorskip("playwright.sync_api", reason="needs the Python package playwright")
+    import shutil
+    import tempfile
+
+    srv = ServerProcess(
+        Path(server.model_dir), Path(tempfile.mkdtemp(prefix="fastgha-csp-")), sample.parent, server.log_path.with_name("csp.log"),
+        serve_cli=True, FASTGHA_WARMUP="false",
+    )  # fmt: skip
+    profile = tempfile.mkdtemp(prefix="fastgha-chromium-")
+    try:
+        with sync_api.sync_playwright() as p:
+            ctx = p.chromium.launch_persistent_context(
+                profile, executable_path="/usr/bin/chromium", headless=True,
+                args=["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking"],
+            )  # fmt: skip
+            try:
+                pg = ctx.pages[0] if ctx.pages else ctx.new_page()
+                pg.add_init_script(
+                    "window.__csp = []; document.addEventListener('securitypolicyviolation',"
+                    " e => window.__csp.push(e.violatedDirective + ' ' + e.blockedURI));"
+                )
+                errors: list[str] = []
+                pg.on("pageerror", lambda e: errors.append(str(e)))
+                pg.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+                pg.goto(srv.base + "/")
+                _poll(pg, "!document.getElementById('load-sample').disabled")
+                pg.fill("#api-key", API_KEY)
+                pg.click("#load-sample")
+                _poll(pg, "!document.getElementById('create').disabled")
+                pg.click("#create")
+                try:
+                    _poll(pg, "window.fastghaDemo.frames >= 1", timeout=120)
+                except AssertionError:
+                    raise AssertionError(f"no frame: CSP {pg.evaluate('window.__csp')}, errors {errors}, status {pg.inner_text('#st-status')}") from None
+                n = pg.evaluate("window.fastghaDemo.frames")
+                pg.fill("#s-jawOpen", "1")  # a slider move asks for a new frame, which arrives
+                _poll(pg, f"window.fastghaDemo.frames > {n}", timeout=60)
+                assert pg.evaluate("window.__csp") == []
+                assert not errors, errors
+            finally:
+                ctx.close()
+    finally:
+        srv.stop()
+        shutil.rmtree(profile, ignore_errors=True)
 
 
 # ---------------------------------------------------------------- item 10: Origin
