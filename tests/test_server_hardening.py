@@ -360,3 +360,46 @@ def test_serve_passes_connection_limits_to_uvicorn(monkeypatch, tmp_path):
     assert seen["http"] is GuardedH11Protocol and seen["ws"] is GuardedWebSocketProtocol
     assert seen["limit_concurrency"] > 0 and 0 < seen["timeout_keep_alive"] <= 30
     assert seen["h11_max_incomplete_event_size"] <= 32 * 1024
+
+
+# ---------------------------------------------------------------- items 6, 8, 12: the app-level handlers
+def test_install_maps_store_errors_and_adds_security_headers():
+    from fastapi import FastAPI
+    from starlette.testclient import TestClient
+
+    from server.security import install
+    from server.settings import Settings
+    from server.store import AvatarUnreadableError, StorageFullError
+
+    app = FastAPI()
+    install(app, Settings())
+
+    @app.get("/full")
+    async def full():
+        raise StorageFullError(errno.ENOSPC, "no space left for avatar x")
+
+    @app.get("/corrupt")
+    async def corrupt():
+        raise AvatarUnreadableError("A" * 22, "ValueError: truncated")
+
+    client = TestClient(app, raise_server_exceptions=False)
+    r = client.get("/full")
+    assert r.status_code == 507 and r.json()["error"]["code"] == "insufficient_storage"
+    r = client.get("/corrupt")
+    assert r.status_code == 410 and r.json()["error"]["code"] == "avatar_unreadable"
+    assert "frame-ancestors 'none'" in r.headers["content-security-policy"] and r.headers["x-frame-options"] == "DENY"
+    r = client.get("/docs")  # the interactive docs load a CDN script: no CSP there, the rest still
+    assert r.status_code == 200 and "content-security-policy" not in r.headers and r.headers["x-frame-options"] == "DENY"
+
+
+def test_origin_rules():
+    from server.streaming import origin_allowed
+
+    allowed = ["https://app.example"]
+    assert origin_allowed({"origin": "https://app.example", "host": "srv:8000"}, allowed)
+    assert origin_allowed({"origin": "http://srv:8000", "host": "srv:8000"}, allowed)  # the server's own page
+    assert origin_allowed({"host": "srv:8000"}, allowed)  # not a browser
+    assert not origin_allowed({"origin": "https://evil.example", "host": "srv:8000"}, allowed)
+    assert not origin_allowed({"origin": "null", "host": "srv:8000"}, allowed)
+    assert not origin_allowed({"origin": "https://app.example.evil", "host": "srv:8000"}, allowed)
+    assert origin_allowed({"origin": "https://evil.example"}, []) and origin_allowed({"origin": "https://evil.example"}, ["*"])
