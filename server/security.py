@@ -303,8 +303,8 @@ class GuardedWebSocketProtocol(WebSocketsSansIOProtocol):
             if message["type"] == "websocket.close":  # the peer reads nothing: do not wait to say goodbye
                 self._drop(int(message.get("code", 1000)), str(message.get("reason", "") or ""))
                 return
-            try:
-                await asyncio.wait_for(self.writable.wait(), self._lim.ws_send_timeout)
+            try:  # one second past the app's own deadline (streaming.py), which answers first with a log line
+                await asyncio.wait_for(self.writable.wait(), self._lim.ws_send_timeout + 1.0)
             except asyncio.TimeoutError:
                 self.logger.info("%s:%s - WebSocket client read nothing for %.0f s: closing (4408)", *(self.client or ("?", 0)), self._lim.ws_send_timeout)
                 self._drop(self.SLOW_CONSUMER, "slow_consumer")

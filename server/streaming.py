@@ -181,8 +181,9 @@ class StreamSession:
         timeout = self.ctx.settings.ws_send_timeout_seconds
         async with self._send_lock:
             try:
-                await asyncio.wait_for(coro_fn(payload), timeout)
-            except asyncio.TimeoutError:
+                async with asyncio.timeout(timeout):  # no extra task per frame, unlike wait_for
+                    await coro_fn(payload)
+            except TimeoutError:
                 self.ctx.metrics.protocol_errors.labels(code="slow_consumer").inc()
                 log.warning("stream of avatar %s: the client read nothing for %.0f s; closing (4408)", self.avatar_id, timeout)
                 raise _Close(CloseCode.SLOW_CONSUMER, "slow_consumer: the client does not read its frames") from None
