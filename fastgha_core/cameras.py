@@ -89,6 +89,9 @@ class Cameras:
             raise ValueError(f"width and height must be positive, got {self.width}x{self.height}")
         _check_finite("K", K)
         _check_finite("w2c", w2c)
+        last = K[..., 2, :]
+        if K.numel() and (last - torch.tensor([0.0, 0.0, 1.0], dtype=K.dtype, device=K.device)).abs().amax() > 1e-6:
+            raise ValueError(f"K last row must be [0, 0, 1] (a pinhole matrix), got {last.reshape(-1, 3)[0].tolist()}")
         fx, fy = K[..., 0, 0], K[..., 1, 1]
         if (fx <= 0).any() or (fy <= 0).any():
             raise ValueError(
@@ -347,7 +350,7 @@ def _camera_from_obj(obj: Any, index: int) -> tuple[Tensor, Tensor, int, int]:
     try:
         K = torch.tensor(obj["K"], dtype=torch.float32)
         w2c = torch.tensor(obj["w2c"], dtype=torch.float32)
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:
         raise ValueError(f"camera {index}: K and w2c must be numeric matrices ({e})") from None
     if tuple(K.shape) != (3, 3):
         raise ValueError(f"camera {index}: K must be 3x3, got shape {tuple(K.shape)}")

@@ -25,7 +25,7 @@ from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from fastgha_core import __version__
-from fastgha_core.cameras import Cameras, cameras_from_json, orbit_cameras
+from fastgha_core.cameras import Cameras, orbit_cameras
 
 from . import auth
 from .context import ServerContext, StreamRegistry
@@ -34,8 +34,9 @@ from .frames import FrameRenderer
 from .imaging import decode_image, decode_mask
 from .logs import install_token_redaction
 from .metrics import CONTENT_TYPE_LATEST
-from .protocol import ProtocolError, loads_strict
+from .protocol import ProtocolError, check_reconstruction, parse_cameras_json
 from .samples import make_samples_router
+from .security import install as install_security
 from .settings import Settings, get_settings
 from .store import AvatarStore
 from .streaming import _safe_close, stream_endpoint
@@ -339,6 +340,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=_lifespan,
     )
     app.state.ctx = ServerContext(settings=s)
+    install_security(app, s)  # 507/410 errors and security headers (server/security.py)
     tracker = PhotoTracker()  # photos without cameras (server/tracking.py); loads dlib on first use
 
     if s.cors_origin_list:
@@ -422,7 +424,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         else:
             cam_text = await cam_field.read() if isinstance(cam_field, UploadFile) else cam_field
             try:
-                cams = cameras_from_json(loads_strict(cam_text))
+                cams = parse_cameras_json(cam_text)  # bounded numbers and renderable cameras (server/protocol.py)
             except ProtocolError as e:
                 raise ApiError(400, "non_finite_number" if e.code == "non_finite_number" else "invalid_cameras", e.message) from None
             except ValueError as e:
@@ -445,6 +447,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         ctx.metrics.reconstruct_seconds.observe(recon_ms / 1e3)
         avatar_id, token = auth.new_avatar_id(), auth.new_token()
         n = len(avatar.gaussians)
+        try:
+            check_reconstruction(n, s.min_avatar_gaussians)  # an empty avatar is refused, not stored
+        except ProtocolError as e:
+            raise ApiError(422, e.code, e.message) from None
         meta = {
             "avatar_id": avatar_id,
             "token_sha256": auth.hash_token(token),

@@ -77,6 +77,7 @@ class ServerContext:
     reconstruct_slots: asyncio.Semaphore | None = None
     streams: StreamRegistry | None = None
     ready: bool = False
+    log_throttle: Any = None  # streaming.LogThrottle: one traceback per kind of repeated error
 
     async def run_work(self, fn, *args):
         return await asyncio.get_running_loop().run_in_executor(self.work_pool, fn, *args)

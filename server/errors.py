@@ -37,7 +37,10 @@ class CloseCode:
     SERVICE_RESTART = 1012  # sent by uvicorn on graceful shutdown
     BAD_REQUEST = 4400  # invalid avatar id
     UNAUTHORIZED = 4401  # missing or wrong token
+    FORBIDDEN_ORIGIN = 4403  # browser Origin not among the configured origins (FASTGHA_CORS_ORIGINS)
     NOT_FOUND = 4404  # unknown avatar
+    SLOW_CONSUMER = 4408  # the client read nothing for ws_send_timeout_seconds
+    GONE = 4410  # the avatar's file is unreadable (set aside in quarantine/)
     CONFLICT = 4409  # avatar made by another model
     RATE_ABUSE = 4429  # message rate far above the limit
     AT_CAPACITY = 4503  # too many concurrent streams (per avatar or in total)

@@ -47,12 +47,27 @@ __all__ = [
     "REQUEST_MAGIC",
     "MAX_SEQ",
     "MAX_ABS_EXPRESSION",
+    "MAX_CAMERA_SIZE",
+    "MAX_CAMERA_TRANSLATION",
+    "FOCAL_RANGE",
+    "MAX_PRINCIPAL_OFFSET",
+    "F32_MAX",
+    "check_camera",
+    "check_reconstruction",
+    "parse_cameras_json",
 ]
 
 FRAME_MAGIC = b"FGHA"
 REQUEST_MAGIC = b"FGHQ"
 MAX_SEQ = 2**32 - 1
 MAX_ABS_EXPRESSION = 100.0  # expression values are coefficients/weights of order 1; larger is a client bug
+F32_MAX = float(np.finfo(np.float32).max)  # every JSON number must fit float32 (3.4028235e38)
+_F32_MAX_DIGITS = len(str(int(F32_MAX)))  # 39: longer integer literals overflow without being converted
+# Bounds of a camera the renderer can use (docs/protocol.md, "Cameras"); the binary form carries uint16 sizes.
+MAX_CAMERA_SIZE = 65535  # pixels, width and height
+MAX_CAMERA_TRANSLATION = 1000.0  # metres: |w2c translation| (a head is ~0.25 m; 1 km is far beyond any use)
+FOCAL_RANGE = (1e-2, 1e6)  # pixels, fx and fy
+MAX_PRINCIPAL_OFFSET = 1e6  # pixels, |cx|, |cy| and |skew|
 _HEAD = struct.Struct("<4sIH")  # magic, seq, E
 _CAM = struct.Struct("<9f16fHH")  # K, w2c, width, height
 
@@ -97,19 +112,33 @@ def _reject_constant(name: str) -> float:
 
 def _finite_float(text: str) -> float:
     v = float(text)
-    if not math.isfinite(v):
-        raise ProtocolError("non_finite_number", f"JSON numbers must be finite, got {text[:32]} (overflows float)")
+    if not math.isfinite(v) or abs(v) > F32_MAX:
+        raise ProtocolError("non_finite_number", f"JSON numbers must be finite float32 values, got {text[:32]} (overflows float32)")
+    return v
+
+
+def _bounded_int(text: str) -> int:
+    # checked on the text first: int() of more than 4300 digits raises ValueError, and an int beyond
+    # float64 raises OverflowError wherever it is converted later
+    if len(text.lstrip("-")) > _F32_MAX_DIGITS or abs(v := int(text)) > F32_MAX:
+        short = text[:32] + ("..." if len(text) > 32 else "")
+        raise ProtocolError("non_finite_number", f"JSON numbers must be finite float32 values, got an integer of {len(text.lstrip('-'))} digits ({short})")
     return v
 
 
 def loads_strict(text: str | bytes) -> Any:
-    """``json.loads`` that refuses NaN, Infinity and numbers that overflow to infinity."""
+    """``json.loads`` that refuses NaN, Infinity and any number (integer or not) beyond float32.
+
+    Raises ``ProtocolError`` with code ``non_finite_number`` (such numbers) or ``invalid_json``.
+    """
     try:
-        return json.loads(text, parse_constant=_reject_constant, parse_float=_finite_float)
+        return json.loads(text, parse_constant=_reject_constant, parse_float=_finite_float, parse_int=_bounded_int)
     except ProtocolError:
         raise
     except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as e:
         raise ProtocolError("invalid_json", f"message is not valid JSON: {e}") from None
+    except ValueError as e:  # anything else json.loads may raise on hostile input
+        raise ProtocolError("invalid_json", f"message is not valid JSON ({type(e).__name__})") from None
 
 
 def _parse_seq(value: Any) -> int:
@@ -158,14 +187,69 @@ def parse_expression(value: Any, space: Any) -> Tensor:
     return _check_expression_values(expr)
 
 
+def check_camera(cam: Cameras) -> Cameras:
+    """``cam`` when the renderer can use it; ``ValueError`` saying which bound it breaks.
+
+    Bounds: width and height in [1, MAX_CAMERA_SIZE]; K upper triangular with last row [0, 0, 1],
+    fx and fy in FOCAL_RANGE, |cx|, |cy|, |skew| <= MAX_PRINCIPAL_OFFSET; |w2c translation| <=
+    MAX_CAMERA_TRANSLATION metres. (``Cameras`` itself checks finiteness and a rigid w2c.)
+    """
+    w, h = int(cam.width), int(cam.height)
+    if not (1 <= w <= MAX_CAMERA_SIZE and 1 <= h <= MAX_CAMERA_SIZE):
+        raise ValueError(f"width and height must be in [1, {MAX_CAMERA_SIZE}], got {w}x{h}")
+    K = cam.K.reshape(-1, 3, 3).double()
+    t = cam.w2c.reshape(-1, 4, 4)[:, :3, 3].double()
+    if (K[:, 1, 0] != 0).any() or (K[:, 2, :] != torch.tensor([0.0, 0.0, 1.0], dtype=K.dtype)).any():
+        raise ValueError(f"K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K[0].tolist()}")
+    lo, hi = FOCAL_RANGE
+    f = torch.stack([K[:, 0, 0], K[:, 1, 1]])
+    if (f < lo).any() or (f > hi).any():
+        raise ValueError(f"focal lengths must be in [{lo:g}, {hi:g}] pixels, got fx={float(K[0, 0, 0]):.4g} fy={float(K[0, 1, 1]):.4g}")
+    off = torch.stack([K[:, 0, 1], K[:, 0, 2], K[:, 1, 2]]).abs()
+    if (off > MAX_PRINCIPAL_OFFSET).any():
+        raise ValueError(f"|cx|, |cy| and the skew must be at most {MAX_PRINCIPAL_OFFSET:g} pixels, got {float(off.max()):.4g}")
+    dist = t.norm(dim=-1)
+    if (dist > MAX_CAMERA_TRANSLATION).any():
+        raise ValueError(f"the w2c translation must be at most {MAX_CAMERA_TRANSLATION:g} m long, got {float(dist.max()):.4g} m")
+    return cam
+
+
+def check_reconstruction(num_gaussians: int, minimum: int) -> None:
+    """Refuse a reconstruction with fewer than ``minimum`` Gaussians: it holds no head (cameras far
+    from it, say) and every frame of it would fail. ``ProtocolError`` code ``no_head_reconstructed``."""
+    if num_gaussians < minimum:
+        raise ProtocolError(
+            "no_head_reconstructed",
+            f"the reconstruction holds {num_gaussians} Gaussians (at least {minimum} make a head): "
+            "check that the cameras look at the head from about a metre and that the masks are not empty",
+        )
+
+
 def parse_camera(value: Any) -> Cameras:
     try:
         cams = cameras_from_json(value if isinstance(value, (dict, list)) else [value])
-    except ValueError as e:
+        if len(cams) != 1:
+            raise ValueError(f"camera must be one camera object, got {len(cams)}")
+        return check_camera(cams[0])
+    except (ValueError, TypeError, OverflowError) as e:
         raise ProtocolError("invalid_camera", str(e)) from None
-    if len(cams) != 1:
-        raise ProtocolError("invalid_camera", f"camera must be one camera object, got {len(cams)}")
-    return cams[0]
+
+
+def parse_cameras_json(text: str | bytes) -> list[Cameras]:
+    """The ``cameras`` field of ``POST /v1/avatars``: a JSON array of camera objects, each within
+    ``check_camera``'s bounds. Raises ``ProtocolError`` with code ``invalid_json`` /
+    ``non_finite_number`` (see ``loads_strict``) or ``invalid_cameras``."""
+    data = loads_strict(text)
+    try:
+        cams = cameras_from_json(data)
+        for i, c in enumerate(cams):
+            try:
+                check_camera(c)
+            except ValueError as e:
+                raise ValueError(f"camera {i}: {e}") from None
+        return cams
+    except (ValueError, TypeError, OverflowError) as e:
+        raise ProtocolError("invalid_cameras", str(e)) from None
 
 
 def _parse_options(obj: dict) -> OptionsMessage:
@@ -182,7 +266,17 @@ def _parse_options(obj: dict) -> OptionsMessage:
 
 
 def parse_text_message(text: str, space: Any) -> FrameRequest | OptionsMessage | PingMessage:
-    """Parse one client text message (see module doc); raises ``ProtocolError``."""
+    """Parse one client text message (see module doc); raises ``ProtocolError``, and only that:
+    an unexpected exception of a parser becomes ``invalid_message`` so the stream stays open."""
+    try:
+        return _parse_text_message(text, space)
+    except ProtocolError:
+        raise
+    except Exception as e:
+        raise ProtocolError("invalid_message", f"the message could not be parsed ({type(e).__name__})") from None
+
+
+def _parse_text_message(text: str, space: Any) -> FrameRequest | OptionsMessage | PingMessage:
     obj = loads_strict(text)
     if not isinstance(obj, dict):
         raise ProtocolError("invalid_message", f"message must be a JSON object, got {type(obj).__name__}")
@@ -233,7 +327,7 @@ def parse_binary_message(data: bytes, space: Any) -> FrameRequest:
         K = torch.tensor(nums[:9], dtype=torch.float32).reshape(3, 3)
         w2c = torch.tensor(nums[9:25], dtype=torch.float32).reshape(4, 4)
         try:
-            cam = Cameras(K[None], w2c[None], vals[25], vals[26])
+            cam = check_camera(Cameras(K[None], w2c[None], vals[25], vals[26]))
         except ValueError as ex:
             raise ProtocolError("invalid_camera", str(ex)) from None
     elif has_cam == 0:

@@ -22,6 +22,21 @@ def _split_csv(value: str) -> list[str]:
     return [v.strip() for v in value.split(",") if v.strip()]
 
 
+def _read_keys_file(path: Path) -> list[str]:
+    """API keys from a file: one per line or comma-separated; blank lines and ``#`` comments ignored."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise ValueError(f"api_keys_file {str(path)!r} cannot be read ({type(e).__name__}: {getattr(e, 'strerror', None) or e})") from None
+    keys: list[str] = []
+    for line in text.splitlines():
+        line = line.split("#", 1)[0]
+        keys += [k for k in _split_csv(line) if k not in keys]
+    if not keys:
+        raise ValueError(f"api_keys_file {str(path)!r} holds no key")
+    return keys
+
+
 class Settings(BaseSettings):
     """All server settings; each field reads the environment variable ``FASTGHA_<NAME>``."""
 
@@ -49,13 +64,50 @@ class Settings(BaseSettings):
         "",
         description="comma-separated API keys required to create avatars; empty = creation is open (set it in production)",
     )
-    cors_origins: str = Field("", description='comma-separated allowed CORS origins; empty = CORS off, "*" = any')
+    api_keys_file: Path | None = Field(
+        None,
+        description="file with API keys (one per line or comma-separated, # comments); added to api_keys. "
+        "Keeps keys out of the process list and the environment of child processes",
+    )
+    cors_origins: str = Field(
+        "", description='comma-separated allowed CORS origins; empty = CORS off, "*" = any. Also gates WebSocket Origin'
+    )
+    forwarded_allow_ips: str = Field(
+        "127.0.0.1",
+        description="comma-separated addresses of the reverse proxies whose X-Forwarded-* headers are trusted "
+        "(fastgha serve --proxy-headers); never * unless nothing but the proxy can reach the server",
+    )
+
+    # ------------------------------------------------------------ connections (fastgha serve; see docs/deploy.md)
+    header_timeout_seconds: float = Field(
+        10.0, gt=0, description="a connection must send a complete request head this soon after it opens or after its last response"
+    )
+    body_timeout_seconds: float = Field(
+        120.0, gt=0, description="a request body must arrive completely this soon after its head"
+    )
+    keep_alive_seconds: float = Field(5.0, gt=0, le=300, description="idle keep-alive connections are closed after this long")
+    max_request_head_bytes: int = Field(
+        16384, ge=1024, le=1024 * 1024, description="largest request line + headers (431 beyond)"
+    )
+    max_url_bytes: int = Field(8192, ge=256, description="longest request target, path and query (414 beyond)")
+    limit_concurrency: int = Field(
+        1024, ge=8, description="open connections + running requests above which new requests get 503 at once"
+    )
+    ws_send_timeout_seconds: float = Field(
+        10.0, gt=0, description="a stream whose client reads nothing for this long is closed with 4408"
+    )
+    ws_send_buffer_bytes: int = Field(
+        512 * 1024, ge=0, description="kernel send buffer of a stream's socket (SO_SNDBUF); 0 = the system's autotuning (up to ~4 MB)"
+    )
 
     # ------------------------------------------------------------ upload limits
     max_upload_bytes: int = Field(32 * 1024 * 1024, ge=1024, description="largest POST /v1/avatars body")
     max_image_pixels: int = Field(16_777_216, ge=64, description="largest width*height of one uploaded image")
     max_images: int = Field(8, ge=1, le=64, description="most images per avatar")
     max_concurrent_reconstructions: int = Field(1, ge=1, description="reconstructions running at once; others queue")
+    min_avatar_gaussians: int = Field(
+        256, ge=1, description="a reconstruction with fewer Gaussians holds no head (e.g. cameras far from it): 422"
+    )
 
     # ------------------------------------------------------------ streaming
     max_output_size: int = Field(1024, ge=16, le=8192, description="cap on the output width and height of a frame")
@@ -93,9 +145,19 @@ class Settings(BaseSettings):
             raise ValueError("model must not be empty")
         return v
 
+    @field_validator("api_keys_file")
+    @classmethod
+    def _keys_file_readable(cls, v: Path | None) -> Path | None:
+        if v is not None:
+            _read_keys_file(v)  # fail at start-up, not at the first request
+        return v
+
     @property
     def api_key_list(self) -> list[str]:
-        return _split_csv(self.api_keys)
+        keys = _split_csv(self.api_keys)
+        if self.api_keys_file is not None:
+            keys += [k for k in _read_keys_file(self.api_keys_file) if k not in keys]
+        return keys
 
     @property
     def cors_origin_list(self) -> list[str]:

@@ -12,12 +12,18 @@ last access (touched at most once a minute); avatars idle longer than the TTL ar
 Ids reaching this class have been validated (``auth.check_avatar_id``); paths are built
 from them only after a second check here.
 
+A full disk (``ENOSPC``/``EDQUOT``) while writing raises ``StorageFullError`` (HTTP 507) and
+leaves nothing behind. An avatar whose files cannot be read back (truncated, corrupt) is moved
+to ``<data_dir>/quarantine/``, logged once, and reported as ``AvatarUnreadableError`` (HTTP 410,
+WebSocket 4410); afterwards the id is unknown (404).
+
 The store is synchronous and thread-safe; the app calls the methods that touch the disk
 from worker threads.
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -31,12 +37,27 @@ from typing import Any, Callable
 
 from .auth import is_valid_avatar_id
 
-__all__ = ["AvatarStore", "StoredAvatar"]
+__all__ = ["AvatarStore", "StoredAvatar", "StorageFullError", "AvatarUnreadableError"]
 
 log = logging.getLogger(__name__)
 
 _TMP_PREFIX = ".tmp-"
 _TOUCH_INTERVAL_S = 60.0
+
+
+class StorageFullError(OSError):
+    """The data folder is out of space (or quota) while saving an avatar; nothing was kept."""
+
+
+class AvatarUnreadableError(Exception):
+    """A stored avatar's files could not be read; they were moved to the quarantine folder."""
+
+    def __init__(self, avatar_id: str, detail: str) -> None:
+        super().__init__(f"avatar {avatar_id} could not be read from disk ({detail}); it was set aside")
+        self.avatar_id = avatar_id
+
+
+_FULL_ERRNOS = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC), errno.EFBIG}
 
 
 @dataclass
@@ -93,6 +114,7 @@ class AvatarStore:
     ) -> None:
         self.dir = Path(root) / "avatars"
         self.dir.mkdir(parents=True, exist_ok=True)
+        self.quarantine_dir = Path(root) / "quarantine"
         self.max_bytes = int(max_bytes)
         self.ttl_seconds = float(ttl_seconds)
         self._load_fn = load_fn
@@ -158,17 +180,30 @@ class AvatarStore:
 
     # ------------------------------------------------------------ public API
     def put(self, avatar_id: str, avatar: Any, meta: dict) -> None:
-        """Persist atomically (avatar file, then metadata) and cache."""
+        """Persist atomically (avatar file, then metadata) and cache.
+
+        Raises ``StorageFullError`` when the disk is full (nothing of this avatar is left on disk),
+        other ``OSError`` as they come (nothing left either)."""
         avatar_path, meta_path = self._paths(avatar_id)
         tmp = avatar_path.with_name(f"{_TMP_PREFIX}{secrets.token_hex(8)}-{avatar_path.name}")
+        committed = False
         try:
-            avatar.save(tmp)
-            with open(tmp, "rb+") as f:
-                os.fsync(f.fileno())
-            os.replace(tmp, avatar_path)
+            try:
+                avatar.save(tmp)
+                with open(tmp, "rb+") as f:
+                    os.fsync(f.fileno())
+                os.replace(tmp, avatar_path)
+            finally:
+                tmp.unlink(missing_ok=True)
+            _atomic_write_bytes(meta_path, json.dumps(meta, indent=1, sort_keys=True).encode("utf-8"))
+            committed = True
+        except OSError as e:
+            if e.errno in _FULL_ERRNOS:
+                raise StorageFullError(e.errno, f"no space left for avatar {avatar_id} in {self.dir}") from e
+            raise
         finally:
-            tmp.unlink(missing_ok=True)
-        _atomic_write_bytes(meta_path, json.dumps(meta, indent=1, sort_keys=True).encode("utf-8"))
+            if not committed:  # the avatar file without its metadata is not an avatar: remove it now
+                avatar_path.unlink(missing_ok=True)
         _fsync_dir(self.dir)
         self._touched[avatar_id] = time.time()
         self._insert(avatar_id, StoredAvatar(avatar, dict(meta), self._nbytes_fn(avatar)))
@@ -181,9 +216,34 @@ class AvatarStore:
                 return item.meta
         _, meta_path = self._paths(avatar_id)
         try:
-            return json.loads(meta_path.read_text(encoding="utf-8"))
+            meta = json.loads(meta_path.read_text(encoding="utf-8"))
         except FileNotFoundError:
             return None
+        except (ValueError, UnicodeDecodeError) as e:
+            self._quarantine(avatar_id, e)
+        if not isinstance(meta, dict):
+            self._quarantine(avatar_id, ValueError(f"metadata is a {type(meta).__name__}, not an object"))
+        return meta
+
+    def _quarantine(self, avatar_id: str, exc: BaseException) -> None:
+        """Move an unreadable avatar's files to ``quarantine/``, log once, raise ``AvatarUnreadableError``."""
+        detail = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200] if str(exc) else ''}"
+        moved = []
+        with self._lock:
+            item = self._cache.pop(avatar_id, None)
+            if item is not None:
+                self._bytes -= item.nbytes
+            self._touched.pop(avatar_id, None)
+            self.quarantine_dir.mkdir(parents=True, exist_ok=True)
+            for p in self._paths(avatar_id):
+                try:
+                    os.replace(p, self.quarantine_dir / p.name)
+                    moved.append(p.name)
+                except FileNotFoundError:
+                    pass
+        if moved:  # another thread may have moved them already: only the mover logs
+            log.warning("avatar %s is unreadable (%s): moved %s to quarantine %s", avatar_id, detail, ", ".join(moved), self.quarantine_dir)
+        raise AvatarUnreadableError(avatar_id, detail)
 
     def get(self, avatar_id: str) -> StoredAvatar | None:
         """The avatar (loaded from disk when not in memory) or None when there is none."""
@@ -197,7 +257,12 @@ class AvatarStore:
             if meta is None or not avatar_path.exists():
                 return None
             t0 = time.perf_counter()
-            avatar = self._load_fn(avatar_path)
+            try:
+                avatar = self._load_fn(avatar_path)
+            except FileNotFoundError:
+                return None  # deleted meanwhile
+            except Exception as e:  # truncated or corrupt file: set it aside (raises)
+                self._quarantine(avatar_id, e)
             item = StoredAvatar(avatar, meta, self._nbytes_fn(avatar))
             self._insert(avatar_id, item)
             log.info("loaded avatar %s from disk in %.1f ms", avatar_id, 1e3 * (time.perf_counter() - t0))

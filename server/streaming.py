@@ -5,7 +5,11 @@ the socket stays open) and puts frame requests into a one-item ``LatestSlot``: a
 still waiting when a newer one arrives is replaced and counted as dropped ("latest wins").
 The render task takes the newest request, renders it in the render thread pool (off the
 event loop) and sends one binary frame message. Both tasks are cancelled in ``finally``.
-A failure while rendering one frame is reported to that client only.
+A failure while rendering one frame is reported to that client only, and logged through a
+``LogThrottle`` (one traceback per kind, then counts). Every send has a deadline
+(``ws_send_timeout_seconds``): a client that stops reading is closed with 4408 and its stream
+slot freed. With origins configured (``cors_origins``) a browser ``Origin`` outside them is
+refused with 4403.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from .auth import bearer_from, is_valid_avatar_id, token_matches
 from .context import ServerContext
 from .errors import CloseCode
 from .frames import fit_camera
+from .store import AvatarUnreadableError
 from .protocol import (
     FrameRequest,
     OptionsMessage,
@@ -36,7 +41,7 @@ from .protocol import (
     parse_text_message,
 )
 
-__all__ = ["LatestSlot", "RateLimiter", "StreamSession", "stream_endpoint"]
+__all__ = ["LatestSlot", "LogThrottle", "RateLimiter", "StreamSession", "stream_endpoint", "origin_allowed"]
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +101,54 @@ class RateLimiter:
         return "limited"
 
 
+class LogThrottle:
+    """Log an error with its traceback once per ``key``, then only counts, at most once per ``interval`` s.
+
+    One misbehaving avatar or client can fail every frame (hundreds per second); the log gets
+    the first traceback and then one line per interval saying how many more there were.
+    Thread-safe enough for the event loop (no awaits inside).
+    """
+
+    def __init__(self, interval: float = 60.0, clock=time.monotonic) -> None:
+        self.interval = float(interval)
+        self._clock = clock
+        self._state: dict[str, list] = {}  # key -> [time of the last line, suppressed since]
+
+    def exception(self, logger: logging.Logger, key: str, msg: str, *args: Any) -> None:
+        """Call from an ``except`` block: ``logger.error(msg % args)`` with the traceback the first time."""
+        now = self._clock()
+        st = self._state.get(key)
+        if st is None:
+            self._state[key] = [now, 0]
+            logger.error(msg, *args, exc_info=True)
+        elif now - st[0] >= self.interval:
+            logger.error(msg + " (and %d more like it in the last %.0f s; traceback logged once)", *args, st[1], now - st[0])
+            st[0], st[1] = now, 0
+        else:
+            st[1] += 1
+
+
+def origin_allowed(headers: Any, allowed: list[str]) -> bool:
+    """True when a WebSocket handshake's ``Origin`` may connect.
+
+    No origins configured (``cors_origins`` empty) or ``*``: any. Otherwise the ``Origin`` must be
+    one of them or the server's own (same scheme-less host as the ``Host`` header, i.e. the page
+    this server serves). Clients that send no ``Origin`` (not browsers) are allowed: browsers
+    always send one, and tokens, not origins, authenticate.
+    """
+    if not allowed or "*" in allowed:
+        return True
+    origin = headers.get("origin")
+    if origin is None:
+        return True
+    origin = origin.strip().rstrip("/")
+    if origin in {a.rstrip("/") for a in allowed}:
+        return True
+    host = (headers.get("host") or "").strip().lower()
+    _, sep, rest = origin.lower().partition("://")
+    return bool(sep) and bool(host) and rest == host
+
+
 class _Close(Exception):
     def __init__(self, code: int, reason: str) -> None:
         super().__init__(reason)
@@ -123,13 +176,23 @@ class StreamSession:
         self.frames_sent = 0
 
     # ------------------------------------------------------------ sending
-    async def _send_text(self, text: str) -> None:
+    async def _send(self, coro_fn, payload) -> None:
+        """One send with a deadline: a client that does not read closes with 4408 (SLOW_CONSUMER)."""
+        timeout = self.ctx.settings.ws_send_timeout_seconds
         async with self._send_lock:
-            await self.ws.send_text(text)
+            try:
+                async with asyncio.timeout(timeout):  # no extra task per frame, unlike wait_for
+                    await coro_fn(payload)
+            except TimeoutError:
+                self.ctx.metrics.protocol_errors.labels(code="slow_consumer").inc()
+                log.warning("stream of avatar %s: the client read nothing for %.0f s; closing (4408)", self.avatar_id, timeout)
+                raise _Close(CloseCode.SLOW_CONSUMER, "slow_consumer: the client does not read its frames") from None
+
+    async def _send_text(self, text: str) -> None:
+        await self._send(self.ws.send_text, text)
 
     async def _send_bytes(self, data: bytes) -> None:
-        async with self._send_lock:
-            await self.ws.send_bytes(data)
+        await self._send(self.ws.send_bytes, data)
 
     async def send_error(self, code: str, message: str) -> None:
         self.ctx.metrics.protocol_errors.labels(code=code).inc()
@@ -202,6 +265,10 @@ class StreamSession:
             except ProtocolError as e:
                 await self.send_error(e.code, e.message)
                 continue
+            except Exception as e:  # a parser bug must not end the stream (1011): answer it like a bad message
+                _throttle(self.ctx).exception(log, f"parse:{type(e).__name__}", "parsing a message on a stream of avatar %s failed", self.avatar_id)
+                await self.send_error("invalid_message", f"the message could not be parsed ({type(e).__name__})")
+                continue
             if isinstance(req, FrameRequest):
                 if req.camera is not None:
                     self.camera = req.camera  # sticky, even when this request is dropped later
@@ -227,12 +294,12 @@ class StreamSession:
         ctx = self.ctx
         while True:
             req: FrameRequest = await self.slot.take()
-            cam = fit_camera(self.camera, self.max_size)
             t0 = time.perf_counter()
             try:
+                cam = fit_camera(self.camera, self.max_size)
                 fr = await ctx.run_render(ctx.renderer.render, self.avatar, req.expression, cam, self.jpeg_quality)
             except Exception as e:  # one bad frame must not end the stream or touch other sessions
-                log.exception("rendering a frame of avatar %s failed", self.avatar_id)
+                _throttle(ctx).exception(log, f"render:{type(e).__name__}", "rendering a frame of avatar %s failed", self.avatar_id)
                 ctx.metrics.frame_errors.inc()
                 await self.send_error("render_failed", f"the frame could not be rendered ({type(e).__name__})")
                 continue
@@ -259,11 +326,20 @@ class StreamSession:
         await _safe_close(self.ws, code, reason)
 
 
+def _throttle(ctx: ServerContext) -> LogThrottle:
+    if ctx.log_throttle is None:
+        ctx.log_throttle = LogThrottle()
+    return ctx.log_throttle
+
+
+_CLOSE_TIMEOUT_S = 5.0  # a close frame queued behind unread data must not hold the handler
+
+
 async def _safe_close(ws: WebSocket, code: int, reason: str) -> None:
     try:
         if ws.application_state == WebSocketState.CONNECTED and ws.client_state == WebSocketState.CONNECTED:
-            await ws.close(code=code, reason=reason[:120])
-    except (RuntimeError, WebSocketDisconnect, OSError):
+            await asyncio.wait_for(ws.close(code=code, reason=reason[:120]), _CLOSE_TIMEOUT_S)
+    except (RuntimeError, WebSocketDisconnect, OSError, asyncio.TimeoutError):
         pass
 
 
@@ -271,13 +347,16 @@ async def stream_endpoint(websocket: WebSocket, avatar_id: str) -> None:
     """``/v1/avatars/{avatar_id}/stream``: authenticate, then run a ``StreamSession``.
 
     The socket is accepted before any check so that refusals reach browsers as close codes
-    (4401 auth, 4404 unknown avatar, 4409 other model, 4503 at capacity).
+    (4401 auth, 4403 origin not allowed, 4404 unknown avatar, 4409 other model, 4410 unreadable
+    avatar file, 4503 at capacity).
     """
     ctx: ServerContext = websocket.app.state.ctx
     await websocket.accept()
     session: StreamSession | None = None
     registered = False
     try:
+        if not origin_allowed(websocket.headers, ctx.settings.cors_origin_list):
+            raise _Close(CloseCode.FORBIDDEN_ORIGIN, "origin_not_allowed")
         if not is_valid_avatar_id(avatar_id):
             raise _Close(CloseCode.NOT_FOUND, "avatar_not_found")
         token = bearer_from(websocket.headers, websocket.query_params)
@@ -303,6 +382,8 @@ async def stream_endpoint(websocket: WebSocket, avatar_id: str) -> None:
         await _safe_close(websocket, CloseCode.NORMAL, "bye")
     except _Close as c:
         await _safe_close(websocket, c.code, c.reason)
+    except AvatarUnreadableError:  # set aside by the store (logged there, once)
+        await _safe_close(websocket, CloseCode.GONE, "avatar_unreadable")
     except WebSocketDisconnect:
         pass
     except Exception:

@@ -84,7 +84,11 @@ def free_port() -> int:
 class ServerProcess:
     """``uvicorn --factory server.app:create_app`` on a free loopback port."""
 
-    def __init__(self, model_dir: Path, data_dir: Path, samples_dir: Path | None, log_path: Path, **env_overrides: str) -> None:
+    def __init__(
+        self, model_dir: Path, data_dir: Path, samples_dir: Path | None, log_path: Path, *, serve_cli: bool = False, **env_overrides: str
+    ) -> None:
+        """``serve_cli``: start it as ``fastgha serve`` does (uvicorn with server/security.py's guarded
+        protocols and connection limits) instead of plain ``uvicorn --factory``."""
         self.port = free_port()
         self.base = f"http://127.0.0.1:{self.port}"
         self.ws_base = f"ws://127.0.0.1:{self.port}"
@@ -105,11 +109,13 @@ class ServerProcess:
         env.update(env_overrides)
         self.log_path = log_path
         self.log = open(log_path, "ab")
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "--factory", "server.app:create_app", "--host", "127.0.0.1",
-             "--port", str(self.port), "--timeout-graceful-shutdown", "5"],
-            cwd=REPO, env=env, stdout=self.log, stderr=subprocess.STDOUT,
+        argv = (
+            [sys.executable, "-m", "fastgha_core.cli", "serve", "--host", "127.0.0.1", "--port", str(self.port)]
+            if serve_cli
+            else [sys.executable, "-m", "uvicorn", "--factory", "server.app:create_app", "--host", "127.0.0.1",
+                  "--port", str(self.port), "--timeout-graceful-shutdown", "5"]
         )  # fmt: skip
+        self.proc = subprocess.Popen(argv, cwd=REPO, env=env, stdout=self.log, stderr=subprocess.STDOUT)
         self._wait_ready()
 
     def _wait_ready(self, timeout: float = 240.0) -> None:

@@ -54,7 +54,8 @@ def page(server):
     errors: list[str] = []
     with sync_api.sync_playwright() as p:
         ctx = p.chromium.launch_persistent_context(
-            profile, executable_path=CHROMIUM, args=ARGS, headless=True, viewport={"width": 1200, "height": 900}, accept_downloads=True
+            profile, executable_path=CHROMIUM, args=ARGS, headless=True, viewport={"width": 1200, "height": 900}, accept_downloads=True,
+            bypass_csp=True,  # playwright's wait_for_function evals its predicate; the page under its CSP: test_server_hardening_e2e.py
         )
         try:
             pg = ctx.pages[0] if ctx.pages else ctx.new_page()

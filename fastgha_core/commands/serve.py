@@ -8,11 +8,21 @@ def add_arguments(parser) -> None:
     parser.add_argument("--model", default=None, help='"tiny", "paper" or a model folder (default: FASTGHA_MODEL or tiny)')
     parser.add_argument("--data-dir", default=None, help="where avatars are persisted (default: FASTGHA_DATA_DIR or ./fastgha-data)")
     parser.add_argument("--device", default=None, help='"auto", "cpu" or "cuda" (default: FASTGHA_DEVICE or auto)')
-    parser.add_argument("--api-keys", default=None, help="comma-separated API keys for creating avatars (default: FASTGHA_API_KEYS)")
+    parser.add_argument(
+        "--api-keys-file", default=None,
+        help="file of API keys for creating avatars, one per line (default: FASTGHA_API_KEYS_FILE); keeps them out of `ps`",
+    )
+    parser.add_argument(
+        "--api-keys", default=None,
+        help="comma-separated API keys (default: FASTGHA_API_KEYS); visible to every local user in `ps`: prefer --api-keys-file",
+    )
     parser.add_argument("--no-warmup", action="store_true", help="skip the start-up warm-up")
     parser.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
     parser.add_argument("--proxy-headers", action="store_true", help="trust X-Forwarded-* from --forwarded-allow-ips (behind a reverse proxy)")
-    parser.add_argument("--forwarded-allow-ips", default="127.0.0.1", help="proxies whose X-Forwarded-* headers are trusted")
+    parser.add_argument(
+        "--forwarded-allow-ips", default=None,
+        help="comma-separated proxy addresses whose X-Forwarded-* headers are trusted (default: FASTGHA_FORWARDED_ALLOW_IPS or 127.0.0.1)",
+    )
 
 
 def run(args) -> int:
@@ -41,21 +51,38 @@ def run(args) -> int:
         overrides["device"] = args.device
     if args.api_keys is not None:
         overrides["api_keys"] = args.api_keys
+        import sys
+
+        print(
+            "warning: API keys on the command line (--api-keys) are visible to every local user (ps, /proc); "
+            "put them in a file readable only by this user and pass --api-keys-file PATH (or FASTGHA_API_KEYS_FILE)",
+            file=sys.stderr,
+        )
+    if args.api_keys_file is not None:
+        overrides["api_keys_file"] = args.api_keys_file
+    if args.forwarded_allow_ips is not None:
+        overrides["forwarded_allow_ips"] = args.forwarded_allow_ips
     if args.no_warmup:
         overrides["warmup"] = False
     try:
         settings = Settings(**overrides)
     except Exception as e:  # pydantic ValidationError: say which setting is wrong, in one line
         raise CLIError(f"invalid settings: {e}".replace("\n", " ")) from None
+    from server.security import uvicorn_options
+
+    if args.proxy_headers and "*" in settings.forwarded_allow_ips.split(","):
+        import sys
+
+        print("warning: --forwarded-allow-ips '*' lets any client forge its address and scheme; name the proxy", file=sys.stderr)
     app = create_app(settings)
     uvicorn.run(
         app,
         host=args.host,
         port=args.port,
         log_level=args.log_level,
-        ws_max_size=2 * settings.ws_max_message_bytes,  # larger messages are refused by the protocol layer (1009)
         proxy_headers=args.proxy_headers,
-        forwarded_allow_ips=args.forwarded_allow_ips,
+        forwarded_allow_ips=settings.forwarded_allow_ips,
         timeout_graceful_shutdown=10,
+        **uvicorn_options(settings),  # connection deadlines and limits (server/security.py)
     )
     return 0
