@@ -1,26 +1,36 @@
 # Two commands on a fresh Linux machine (README): `make demo` and `make test`.
 # Both create/refresh .venv idempotently; torch==2.13.0 goes in first (CPU build on these machines).
-# The faces extra (dlib) is included so that tracking and CSIM/AKD work and are tested.
+# `make demo` installs only what the demo needs (the package itself); `make test` adds the dev
+# extra (pytest, playwright, scikit-image) and the faces extra (dlib), so that tracking and
+# CSIM/AKD work and are tested. Each set is recorded by its own stamp file.
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
-STAMP := $(VENV)/.installed
+BASE_STAMP := $(VENV)/.installed-base
+TEST_STAMP := $(VENV)/.installed-test
+PIP := $(BIN)/python -m pip install --quiet --disable-pip-version-check
 
-.PHONY: demo test install clean
+.PHONY: demo test install install-test clean
 
-$(STAMP): pyproject.toml
+$(BASE_STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet torch==2.13.0
-	$(BIN)/python -m pip install --quiet -e '.[dev,faces]'
-	touch $(STAMP)
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check --upgrade pip
+	$(PIP) torch==2.13.0
+	$(PIP) -e .
+	touch $(BASE_STAMP)
 
-install: $(STAMP)
+$(TEST_STAMP): $(BASE_STAMP)
+	$(PIP) -e '.[dev,faces]'
+	touch $(TEST_STAMP)
 
-demo: $(STAMP)
+install: $(BASE_STAMP)
+
+install-test: $(TEST_STAMP)
+
+demo: $(BASE_STAMP)
 	$(BIN)/fastgha demo
 
-test: $(STAMP)
+test: $(TEST_STAMP)
 	$(BIN)/python -m pytest -q tests
 
 clean:
