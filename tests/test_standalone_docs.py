@@ -14,7 +14,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 SUFFIXES = {".py", ".md", ".toml", ".cfg", ".txt", ".js", ".html", ".css", ".yml", ".yaml", ".sh", ".json"}
 NAMES = {"Makefile", "Dockerfile", "run"}
-SKIP_DIRS = {".git", ".venv", "node_modules", "__pycache__", "out", "runs", "data", ".pytest_cache"}
+SKIP_DIRS = {".git", ".venv", "node_modules", "__pycache__", "out", "runs", "data", ".pytest_cache", "build", "dist"}
 FORBIDDEN = re.compile(r"DESIGN\.md|DESIGN axes|STYLE\.md|/work/|\.\./shared(?!/realsets)")
 # this file names the patterns it forbids
 SELF = Path(__file__).resolve()
