@@ -15,8 +15,8 @@ Report (``run_loadtest`` returns it; ``fastgha loadtest --json`` writes it)::
     aggregate   clients, duration_s, requests_sent, frames_received, dropped_requests,
                 unanswered_requests, delivered_fps (all clients), delivered_fps_per_client,
                 latency_ms {p50, p95, p99, mean, max}, server_total_ms {p50, p95, p99, mean, max},
-                server_render_ms {...}, outside_server_ms {...}, client_loop_lag_ms {...},
-                latency_note, bytes_per_s, errors, error_messages
+                server_render_ms {...}, outside_server_ms {...}, ping_rtt_ms {...},
+                client_loop_lag_ms {...}, latency_note, bytes_per_s, errors, error_messages
     clients     one entry per client: client, avatar_id, requests_sent, frames_received,
                 dropped_requests, unanswered_requests, delivered_fps, latency_ms {...},
                 server_total_ms {...}, bytes_per_s, errors, error_messages
@@ -33,8 +33,10 @@ moment its message is written to the socket to the moment the frame that answers
 the server's own figures for the same frames: ``server_total_ms`` (from taking the request to
 sending the frame: waiting for a render worker, deformation, rasterisation, JPEG) and
 ``server_render_ms`` (deformation + rasterisation only). ``outside_server_ms`` = latency -
-server total, per frame: the time a request waited before the server took it (in socket buffers
-and the latest-wins slot) plus transit. Request messages are built before streaming starts, so
+server total, per frame: the time a request waited before the server took it (in socket buffers,
+the server's input queue and the latest-wins slot) plus transit. About once a second each stream
+also sends a ``ping``, which queues behind the requests on the same socket; its round trip
+(``ping_rtt_ms``) shows how long the server takes to read what was sent. Request messages are built before streaming starts, so
 the load generator's own work per request is one socket write; ``client_loop_lag_ms`` is how late
 its event loop woke up (a 10 ms tick), i.e. how much of the latency may be the load generator's
 own delay (``latency_note`` says so when it is large: run it on another machine, or give the
@@ -158,6 +160,7 @@ class _ClientResult:
     latency_ms: list[float] = field(default_factory=list)
     server_total_ms: list[float] = field(default_factory=list)
     server_render_ms: list[float] = field(default_factory=list)
+    ping_ms: list[float] = field(default_factory=list)  # ping -> pong round trips on the stream socket
     frame_bytes: list[int] = field(default_factory=list)
 
     def error(self, msg: str) -> None:
@@ -203,6 +206,7 @@ async def _run_client(
 ) -> None:
     period = 1.0 / cfg.rate_hz
     n_requests = len(messages)
+    ping_every = max(1, round(cfg.rate_hz * PING_INTERVAL_S))  # requests between pings
     sent_at: dict[int, float] = {}
     last_seq_answered = -1
     done_sending = asyncio.Event()
@@ -226,6 +230,8 @@ async def _run_client(
                     sent_at[seq] = time.perf_counter()  # the write below hands the message to the socket
                     await ws.send(messages[seq])
                     res.sent += 1
+                    if seq % ping_every == ping_every // 2:  # a ping queues behind the requests: its round trip shows the wait
+                        await ws.send(json.dumps({"type": "ping", "t": time.perf_counter()}))
                 done_sending.set()
 
             send_task = asyncio.create_task(sender())
@@ -244,6 +250,8 @@ async def _run_client(
                         obj = json.loads(msg)
                         if obj.get("type") == "error":
                             res.error(f"{obj.get('code')}: {obj.get('message')}")
+                        elif obj.get("type") == "pong" and isinstance(obj.get("t"), float):
+                            res.ping_ms.append(1e3 * (now - obj["t"]))
                         continue
                     header, _ = unpack_frame(msg)
                     seq = int(header["seq"])
@@ -296,6 +304,7 @@ def _timeline(results: list[_ClientResult], duration: float, bucket: float) -> d
     }
 
 
+PING_INTERVAL_S = 1.0  # each stream sends a ping about once a second
 LAG_NOTE_FRACTION = 0.1  # the load generator's loop lag (p95) above this fraction of the latency p50 is reported
 
 
@@ -398,6 +407,7 @@ def run_loadtest(
             "server_render_ms": _stats(all_render),
             "outside_server_ms": _stats(outside),
             "client_loop_lag_ms": lag_stats,
+            "ping_rtt_ms": _stats([v for r in results for v in r.ping_ms]),
             "latency_note": latency_note(_stats(all_lat), lag_stats),
             "bytes_per_s": round(sum(r.bytes for r in results) / dur, 1),
             "errors": sum(r.errors for r in results),

@@ -29,7 +29,12 @@ class FakeStream:
         self.taken_at: dict[int, float] = {}
         self.task = None
 
-    async def send(self, msg: bytes) -> None:
+    async def send(self, msg) -> None:
+        if isinstance(msg, str):  # a ping: answered at once, echoing its t
+            obj = json.loads(msg)
+            assert obj["type"] == "ping"
+            await self.inbox.put(json.dumps({"type": "pong", "t": obj["t"]}))
+            return
         seq = struct.unpack_from("<I", msg, 4)[0]
         self.sent_times[seq] = time.perf_counter()
         if self.latest is not None:
@@ -81,6 +86,7 @@ def test_latency_is_matched_by_seq_and_contains_the_server_time():
     assert res.errors == 0, res.error_messages
     assert res.sent == 40 and res.received + res.dropped + res.unanswered == 40 and res.dropped > 0
     assert len(res.latency_ms) == res.received == len(res.server_total_ms) == len(res.server_render_ms)
+    assert len(res.ping_ms) == 1 and res.ping_ms[0] >= 0  # one ping per second of requests, its pong matched
     for lat, srv in zip(res.latency_ms, res.server_total_ms):
         assert lat >= srv - 1e-3  # the server's interval lies inside the client's (send -> frame of that seq)
     # every latency is measured from the send of the very request the frame answers

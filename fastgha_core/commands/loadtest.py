@@ -53,6 +53,9 @@ def _summary(report: dict) -> str:
         f"(render p50 {fmt(rnd.get('p50'))} ms) + outside the server p50 {fmt(out.get('p50'))} ms; "
         f"load generator loop lag p95 {fmt(lag.get('p95'))} ms"
     )
+    ping = agg.get("ping_rtt_ms", {})
+    if ping.get("p50") is not None:
+        lines.append(f"ping round trip on the stream sockets p50 {fmt(ping['p50'])} ms (how long the server takes to read what was sent)")
     if agg.get("latency_note"):
         lines.append(f"note: {agg['latency_note']}")
     for m in agg["error_messages"][:5]:
