@@ -1,7 +1,8 @@
 """Load test of a FastGHA server: N concurrent WebSocket streams at a target request rate.
 
 Each client opens one stream and sends frame requests on a fixed clock (``rate_hz``, open
-loop, compact binary form), each with a different expression and a camera orbiting the head,
+loop, compact binary form; with ``closed_loop`` a stream sends its next request only when the
+frame of the previous one is back, as the browser demo does, still at most ``rate_hz``), each with a different expression and a camera orbiting the head,
 at ``size`` x ``size`` pixels. The server renders latest-wins, so requests sent faster than it
 renders are dropped; the tool measures what is delivered. It stops by itself: clients,
 duration, rate and the total number of messages are bounded, and it refuses hosts other
@@ -95,6 +96,7 @@ class LoadTestConfig:
     allow_remote: bool = False  # permit a non-loopback host
     bucket_s: float = 1.0  # timeline resolution
     jpeg_quality: int | None = None  # per-socket option; None = the server's default
+    closed_loop: bool = False  # one request in flight per stream (as the browser demo), at most rate_hz
 
     def validate(self) -> None:
         if not 1 <= self.clients <= MAX_CLIENTS:
@@ -210,6 +212,8 @@ async def _run_client(
     sent_at: dict[int, float] = {}
     last_seq_answered = -1
     done_sending = asyncio.Event()
+    frame_back = asyncio.Event()  # closed loop: set when the request in flight is answered
+    frame_back.set()
     try:
         async with client.connect(avatar) as ws:
             ready = json.loads(await asyncio.wait_for(ws.recv(), 30))
@@ -220,8 +224,13 @@ async def _run_client(
                 await ws.send(json.dumps({"type": "options", "jpeg_quality": cfg.jpeg_quality}))
 
             async def sender() -> None:
-                start = time.perf_counter()
+                start = begin = time.perf_counter()
                 for seq in range(n_requests):
+                    if cfg.closed_loop:  # one request in flight: the next goes out when its frame is back
+                        await frame_back.wait()
+                        frame_back.clear()
+                        if time.perf_counter() - begin >= cfg.duration_s:
+                            break
                     delay = start + seq * period - time.perf_counter()
                     if delay > 0:
                         await asyncio.sleep(delay)
@@ -240,21 +249,37 @@ async def _run_client(
                     if done_sending.is_set() and last_seq_answered >= res.sent - 1:
                         break
                     timeout = DRAIN_S if done_sending.is_set() else max(DRAIN_S, cfg.duration_s + DRAIN_S)
+                    # wait for a message, or for the sender to finish with everything answered (a closed-loop
+                    # sender may stop after the last frame has already come back); cancelling recv() is safe
+                    recv = asyncio.ensure_future(ws.recv())
+                    waiting = {recv}
+                    if not done_sending.is_set():
+                        waiting.add(asyncio.ensure_future(done_sending.wait()))
                     try:
-                        msg = await asyncio.wait_for(ws.recv(), timeout)
-                    except asyncio.TimeoutError:
+                        done, _ = await asyncio.wait(waiting, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
+                    finally:
+                        for f in waiting - {recv}:
+                            f.cancel()
+                    if recv not in done:
+                        recv.cancel()
+                        await asyncio.gather(recv, return_exceptions=True)
+                        if done:  # the sender finished: re-check whether everything is answered
+                            continue
                         res.error(f"no frame within {timeout:.0f} s")
                         break
+                    msg = recv.result()
                     now = time.perf_counter()
                     if isinstance(msg, str):
                         obj = json.loads(msg)
                         if obj.get("type") == "error":
                             res.error(f"{obj.get('code')}: {obj.get('message')}")
+                            frame_back.set()  # that request will not be answered
                         elif obj.get("type") == "pong" and isinstance(obj.get("t"), float):
                             res.ping_ms.append(1e3 * (now - obj["t"]))
                         continue
                     header, _ = unpack_frame(msg)
                     seq = int(header["seq"])
+                    frame_back.set()
                     last_seq_answered = seq
                     res.received += 1
                     res.bytes += len(msg)

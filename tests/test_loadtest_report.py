@@ -167,3 +167,23 @@ def test_requests_follow_the_config(bad):
     assert a == _requests(cfg, "ict53", 53, 0)  # deterministic
     with pytest.raises(ValueError):
         LoadTestConfig(url="http://127.0.0.1:1", clients=bad).validate()
+
+
+def test_closed_loop_keeps_one_request_in_flight():
+    cfg = LoadTestConfig(url="http://127.0.0.1:1", clients=1, duration_s=0.5, rate_hz=200.0, size=16, closed_loop=True)
+    messages = _requests(cfg, "ict53", 53, 0)
+    stream = FakeStream(render_s=0.03)  # slower than the 5 ms request period
+    outstanding = []
+    real_send = stream.send
+
+    async def send(msg):
+        if not isinstance(msg, str):
+            outstanding.append(len(stream.sent_times) - len(stream.taken_at))  # requests sent but not yet taken
+        await real_send(msg)
+
+    stream.send = send
+    res = _ClientResult(0, "a")
+    asyncio.run(_run_client(FakeClient(stream), None, res, cfg, messages, time.perf_counter()))
+    assert res.errors == 0, res.error_messages
+    assert 0 < res.sent < len(messages)  # paced by the frames, not by the 200 Hz clock
+    assert res.dropped == 0 and res.received == res.sent and max(outstanding) == 0

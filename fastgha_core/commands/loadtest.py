@@ -17,6 +17,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--allow-remote", action="store_true", help="allow a host other than loopback (only servers you own)")
     parser.add_argument("--api-key", default=None, help="API key for creating avatars (default: $FASTGHA_API_KEY)")
     parser.add_argument("--jpeg-quality", type=int, default=None, help="per-stream JPEG quality (default: the server's)")
+    parser.add_argument("--closed-loop", action="store_true",
+                        help="one request in flight per stream, the next sent when its frame is back (as the browser demo; at most --rate)")
 
 
 def _default_request_dir():
@@ -84,6 +86,7 @@ def run(args) -> int:
         allow_remote=args.allow_remote,
         bucket_s=min(1.0, args.duration),
         jpeg_quality=args.jpeg_quality,
+        closed_loop=args.closed_loop,
     )
     cfg.validate()  # before touching the network: bounds and the loopback rule
     if args.jpeg_quality is not None and not 1 <= args.jpeg_quality <= 100:
