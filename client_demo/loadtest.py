@@ -466,10 +466,11 @@ def plot_report(report: dict, path: str) -> None:
     ax1.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small", frameon=False)
     ax1.grid(alpha=0.3)
     nan = lambda vs: [np.nan if v is None else v for v in vs]  # noqa: E731
-    ax2.plot(t, nan(tl["latency_p50_ms"]), label="latency p50")
-    ax2.plot(t, nan(tl["latency_p95_ms"]), label="latency p95")
+    # markers: a bucket between empty ones (no frame arrived) is still drawn
+    ax2.plot(t, nan(tl["latency_p50_ms"]), marker="o", ms=3, label="latency p50")
+    ax2.plot(t, nan(tl["latency_p95_ms"]), marker="o", ms=3, label="latency p95")
     if "server_total_p50_ms" in tl:
-        ax2.plot(t, nan(tl["server_total_p50_ms"]), ls=":", color="black", label="server total p50\n(from the headers)")
+        ax2.plot(t, nan(tl["server_total_p50_ms"]), ls=":", marker=".", color="black", label="server total p50\n(from the headers)")
     ax2.set_ylabel("request → frame (ms)")
     ax2.set_xlabel("time (s)")
     ax2.set_ylim(bottom=0)
