@@ -33,18 +33,24 @@ def _rss_kib(pid: int) -> int:
     raise ValueError(f"no VmRSS for pid {pid}")
 
 
+def _f(v) -> str:
+    return "-" if v is None else f"{v:.0f}"
+
+
 def _row(rep: dict) -> str:
     a = rep["aggregate"]
     lat = a["latency_ms"]
     return (
         f"| {a['clients']} | {a['clients'] * rep['config']['rate_hz']:g} | {a['delivered_fps']:.1f} | {a['delivered_fps_per_client']:.1f} "
-        f"| {a['dropped_requests']} | {lat['p50']:.0f} | {lat['p95']:.0f} | {lat['p99']:.0f} | {a['bytes_per_s'] / 1e6:.2f} | {a['errors']} |"
+        f"| {a['dropped_requests']} | {lat['p50']:.0f} | {lat['p95']:.0f} | {lat['p99']:.0f} | {_f(a.get('server_total_ms', {}).get('p50'))} "
+        f"| {_f(a.get('client_loop_lag_ms', {}).get('p95'))} | {a['bytes_per_s'] / 1e6:.2f} | {a['errors']} |"
     )
 
 
 HEADER = (
-    "| clients | requested fps (all) | delivered fps (all) | per client | dropped requests | latency p50 ms | p95 ms | p99 ms | MB/s | errors |\n"
-    "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+    "| clients | requested fps (all) | delivered fps (all) | per client | dropped requests | latency p50 ms | p95 ms | p99 ms "
+    "| server total p50 ms | client loop lag p95 ms | MB/s | errors |\n"
+    "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
 )
 
 
@@ -132,19 +138,22 @@ def _plot_clients(reports: list[dict], path: str) -> None:
     a1.set_ylim(0, max(fps) * 1.3)
     a1.set_xlabel("concurrent clients")
     a1.set_ylabel("frames / s")
-    a1.legend()
+    a1.legend(loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=2, fontsize="small", frameon=False)
     a1.grid(alpha=0.3)
     a2.plot(n, p50, "o-", label="p50")
     a2.plot(n, p95, "s-", label="p95")
+    srv50 = [r["aggregate"].get("server_total_ms", {}).get("p50") for r in reports]
+    if all(v is not None for v in srv50):
+        a2.plot(n, srv50, "k:", label="server total p50")
     a2.set_xscale("log", base=2)
     a2.set_xticks(n, [str(c) for c in n])
     a2.set_xlabel("concurrent clients")
     a2.set_ylabel("request → frame latency (ms)")
-    a2.legend()
+    a2.legend(loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=2, fontsize="small", frameon=False)
     a2.grid(alpha=0.3)
     fig.suptitle(f"model {srv['model']} on {srv['device']}, {cfg['size']}² frames, {cfg['rate_hz']:g} Hz per client, {cfg['duration_s']:g} s runs")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    fig.savefig(path, dpi=100, bbox_inches="tight")  # the legends sit below the axes, off the data
     plt.close(fig)
 
 

@@ -1,6 +1,6 @@
 """Pinhole cameras in the OpenCV convention, and converters from dataset formats.
 
-Conventions (DESIGN.md):
+Conventions (docs/conventions.md):
 - world: head-centric canonical space in metres, +x subject's left, +y up, +z out of the face;
 - camera: OpenCV, x right, y down, z forward;
 - ``K [..., 3, 3]`` in pixels of the image the camera describes (``width`` x ``height``);

@@ -73,4 +73,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    # `python -m fastgha_core.cli`: run the imported module's main, so that the CLIError the commands
+    # raise (fastgha_core.cli.CLIError) is the class caught there, not a copy in __main__
+    from fastgha_core.cli import main as _main
+
+    sys.exit(_main())

@@ -210,3 +210,98 @@ def cpp_compiler() -> str | None:
         if name and (path := shutil.which(name)):
             return path
     return None
+
+
+# ----------------------------------------------------------------- MLP precision, chosen by measuring
+BF16_MARGIN = 0.95  # bf16 must take at most this fraction of fp32's time to be chosen (it costs accuracy)
+PRECISION_REPS = 7
+
+
+@dataclass
+class PrecisionChoice:
+    """The deformation MLP's precision and why.
+
+    Attributes:
+        precision: ``"fp32"`` or ``"bf16"``.
+        reason: ``"measured"`` (auto, by ``choose_mlp_precision``), ``"configured"`` (fp32/bf16 set
+            explicitly), or ``"bf16 failed: <error>"`` (auto, bf16 could not run here).
+        fp32_ms, bf16_ms: median milliseconds of one served chunk in each precision (None when not measured).
+        reps: timed repetitions per precision.
+        margin: bf16 is chosen when ``bf16_ms <= margin * fp32_ms``.
+    """
+
+    precision: str
+    reason: str
+    fp32_ms: float | None = None
+    bf16_ms: float | None = None
+    reps: int = 0
+    margin: float = BF16_MARGIN
+
+    @property
+    def bf16(self) -> bool:
+        return self.precision == "bf16"
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        for k in ("fp32_ms", "bf16_ms"):
+            if d[k] is not None:
+                d[k] = round(d[k], 3)
+        return d
+
+
+def choose_mlp_precision(run_fp32, run_bf16, reps: int = PRECISION_REPS, margin: float = BF16_MARGIN, timer=None) -> PrecisionChoice:
+    """Pick fp32 or bf16 for the deformation MLP by timing both on this machine.
+
+    ``run_fp32()`` / ``run_bf16()`` run one served chunk in each precision (and synchronise the
+    device). Each runs once untimed (warm-up), then ``reps`` timed runs alternate between the two,
+    so that a load change on a shared machine hits both alike; the medians decide: bf16 when
+    ``median_bf16 <= margin * median_fp32`` (bf16 costs a little accuracy, so it must be clearly
+    faster), else fp32. If ``run_bf16`` raises, fp32 is chosen and the reason says why.
+    ``timer`` (seconds, default ``time.perf_counter``) is injectable for tests.
+    Raises ``ValueError`` when ``reps < 1`` or ``margin <= 0``.
+    """
+    import statistics
+    import time
+
+    if reps < 1:
+        raise ValueError(f"reps must be >= 1, got {reps}")
+    if margin <= 0:
+        raise ValueError(f"margin must be > 0, got {margin}")
+    timer = timer or time.perf_counter
+    run_fp32()
+    try:
+        run_bf16()
+    except Exception as e:  # no bf16 kernels on this device / build
+        return PrecisionChoice("fp32", f"bf16 failed: {type(e).__name__}: {str(e)[:120]}", reps=0, margin=margin)
+    t32, t16 = [], []
+    for _ in range(reps):
+        for fn, out in ((run_fp32, t32), (run_bf16, t16)):
+            t0 = timer()
+            fn()
+            out.append(1e3 * (timer() - t0))
+    m32, m16 = statistics.median(t32), statistics.median(t16)
+    return PrecisionChoice("bf16" if m16 <= margin * m32 else "fp32", "measured", m32, m16, reps, margin)
+
+
+def measure_mlp_precision(model, reps: int = PRECISION_REPS, chunk_size: int = 8192, margin: float = BF16_MARGIN) -> PrecisionChoice:
+    """``choose_mlp_precision`` on ``model``'s deformation MLP at the shape the server runs per frame:
+    the per-chunk tail (every layer after the cached first-layer term) on ``[chunk_size, hidden]``
+    rows, eager, under ``torch.inference_mode`` (bf16 = autocast on the model's device)."""
+    import torch
+
+    deform = model.deform
+    dev = next(deform.parameters()).device
+    hidden = int(deform.first.weight.shape[0])
+    gen = torch.Generator().manual_seed(0)
+    h = (0.5 * torch.randn(chunk_size, hidden, generator=gen)).to(dev)  # [chunk, H]
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
+
+    def run(bf16: bool):
+        def f():
+            with torch.inference_mode(), torch.autocast(device_type=dev.type, dtype=torch.bfloat16, enabled=bf16):
+                deform._tail_raw(h)
+            sync()
+
+        return f
+
+    return choose_mlp_precision(run(False), run(True), reps=reps, margin=margin)

@@ -63,18 +63,30 @@ _STATUS_CODES = {
 
 # ---------------------------------------------------------------- start-up
 def _load(ctx: ServerContext) -> None:
-    """Load the model, open the store and warm up (blocking; runs in a worker thread)."""
+    """Load the model, choose the MLP precision, compile, open the store and warm up (blocking; runs
+    in a worker thread). Each step logs what it is doing before it starts and how long it took, so
+    that the ~30 s before the server listens are not silent."""
     from fastgha_core import load_model
     from fastgha_core.model.avatar import CanonicalAvatar
 
     s = ctx.settings
+    t_start = time.perf_counter()
     ctx.device = s.resolved_device()
+    compile_on = s.resolved_compile(ctx.device)
+    steps = ["load"] + (["precision"] if s.mlp_precision == "auto" else []) + (["compile"] if compile_on else []) + (["warmup"] if s.warmup else [])
+
+    def step(name: str, what: str) -> None:
+        log.info("start-up %d/%d: %s ...", steps.index(name) + 1, len(steps), what)
+
+    step("load", f"loading model {s.model!r} on {ctx.device}")
     t0 = time.perf_counter()
     ctx.model = load_model(s.model, device=ctx.device)
     log.info("loaded model %r on %s in %.1f s", ctx.model.config.name, ctx.device, time.perf_counter() - t0)
-    bf16 = s.resolved_bf16(ctx.device)
+    ctx.mlp_choice = _choose_precision(ctx, lambda: step("precision", "timing the deformation MLP in fp32 and bf16 (FASTGHA_MLP_PRECISION=auto)"))
+    bf16 = ctx.mlp_choice.bf16
     ctx.renderer = FrameRenderer(ctx.model, ctx.device, s.default_camera_distance, s.default_camera_fov_deg, bf16=bf16)
-    if s.resolved_compile(ctx.device):
+    if compile_on:
+        step("compile", f"compiling the deformation MLP with torch.compile ({'bf16' if bf16 else 'fp32'}; tens of seconds on a CPU)")
         _compile_deformation(ctx)
     else:
         log.info("deformation MLP: %s, eager (FASTGHA_COMPILE=%s)", "bf16" if bf16 else "fp32", s.compile)
@@ -87,7 +99,27 @@ def _load(ctx: ServerContext) -> None:
     ctx.store = AvatarStore(s.data_dir, s.cache_max_bytes, s.avatar_ttl_seconds, load_fn=CanonicalAvatar.load, nbytes_fn=nbytes)
     ctx.metrics.bind_cache(lambda: ctx.store.cached_count, lambda: ctx.store.cached_bytes)
     if s.warmup:
+        step("warmup", f"warming up: one reconstruction and {s.warmup_frames} frames")
         _warmup(ctx)
+    log.info("start-up done in %.1f s", time.perf_counter() - t_start)
+
+
+def _choose_precision(ctx: ServerContext, announce=lambda: None):
+    """The deformation MLP's precision: as configured, or (``auto``) measured on this machine by
+    ``fastgha_core.perf.measure_mlp_precision`` (fp32 vs bf16 on the served chunk shape)."""
+    from fastgha_core.perf import PrecisionChoice, measure_mlp_precision
+
+    s = ctx.settings
+    if s.mlp_precision != "auto":
+        return PrecisionChoice(s.mlp_precision, "configured")
+    announce()
+    choice = measure_mlp_precision(ctx.model)
+    if choice.reason == "measured":
+        log.info("deformation MLP precision: %s (fp32 %.2f ms, bf16 %.2f ms per %d-row chunk, median of %d)",
+                 choice.precision, choice.fp32_ms, choice.bf16_ms, 8192, choice.reps)
+    else:
+        log.info("deformation MLP precision: %s (%s)", choice.precision, choice.reason)
+    return choice
 
 
 def _compile_deformation(ctx: ServerContext) -> None:
@@ -381,6 +413,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         mlp = None
         if ctx.model is not None and ctx.renderer is not None:
             mlp = {"precision": "bf16" if ctx.renderer.bf16 else "fp32", "compiled": ctx.model.deform.compiled}
+            if ctx.mlp_choice is not None:  # how the precision was chosen, with the measured times
+                mlp["choice"] = ctx.mlp_choice.to_dict()
         return {
             "status": "ok" if ctx.ready else "starting",
             "version": __version__,

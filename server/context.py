@@ -70,6 +70,7 @@ class ServerContext:
     metrics: Metrics = field(default_factory=Metrics)
     model: Any = None  # FastGHA, set in lifespan
     renderer: Any = None  # FrameRenderer
+    mlp_choice: Any = None  # fastgha_core.perf.PrecisionChoice, set in lifespan
     store: Any = None  # AvatarStore
     device: str = "cpu"
     render_pool: ThreadPoolExecutor | None = None

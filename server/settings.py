@@ -49,7 +49,7 @@ class Settings(BaseSettings):
     warmup: bool = Field(True, description="reconstruct once and render a few frames at start-up")
     warmup_frames: int = Field(3, ge=0, le=100)
     mlp_precision: Literal["auto", "fp32", "bf16"] = Field(
-        "auto", description='deformation MLP precision: "auto" = bf16 where the hardware runs it natively (AVX512-BF16/AMX, CUDA), else fp32'
+        "auto", description='deformation MLP precision: "auto" = timed at start-up (fp32 vs bf16 on the served chunk shape), bf16 only when clearly faster'
     )
     cuda_graphs: bool = Field(
         False, description="with a compiled MLP on CUDA: replay it as CUDA graphs (torch.compile mode reduce-overhead)"

@@ -3,6 +3,8 @@
 import subprocess
 import sys
 
+import pytest
+
 from fastgha_core import __version__
 from fastgha_core.cli import CLIError, main
 
@@ -35,3 +37,10 @@ def test_console_script_runs_in_a_subprocess():
     proc = subprocess.run([sys.executable, "-m", "fastgha_core.cli", "--help"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert "COMMAND" in proc.stdout
+
+
+def test_animate_help_says_the_default_camera_is_an_orbit(capsys):
+    with pytest.raises(SystemExit):
+        main(["animate", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "default 'orbit'" in text

@@ -33,6 +33,11 @@ def test_demo_writes_video_sheet_and_figures(demo_run):
         assert isinstance(fig[key], float) and math.isfinite(fig[key]), key
     assert fig["reconstruction_s"] > 0 and fig["fps"] > 0 and fig["frames"] == 6
     assert (out / "demo.mp4").stat().st_size > 1000
+    import imageio_ffmpeg
+
+    frames, secs = imageio_ffmpeg.count_frames_and_secs(str(out / "demo.mp4"))
+    assert frames == 2 * 6 - 2 and secs >= 6.0, (frames, secs)  # forward and back, long enough to watch
+    assert fig["video_seconds"] == pytest.approx(secs, abs=0.2)
     sheet = np.asarray(Image.open(out / "contact_sheet.png"))
     assert sheet.ndim == 3 and sheet.shape[2] == 3 and sheet.std() > 5  # not a blank page
 
@@ -47,3 +52,16 @@ def test_demo_shipped_model_beats_an_untrained_one(demo_run):
 def test_demo_rejects_unknown_sample(capsys):
     assert main(["demo", "--sample", "nobody"]) == 2
     assert "unknown sample 'nobody'" in capsys.readouterr().err
+
+
+def test_video_schedule_loops_and_lasts_long_enough():
+    from fastgha_core.commands.demo import video_schedule
+
+    order, fps = video_schedule(48)  # the shipped samples' sequence length
+    assert order[:48] == list(range(48)) and order[48:] == list(range(46, 0, -1))
+    assert len(order) / fps >= 6.0 and fps <= 25
+    order, fps = video_schedule(400)
+    assert fps == 25 and len(order) / fps > 6.0
+    assert video_schedule(1) == ([0], 1 / 6.5)
+    with pytest.raises(ValueError, match="at least one frame"):
+        video_schedule(0)

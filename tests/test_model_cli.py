@@ -53,6 +53,7 @@ def test_reconstruct_then_animate(tmp_path, model_dir, capsys):
     avatar = CanonicalAvatar.load(out)
     assert f"reconstructed {len(avatar)} Gaussians from 3 views" in printed and " ms " in printed
     assert 0 < len(avatar) <= 3 * 32 * 32 and ply.exists()
+    assert f"wrote the canonical Gaussians as a 3DGS PLY -> {ply}" in printed
 
     np.save(tmp_path / "seq.npy", np.random.default_rng(1).random((3, 53)).astype(np.float32))
     frames = tmp_path / "frames"

@@ -11,7 +11,7 @@ from fastgha_core.cli import main
 def test_bench_render_writes_json(tmp_path, capsys):
     out = tmp_path / "b.json"
     rc = main(["bench", "render", "--quick", "--render-sizes", "1500", "--render-resolutions", "48",
-               "--render-repeats", "1", "--json", str(out)])
+               "--render-repeats", "1", "--render-budget", "600", "--json", str(out)])  # every baseline runs
     assert rc == 0
     data = json.loads(out.read_text())
     row = data["render"]["rows"][0]
@@ -40,3 +40,51 @@ def test_head_scene_is_head_sized():
     ext = g.means.abs().amax(0)
     assert 0.07 < float(ext[0]) < 0.1 and 0.1 < float(ext[1]) < 0.13
     g.validate_values()
+
+
+def test_quick_plan_is_a_small_smoke_run():
+    import argparse
+
+    from fastgha_core.bench import render as rb
+
+    quick = rb.plan(argparse.Namespace(quick=True, render_sizes=None, render_resolutions=None, render_repeats=None, render_budget=None))
+    full = rb.plan(argparse.Namespace(quick=False, render_sizes=None, render_resolutions=None, render_repeats=None, render_budget=None))
+    assert max(quick["sizes"]) <= 65_536 and quick["resolutions"] == (256,) and quick["repeats"] <= 3
+    assert quick["budget"] <= 2.0 < full["budget"]  # slow baselines only when one repeat is predicted short
+    assert len(quick["sizes"]) * len(quick["resolutions"]) < len(full["sizes"]) * len(full["resolutions"])
+    explicit = rb.plan(argparse.Namespace(quick=True, render_sizes="500", render_resolutions="32", render_repeats=1, render_budget=9.0))
+    assert explicit == {"sizes": (500,), "resolutions": (32,), "repeats": 1, "budget": 9.0}
+
+
+def test_rows_are_printed_as_entries_finish(monkeypatch):
+    """Output appears cell by cell: every timed entry's value is written before the next entry starts."""
+    import io
+    import sys
+
+    from fastgha_core.bench import render as rb
+
+    events: list[tuple[str, str]] = []
+
+    class Recorder(io.StringIO):
+        def write(self, s):
+            events.append(("out", s))
+            return super().write(s)
+
+    real = rb._median_time
+
+    def timed(fn, repeats):
+        events.append(("measure", ""))
+        return real(fn, repeats)
+
+    monkeypatch.setattr(rb, "_median_time", timed)
+    monkeypatch.setattr(sys, "stdout", Recorder())
+    assert main(["bench", "render", "--quick", "--render-sizes", "800,1200", "--render-resolutions", "32",
+                 "--render-repeats", "1", "--render-budget", "0"]) == 0  # budget 0: only the cpu backend is timed
+    kinds = [k for k, s in events if k == "measure" or s.strip()]
+    measures = [i for i, k in enumerate(kinds) if k == "measure"]
+    assert len(measures) == 4  # 2 sizes x (forward, forward+backward) on the cpu backend
+    for a, b in zip(measures, measures[1:]):
+        assert "out" in kinds[a + 1 : b], "an entry's value was not printed before the next entry started"
+    text = "".join(s for k, s in events if k == "out")
+    rows = [line for line in text.splitlines() if line.strip().startswith(("800 ", "1200 "))]
+    assert len(rows) == 2 and all(line.count("skipped") == 4 for line in rows)

@@ -47,7 +47,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--frame-frames", type=int, default=None, help="frames in the end-to-end loop (default 60, --quick 10)")
     parser.add_argument("--frame-jpeg-quality", type=int, default=85, help="JPEG quality (default 85, the server default)")
     parser.add_argument("--frame-precision", choices=("auto", "fp32", "bf16"), default="auto",
-                        help="deformation MLP precision, as FASTGHA_MLP_PRECISION (auto: bf16 where native)")
+                        help="deformation MLP precision, as FASTGHA_MLP_PRECISION (auto: timed fp32 vs bf16, as the server does at start-up)")
     parser.add_argument("--frame-compile", choices=("auto", "on", "off"), default="auto",
                         help="torch.compile the MLP, as FASTGHA_COMPILE (auto: when a C++ compiler is found)")
     parser.add_argument("--frame-heldout", type=int, default=None, help="held-out sample frames scored against ground truth (default 16, --quick 4; 0 = skip)")
@@ -275,12 +275,17 @@ def prune_check(model, avatar, cam, repeats: int, thresholds=PRUNE_THRESHOLDS) -
 
 
 def served_mlp(model, precision: str = "auto", compile_opt: str = "auto") -> dict:
-    """Set the model's MLP up as the server would (``Settings.resolved_bf16`` / ``resolved_compile``)."""
+    """Set the model's MLP up as the server would: precision as configured or, for ``auto``, chosen by
+    ``fastgha_core.perf.measure_mlp_precision`` (the server's start-up micro-benchmark); compiled per
+    ``Settings.resolved_compile``."""
     from server.settings import Settings
 
+    from ..perf import PrecisionChoice, measure_mlp_precision
+
     s = Settings(mlp_precision=precision, compile=compile_opt)
-    bf16 = s.resolved_bf16("cpu")
-    out = {"precision": "bf16" if bf16 else "fp32", "compiled": False, "compile_s": None, "compile_error": None}
+    choice = measure_mlp_precision(model) if precision == "auto" else PrecisionChoice(precision, "configured")
+    bf16 = choice.bf16
+    out = {"precision": choice.precision, "choice": choice.to_dict(), "compiled": False, "compile_s": None, "compile_error": None}
     if s.resolved_compile("cpu"):
         try:
             out["compile_s"] = model.compile_deformation(bf16=bf16)

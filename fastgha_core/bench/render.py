@@ -34,11 +34,33 @@ BACKENDS = ("cpu", "torch_tiles", "reference")
 REFERENCE_MAX_PAIRS = 2**31  # (pixel, splat) pairs; beyond this the dense reference is not attempted
 
 
+# --quick: a smoke run of about a minute on 2 cores: the fast kernels at two sizes, one resolution;
+# the slow baselines only where one repeat is predicted to take at most QUICK_BUDGET_S
+QUICK_SIZES = (10_000, 65_536)
+QUICK_RESOLUTIONS = (256,)
+QUICK_REPEATS = 3
+QUICK_BUDGET_S = 2.0
+DEFAULT_BUDGET_S = 30.0
+
+
 def add_arguments(parser) -> None:
-    parser.add_argument("--render-sizes", default=None, help="comma-separated Gaussian counts (default 10000,65536,262144,1048576)")
-    parser.add_argument("--render-resolutions", default=None, help="comma-separated square image sizes (default 256,512)")
+    parser.add_argument("--render-sizes", default=None, help="comma-separated Gaussian counts (default 10000,65536,262144,1048576; --quick 10000,65536)")
+    parser.add_argument("--render-resolutions", default=None, help="comma-separated square image sizes (default 256,512; --quick 256)")
     parser.add_argument("--render-repeats", type=int, default=None, help="timed repeats per entry (default 7, --quick 3)")
-    parser.add_argument("--render-budget", type=float, default=30.0, help="skip a baseline entry predicted to take longer than this many seconds per repeat")
+    parser.add_argument("--render-budget", type=float, default=None,
+                        help=f"skip a baseline entry predicted to take longer than this many seconds per repeat (default {DEFAULT_BUDGET_S:g}, --quick {QUICK_BUDGET_S:g})")
+
+
+def plan(args) -> dict:
+    """The run's configuration from the options: sizes, resolutions, repeats, budget (s per repeat)."""
+    quick = bool(getattr(args, "quick", False))
+    budget = getattr(args, "render_budget", None)
+    return {
+        "sizes": _parse(getattr(args, "render_sizes", None), QUICK_SIZES if quick else DEFAULT_SIZES),
+        "resolutions": _parse(getattr(args, "render_resolutions", None), QUICK_RESOLUTIONS if quick else DEFAULT_RESOLUTIONS),
+        "repeats": getattr(args, "render_repeats", None) or (QUICK_REPEATS if quick else 7),
+        "budget": float(budget if budget is not None else (QUICK_BUDGET_S if quick else DEFAULT_BUDGET_S)),
+    }
 
 
 def head_scene(n: int, seed: int = 0, dtype: torch.dtype = torch.float32) -> Gaussians:
@@ -120,48 +142,43 @@ def _predict(g: Gaussians, res: int, backend: str, mode: str) -> float:
 
 
 def run(args) -> dict:
-    quick = bool(getattr(args, "quick", False))
-    sizes = _parse(getattr(args, "render_sizes", None), (10_000, 65_536) if quick else DEFAULT_SIZES)
-    resolutions = _parse(getattr(args, "render_resolutions", None), (256,) if quick else DEFAULT_RESOLUTIONS)
-    repeats = getattr(args, "render_repeats", None) or (3 if quick else 7)
-    budget = float(getattr(args, "render_budget", 30.0))
+    cfg = plan(args)
+    sizes, resolutions, repeats, budget = cfg["sizes"], cfg["resolutions"], cfg["repeats"], cfg["budget"]
     from ..render.cpu_backend import num_threads
 
     rows = []
-    print(f"render benchmark: torch threads {torch.get_num_threads()}, numba threads {num_threads()}, {repeats} repeats, median ms")
+    print(f"render benchmark: torch threads {torch.get_num_threads()}, numba threads {num_threads()}, {repeats} repeats, median ms; "
+          f"baselines skipped where one repeat is predicted > {budget:g} s")
     header = f"{'N':>9} {'res':>5} | " + " | ".join(f"{b + ' fwd':>18} {b + ' f+b':>18}" for b in BACKENDS)
-    print(header)
+    print(header, flush=True)
     for n in sizes:
         g = head_scene(n)
         for res in resolutions:
             cams = bench_camera(res)
             row: dict = {"n": n, "resolution": res}
+            print(f"{n:>9} {res:>5} |", end="", flush=True)  # the row fills in cell by cell as entries finish
             for backend in BACKENDS:
                 for mode, make in (("forward", _forward), ("forward_backward", _forward_backward)):
                     key = f"{backend}_{mode}_ms"
                     if backend == "reference" and res * res * n > REFERENCE_MAX_PAIRS:
                         row[key] = None
                         row[f"{backend}_{mode}_skipped"] = f"{res * res * n / 1e9:.1f}e9 pixel-splat pairs (dense, chunked to bound memory)"
-                        continue
-                    if backend != "cpu":
-                        est = _predict(g, res, backend, mode)
-                        if est > budget:
-                            row[key] = None
-                            row[f"{backend}_{mode}_skipped"] = f"predicted {est:.0f} s per repeat > budget {budget:.0f} s"
-                            continue
-                    reps = repeats if backend == "cpu" else max(1, min(repeats, 3))
-                    wall, cpu = _median_time(make(g, cams, backend), reps)
-                    row[key] = 1000.0 * wall
-                    row[f"{backend}_{mode}_cpu_ms"] = 1000.0 * cpu
+                    elif backend != "cpu" and (est := _predict(g, res, backend, mode)) > budget:
+                        row[key] = None
+                        row[f"{backend}_{mode}_skipped"] = f"predicted {est:.0f} s per repeat > budget {budget:g} s"
+                    else:
+                        reps = repeats if backend == "cpu" else max(1, min(repeats, 3))
+                        wall, cpu = _median_time(make(g, cams, backend), reps)
+                        row[key] = 1000.0 * wall
+                        row[f"{backend}_{mode}_cpu_ms"] = 1000.0 * cpu
+                    v = row[key]
+                    print(f" {v:18.1f}" if v is not None else f" {'skipped':>18}", end="", flush=True)
+                if backend != BACKENDS[-1]:
+                    print(" |", end="", flush=True)
+            print(flush=True)
             if row.get("torch_tiles_forward_ms") and row.get("cpu_forward_ms"):
                 row["speedup_forward_vs_torch_tiles"] = row["torch_tiles_forward_ms"] / row["cpu_forward_ms"]
             rows.append(row)
-            cells = []
-            for backend in BACKENDS:
-                for mode in ("forward", "forward_backward"):
-                    v = row.get(f"{backend}_{mode}_ms")
-                    cells.append(f"{v:18.1f}" if v is not None else f"{'skipped':>18}")
-            print(f"{n:>9} {res:>5} | " + " ".join(cells), flush=True)
 
     summary = {}
     for row in rows:
@@ -169,7 +186,7 @@ def run(args) -> dict:
             summary["render_cpu_forward_ms_262k_512"] = row["cpu_forward_ms"]
             summary["render_cpu_forward_backward_ms_262k_512"] = row["cpu_forward_backward_ms"]
             summary["render_speedup_vs_torch_tiles_262k_512"] = row.get("speedup_forward_vs_torch_tiles")
-    return {"rows": rows, "repeats": repeats, "torch_threads": torch.get_num_threads(), "numba_threads": num_threads(), "summary": summary}
+    return {"rows": rows, "repeats": repeats, "budget_s": budget, "torch_threads": torch.get_num_threads(), "numba_threads": num_threads(), "summary": summary}
 
 
 def _parse(text: str | None, default: tuple[int, ...]) -> tuple[int, ...]:

@@ -7,7 +7,8 @@ HELP = "animate an avatar with an expression sequence and write a video (mp4) or
 def add_arguments(parser) -> None:
     parser.add_argument("--avatar", required=True, help="avatar file written by `fastgha reconstruct`")
     parser.add_argument("--expressions", required=True, help="expression sequence: .npy [T, E] or .json (list of vectors or name->weight maps)")
-    parser.add_argument("--cameras", default="orbit", help="'orbit' (a left-right swing) or a cameras JSON file (one camera, or one per frame, cycled)")
+    parser.add_argument("--cameras", default="orbit", help="camera path; default 'orbit': a left-right swing around the head at --radius and --fov; "
+                        "or a cameras JSON file (one camera, or one per frame, cycled)")
     parser.add_argument("--out", required=True, help="output .mp4 (imageio-ffmpeg) or a folder for PNG frames")
     parser.add_argument("--model", default=None, help="model for the deformation MLP (default: the avatar's model name)")
     parser.add_argument("--size", type=int, default=256, help="output width and height in pixels (default 256)")

@@ -26,7 +26,7 @@ def _module(target: str):
 def add_arguments(parser) -> None:
     parser.add_argument("target", choices=(*TARGETS, "all"), help="what to benchmark; 'all' runs every available target")
     parser.add_argument("--json", metavar="PATH", type=Path, default=None, help="also write the results as JSON here")
-    parser.add_argument("--quick", action="store_true", help="fewer sizes and repeats (a smoke run)")
+    parser.add_argument("--quick", action="store_true", help="fewer sizes and repeats: a smoke run (render about a minute, all a few minutes on 2 cores)")
     # options of the individual targets (each module may add its own)
     for target in _available():
         mod = _module(target)
@@ -49,9 +49,16 @@ def run(args) -> int:
                 f"available: {', '.join(available) or 'none'}"
             )
         targets = [args.target]
+    import time
+
     results: dict = {"summary": {}}
-    for target in targets:
+    for i, target in enumerate(targets):
+        if len(targets) > 1:
+            print(f"\n== [{i + 1}/{len(targets)}] bench {target}{' --quick' if args.quick else ''} ==", flush=True)
+        t0 = time.perf_counter()
         res = _module(target).run(args)
+        res["elapsed_s"] = round(time.perf_counter() - t0, 1)
+        print(f"bench {target}: done in {res['elapsed_s']:.0f} s", flush=True)
         results[target] = res
         for key, value in (res.get("summary") or {}).items():
             results["summary"][f"{target}.{key}" if key in results["summary"] else key] = value

@@ -15,6 +15,21 @@ def add_arguments(parser) -> None:
     parser.add_argument("--backend", default="auto", help="render backend (default: auto)")
 
 
+MIN_VIDEO_SECONDS = 6.5  # long enough to watch the expressions change
+MAX_VIDEO_FPS = 25.0
+
+
+def video_schedule(n: int, min_seconds: float = MIN_VIDEO_SECONDS, max_fps: float = MAX_VIDEO_FPS) -> tuple[list[int], float]:
+    """Frame order and frame rate of the demo video: ``n`` rendered frames played forward then
+    back (a loop without a jump), slowed down so that the video lasts at least ``min_seconds``,
+    at most ``max_fps`` frames per second. Raises ``ValueError`` when ``n < 1``."""
+    if n < 1:
+        raise ValueError(f"need at least one frame, got {n}")
+    order = list(range(n)) + list(range(n - 2, 0, -1))  # 0..n-1, n-2..1
+    fps = min(max_fps, len(order) / min_seconds)
+    return order, fps
+
+
 def _to_uint8(img):  # [3, H, W] float -> [H, W, 3] uint8
     import numpy as np
 
@@ -108,11 +123,13 @@ def run(args) -> int:
     import imageio_ffmpeg
 
     h, w = video[0].shape[:2]
-    writer = imageio_ffmpeg.write_frames(str(mp4), (w, h), fps=25, macro_block_size=1, quality=8)
+    order, video_fps = video_schedule(len(video))
+    writer = imageio_ffmpeg.write_frames(str(mp4), (w, h), fps=video_fps, macro_block_size=1, quality=8)
     writer.send(None)
-    for f in video:
-        writer.send(np.ascontiguousarray(f))
+    for i in order:
+        writer.send(np.ascontiguousarray(video[i]))
     writer.close()
+    video_s = len(order) / video_fps
 
     # contact sheet: rows = a few frames (gt | ours); last row = the 4 inputs
     pick = np.linspace(0, n - 1, num=min(6, n)).round().astype(int)
@@ -144,11 +161,12 @@ def run(args) -> int:
         "frames": n,
         "render_size": [int(orbit.width), int(orbit.height)],
         "video": str(mp4),
+        "video_seconds": video_s,
         "contact_sheet": str(png),
     }
     print(f"reconstruction: {recon_s:.3f} s   animation: {fps:.1f} FPS (deform + render, median of {n} frames)")
     print(f"PSNR vs ground truth: {mean_psnr:.2f} dB over {len(scores)} frames" if mean_psnr is not None else "PSNR: no ground truth")
-    print(f"wrote {mp4} and {png}")
+    print(f"wrote {mp4} ({video_s:.1f} s: {n} frames forward and back at {video_fps:.1f} fps) and {png}")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(figures, indent=2))

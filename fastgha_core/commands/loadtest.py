@@ -17,6 +17,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--allow-remote", action="store_true", help="allow a host other than loopback (only servers you own)")
     parser.add_argument("--api-key", default=None, help="API key for creating avatars (default: $FASTGHA_API_KEY)")
     parser.add_argument("--jpeg-quality", type=int, default=None, help="per-stream JPEG quality (default: the server's)")
+    parser.add_argument("--closed-loop", action="store_true",
+                        help="one request in flight per stream, the next sent when its frame is back (as the browser demo; at most --rate)")
 
 
 def _default_request_dir():
@@ -32,18 +34,32 @@ def _summary(report: dict) -> str:
     lat = agg["latency_ms"]
     fmt = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
     lines = [
-        f"{'client':>6} {'sent':>7} {'frames':>7} {'dropped':>7} {'fps':>7} {'p50 ms':>8} {'p95 ms':>8} {'p99 ms':>8} {'kB/s':>8} {'errors':>6}"
+        f"{'client':>6} {'sent':>7} {'frames':>7} {'dropped':>7} {'fps':>7} {'p50 ms':>8} {'p95 ms':>8} {'p99 ms':>8} "
+        f"{'srv p50':>8} {'kB/s':>8} {'errors':>6}"
     ]
     for c in report["clients"]:
         cl = c["latency_ms"]
         lines.append(
             f"{c['client']:>6} {c['requests_sent']:>7} {c['frames_received']:>7} {c['dropped_requests']:>7} {c['delivered_fps']:>7.1f} "
-            f"{fmt(cl['p50']):>8} {fmt(cl['p95']):>8} {fmt(cl['p99']):>8} {c['bytes_per_s'] / 1e3:>8.1f} {c['errors']:>6}"
+            f"{fmt(cl['p50']):>8} {fmt(cl['p95']):>8} {fmt(cl['p99']):>8} {fmt(c.get('server_total_ms', {}).get('p50')):>8} "
+            f"{c['bytes_per_s'] / 1e3:>8.1f} {c['errors']:>6}"
         )
     lines.append(
         f"{'all':>6} {agg['requests_sent']:>7} {agg['frames_received']:>7} {agg['dropped_requests']:>7} {agg['delivered_fps']:>7.1f} "
-        f"{fmt(lat['p50']):>8} {fmt(lat['p95']):>8} {fmt(lat['p99']):>8} {agg['bytes_per_s'] / 1e3:>8.1f} {agg['errors']:>6}"
+        f"{fmt(lat['p50']):>8} {fmt(lat['p95']):>8} {fmt(lat['p99']):>8} {fmt(agg['server_total_ms']['p50']):>8} "
+        f"{agg['bytes_per_s'] / 1e3:>8.1f} {agg['errors']:>6}"
     )
+    srv, rnd, out, lag = (agg.get(k, {}) for k in ("server_total_ms", "server_render_ms", "outside_server_ms", "client_loop_lag_ms"))
+    lines.append(
+        f"latency p50 {fmt(lat['p50'])} ms (request written -> its frame read, matched by seq) = server total p50 {fmt(srv.get('p50'))} ms "
+        f"(render p50 {fmt(rnd.get('p50'))} ms) + outside the server p50 {fmt(out.get('p50'))} ms; "
+        f"load generator loop lag p95 {fmt(lag.get('p95'))} ms"
+    )
+    ping = agg.get("ping_rtt_ms", {})
+    if ping.get("p50") is not None:
+        lines.append(f"ping round trip on the stream sockets p50 {fmt(ping['p50'])} ms (how long the server takes to read what was sent)")
+    if agg.get("latency_note"):
+        lines.append(f"note: {agg['latency_note']}")
     for m in agg["error_messages"][:5]:
         lines.append(f"error: {m}")
     return "\n".join(lines)
@@ -70,6 +86,7 @@ def run(args) -> int:
         allow_remote=args.allow_remote,
         bucket_s=min(1.0, args.duration),
         jpeg_quality=args.jpeg_quality,
+        closed_loop=args.closed_loop,
     )
     cfg.validate()  # before touching the network: bounds and the loopback rule
     if args.jpeg_quality is not None and not 1 <= args.jpeg_quality <= 100:

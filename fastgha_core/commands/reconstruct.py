@@ -61,10 +61,11 @@ def run(args) -> int:
         torch.cuda.synchronize()
     dt = time.perf_counter() - t0
     avatar.save(args.out)
-    if args.ply:
-        avatar.to_ply(args.ply)
     print(
         f"reconstructed {len(avatar)} Gaussians from {len(imgs)} views at {model.config.input_size}^2 "
         f"in {dt * 1000:.0f} ms (model {model.config.name!r}, expression space {model.config.expression_space}) -> {args.out}"
     )
+    if args.ply:
+        avatar.to_ply(args.ply)
+        print(f"wrote the canonical Gaussians as a 3DGS PLY -> {args.ply}")
     return 0

@@ -25,16 +25,53 @@ def add_arguments(parser) -> None:
     )
 
 
-def run(args) -> int:
-    import uvicorn
+def bind_listening_socket(host: str, port: int):
+    """A socket bound to ``(host, port)``, made before the slow start-up so that a port in use is
+    reported at once (uvicorn would only find out after loading, compiling and warming up).
 
-    from server.app import create_app
-    from server.settings import Settings
+    Raises ``CLIError`` with one line when the address is in use, not available on this machine, or
+    the host does not resolve. IPv6 hosts are accepted (``::1``); the socket is handed to uvicorn."""
+    import errno
+    import socket
+
+    from ..cli import CLIError
+
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as e:
+        raise CLIError(f"--host {host!r} does not resolve: {e.strerror}") from None
+    family, _, _, _, addr = infos[0]
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn does: TIME_WAIT leftovers do not block
+    if family == socket.AF_INET6:
+        sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+    try:
+        sock.bind(addr)
+    except OSError as e:
+        sock.close()
+        if e.errno == errno.EADDRINUSE:
+            raise CLIError(f"port {port} on {host} is already in use (another server?); stop it or choose another --port") from None
+        if e.errno == errno.EACCES:
+            raise CLIError(f"no permission to listen on port {port} (ports below 1024 need privileges); choose another --port") from None
+        raise CLIError(f"cannot listen on {host}:{port}: {e.strerror}") from None
+    sock.set_inheritable(True)
+    return sock
+
+
+def run(args) -> int:
+    import logging
 
     from ..cli import CLIError
 
     if not 0 < args.port < 65536:
         raise CLIError(f"--port must be in 1..65535, got {args.port}")
+    # bind first: a port in use is reported now, not after the model load, compile and warm-up
+    sock = bind_listening_socket(args.host, args.port)
+    import uvicorn
+
+    from server.app import create_app
+    from server.settings import Settings
+
     if args.model is not None:
         from pathlib import Path
 
@@ -74,15 +111,18 @@ def run(args) -> int:
         import sys
 
         print("warning: --forwarded-allow-ips '*' lets any client forge its address and scheme; name the proxy", file=sys.stderr)
+    host = f"[{args.host}]" if ":" in args.host else args.host
+    logging.getLogger("fastgha.serve").info(
+        "starting on http://%s:%d; the port answers once the start-up below is done (tens of seconds)", host, args.port
+    )
     app = create_app(settings)
-    uvicorn.run(
+    config = uvicorn.Config(
         app,
-        host=args.host,
-        port=args.port,
         log_level=args.log_level,
         proxy_headers=args.proxy_headers,
         forwarded_allow_ips=settings.forwarded_allow_ips,
         timeout_graceful_shutdown=10,
         **uvicorn_options(settings),  # connection deadlines and limits (server/security.py)
     )
+    uvicorn.Server(config).run(sockets=[sock])
     return 0

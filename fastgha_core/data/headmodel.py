@@ -4,7 +4,7 @@ The shipped asset ``assets/headmodel/ict_facekit.npz`` is the "light" ICT-FaceKi
 from its OBJ files (see ``assets/headmodel/README.md``; licence in
 ``LICENSE-ICT-FaceKit.txt``). The archive stores centimetres; this module gives
 
-- vertices in **metres**, DESIGN.md axes (+x subject's left, +y up, +z out of the face);
+- vertices in **metres**, the axes of docs/conventions.md (+x subject's left, +y up, +z out of the face);
 - **centred on the head**: the origin is ``HeadModel.center_cm`` of the *generic* neutral mesh,
   x = 0 (the mesh is symmetric), y = midway between the chin (landmark 8) and the crown (highest
   head vertex), z = midway between the back of the skull (lowest z of the head vertices above the

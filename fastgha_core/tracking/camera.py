@@ -1,4 +1,4 @@
-"""Fitted head pose -> head-centric OpenCV camera (our convention, DESIGN.md).
+"""Fitted head pose -> head-centric OpenCV camera (our convention, docs/conventions.md).
 
 The fitter gives the head's pose in the camera: ``x_cam = R x_head + t`` with ``x_head`` in the
 canonical head space (metres, +x subject's left, +y up, +z out of the face; origin = the ICT

@@ -1,6 +1,6 @@
 """Video driving: frames of a clip or a webcam -> tracked head pose -> the avatar's render camera.
 
-The avatar is head-centric (head pose lives in the cameras, DESIGN.md), so driving it from a
+The avatar is head-centric (head pose lives in the cameras, docs/conventions.md), so driving it from a
 video means folding the tracked head pose into the camera that renders it:
 
 - ``VideoTracker`` gives the head's pose in the video camera, ``x_cam = R x_head + t``.

@@ -87,7 +87,7 @@ class FitResult:
 
 @dataclass
 class LandmarkModel:
-    """The head model restricted to its 68 landmark vertices (metres, DESIGN axes)."""
+    """The head model restricted to its 68 landmark vertices (metres, axes of docs/conventions.md)."""
 
     mean: np.ndarray  # [68, 3]
     identity: np.ndarray  # [Ki, 68, 3]

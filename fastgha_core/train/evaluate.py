@@ -250,7 +250,9 @@ def evaluate(
         subjects.append(subj)
         all_rows += rows
     if out_dir is not None and grid_rows:
-        save_grid(Path(out_dir) / "comparison.png", grid_rows)
+        n_in = max(len(r) for r in grid_rows) - 3
+        titles = [f"input {i + 1}" for i in range(n_in)] + ["ground truth", "FastGHA", "|error| 0-0.25"]
+        save_grid(Path(out_dir) / "comparison.png", grid_rows, titles=titles)
     return {
         "summary": {m: _summarise(all_rows, available)[m] for m in METRICS},
         "strong_expression": _summarise([r for r in all_rows if r["strong"]], available),

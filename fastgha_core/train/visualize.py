@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["make_grid", "save_grid", "error_map"]
+__all__ = ["make_grid", "save_grid", "add_column_titles", "error_map"]
 
 
 def error_map(pred: Tensor, target: Tensor, max_err: float = 0.25) -> Tensor:
@@ -44,10 +44,41 @@ def make_grid(rows: Sequence[Sequence[Tensor | None]], pad: int = 2, fill: float
     return (out.permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
 
 
-def save_grid(path: str | Path, rows: Sequence[Sequence[Tensor | None]], pad: int = 2) -> Path:
+def add_column_titles(grid: np.ndarray, titles: Sequence[str], ncol: int, pad: int = 2, height: int = 22) -> np.ndarray:
+    """A ``[H, W, 3]`` uint8 grid of ``ncol`` equal columns (as ``make_grid`` lays them out) with a
+    white band of ``height`` pixels on top holding one centred title per column (black text).
+
+    Raises ``ValueError`` when there are more titles than columns."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    if len(titles) > ncol:
+        raise ValueError(f"{len(titles)} titles for {ncol} columns")
+    h, w = grid.shape[:2]
+    cw = (w - pad) // ncol - pad
+    band = Image.new("RGB", (w, height), (255, 255, 255))
+    draw = ImageDraw.Draw(band)
+    try:
+        font = ImageFont.load_default(size=max(8, height - 8))
+    except TypeError:  # Pillow without FreeType: the fixed bitmap font
+        font = ImageFont.load_default()
+    for j, title in enumerate(titles):
+        x0 = pad + j * (cw + pad)
+        left, top, right, bottom = draw.textbbox((0, 0), title, font=font)
+        while right - left > cw and len(title) > 2:  # too wide for the cell: shorten
+            title = title[:-2] + "…"
+            left, top, right, bottom = draw.textbbox((0, 0), title, font=font)
+        draw.text((x0 + (cw - (right - left)) // 2 - left, (height - (bottom - top)) // 2 - top), title, fill=(0, 0, 0), font=font)
+    return np.concatenate([np.asarray(band), grid], axis=0)
+
+
+def save_grid(path: str | Path, rows: Sequence[Sequence[Tensor | None]], pad: int = 2, titles: Sequence[str] | None = None) -> Path:
+    """``make_grid(rows)`` saved as a PNG at ``path``; ``titles`` label the columns (``add_column_titles``)."""
     from PIL import Image
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(make_grid(rows, pad=pad)).save(path)
+    grid = make_grid(rows, pad=pad)
+    if titles:
+        grid = add_column_titles(grid, titles, max(len(r) for r in rows), pad=pad)
+    Image.fromarray(grid).save(path)
     return path
