@@ -303,24 +303,45 @@ def test_api_keys_file(tmp_path, monkeypatch):
         Settings(api_keys_file=tmp_path / "missing")
 
 
+def _capture_uvicorn(monkeypatch) -> dict:
+    """Replace ``uvicorn.Server`` (``fastgha serve`` builds a Config and runs a Server on the socket it
+    bound first) by one that records the config's settings and closes the socket instead of serving."""
+    import uvicorn
+
+    seen: dict = {}
+
+    class FakeServer:
+        def __init__(self, config):
+            self.config = config
+
+        def run(self, sockets=None):
+            seen.update(vars(self.config))
+            for sock in sockets or []:
+                sock.close()
+
+    monkeypatch.setattr(uvicorn, "Server", FakeServer)
+    return seen
+
+
+def _free_port() -> str:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return str(s.getsockname()[1])
+
+
 def test_serve_warns_about_keys_on_the_command_line(tmp_path, monkeypatch, capsys):
     from fastgha_core.cli import main
 
-    seen = {}
-
-    def fake_run(app, **kw):
-        seen.update(kw, app=app)
-
-    import uvicorn
-
-    monkeypatch.setattr(uvicorn, "run", fake_run)
+    seen = _capture_uvicorn(monkeypatch)
     monkeypatch.delenv("FASTGHA_API_KEYS", raising=False)
     f = tmp_path / "keys"
     f.write_text("secret-from-file\n")
-    assert main(["serve", "--model", "tiny", "--data-dir", str(tmp_path), "--api-keys-file", str(f)]) == 0
+    assert main(["serve", "--port", _free_port(), "--model", "tiny", "--data-dir", str(tmp_path), "--api-keys-file", str(f)]) == 0
     assert seen["app"].state.ctx.settings.api_key_list == ["secret-from-file"]
     assert "command line" not in capsys.readouterr().err
-    assert main(["serve", "--model", "tiny", "--data-dir", str(tmp_path), "--api-keys", "k1"]) == 0
+    assert main(["serve", "--port", _free_port(), "--model", "tiny", "--data-dir", str(tmp_path), "--api-keys", "k1"]) == 0
     err = capsys.readouterr().err
     assert "command line" in err and "--api-keys-file" in err and "k1" not in err
 
@@ -335,16 +356,13 @@ def test_dockerfiles_trust_only_the_configured_proxy(name, monkeypatch, tmp_path
     assert "*" not in argv, argv
     from fastgha_core.cli import main
 
-    seen = {}
-    import uvicorn
-
-    monkeypatch.setattr(uvicorn, "run", lambda app, **kw: seen.update(kw))
+    seen = _capture_uvicorn(monkeypatch)
     monkeypatch.delenv("FASTGHA_FORWARDED_ALLOW_IPS", raising=False)
     rest = [a for a in argv[2:] if a not in ("--device", "cuda")]
-    assert main(["serve", *rest, "--model", "tiny", "--data-dir", str(tmp_path)]) == 0
+    assert main(["serve", *rest, "--port", _free_port(), "--model", "tiny", "--data-dir", str(tmp_path)]) == 0
     assert seen["forwarded_allow_ips"] not in ("*", None) and "*" not in str(seen["forwarded_allow_ips"])
     monkeypatch.setenv("FASTGHA_FORWARDED_ALLOW_IPS", "10.0.0.5")
-    assert main(["serve", *rest, "--model", "tiny", "--data-dir", str(tmp_path)]) == 0
+    assert main(["serve", *rest, "--port", _free_port(), "--model", "tiny", "--data-dir", str(tmp_path)]) == 0
     assert seen["forwarded_allow_ips"] == "10.0.0.5"
 
 
@@ -352,11 +370,8 @@ def test_serve_passes_connection_limits_to_uvicorn(monkeypatch, tmp_path):
     from fastgha_core.cli import main
     from server.security import GuardedH11Protocol, GuardedWebSocketProtocol
 
-    seen = {}
-    import uvicorn
-
-    monkeypatch.setattr(uvicorn, "run", lambda app, **kw: seen.update(kw))
-    assert main(["serve", "--model", "tiny", "--data-dir", str(tmp_path)]) == 0
+    seen = _capture_uvicorn(monkeypatch)
+    assert main(["serve", "--port", _free_port(), "--model", "tiny", "--data-dir", str(tmp_path)]) == 0
     assert seen["http"] is GuardedH11Protocol and seen["ws"] is GuardedWebSocketProtocol
     assert seen["limit_concurrency"] > 0 and 0 < seen["timeout_keep_alive"] <= 30
     assert seen["h11_max_incomplete_event_size"] <= 32 * 1024

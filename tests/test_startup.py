@@ -41,7 +41,7 @@ def _choose(fp32_costs, bf16_costs, **kw):
 
 
 def test_bf16_chosen_when_clearly_faster():
-    c = _choose([999, 10, 10, 10, 10, 10], [999, 5, 5, 5, 5, 5])  # first call of each = untimed warm-up
+    c = _choose([999] + [10] * 5, [999] + [5] * 5, reps=5)  # first call of each = untimed warm-up
     assert (c.precision, c.reason, c.reps, c.margin) == ("bf16", "measured", 5, BF16_MARGIN)
     assert c.fp32_ms == pytest.approx(10.0) and c.bf16_ms == pytest.approx(5.0)
     assert c.bf16 and c.to_dict()["bf16_ms"] == 5.0
