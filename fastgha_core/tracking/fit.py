@@ -63,7 +63,8 @@ class FitConfig:
     contour_weight: float = 0.5  # weight of the 17 jaw-line landmarks (silhouette, not fixed points)
     iterations: int = 40  # LM iterations of the full fit
     rigid_iterations: int = 10  # LM iterations of the rigid stage (per yaw guess)
-    yaw_guesses_deg: tuple[float, ...] = (-40.0, 0.0, 40.0)
+    yaw_guesses_deg: tuple[float, ...] = (-60.0, -30.0, 0.0, 30.0, 60.0)
+    occluded_weight: float = 0.1  # weight of points on the far side of the head (visibility_weights)
     tolerance: float = 1e-7  # stop when the relative cost decrease is below this
 
 
@@ -87,42 +88,82 @@ class FitResult:
 
 @dataclass
 class LandmarkModel:
-    """The head model restricted to its 68 landmark vertices (metres, DESIGN axes)."""
+    """The head model restricted to ``N`` landmark vertices (metres, DESIGN axes).
 
-    mean: np.ndarray  # [68, 3]
-    identity: np.ndarray  # [Ki, 68, 3]
-    expression: np.ndarray  # [53, 68, 3]
+    Two layouts: ``"dlib68"`` (the model's ``landmarks68`` vertices, dlib's order; the 17 jaw
+    points get ``contour_weight``) and ``"mediapipe"`` (the Face Mesh points of
+    ``meshmap.load_mediapipe_map()``, in its ``mp_index`` order).
+    """
+
+    mean: np.ndarray  # [N, 3]
+    identity: np.ndarray  # [Ki, N, 3]
+    expression: np.ndarray  # [53, N, 3]
     num_total_identity: int = 100
+    layout: str = "dlib68"
+    vertex_ids: np.ndarray | None = None  # [N] ICT vertex ids
+    normals: np.ndarray | None = None  # [N, 3] unit normals of the generic neutral at those vertices
     _flat_id: np.ndarray = field(init=False, repr=False)
     _flat_ex: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        self._flat_id = self.identity.reshape(self.identity.shape[0], -1).T.copy()  # [204, Ki]
-        self._flat_ex = self.expression.reshape(self.expression.shape[0], -1).T.copy()  # [204, 53]
+        self._flat_id = self.identity.reshape(self.identity.shape[0], -1).T.copy()  # [3N, Ki]
+        self._flat_ex = self.expression.reshape(self.expression.shape[0], -1).T.copy()  # [3N, 53]
 
     @property
     def num_identity(self) -> int:
         return int(self.identity.shape[0])
 
+    @property
+    def num_points(self) -> int:
+        return int(self.mean.shape[0])
+
     @staticmethod
-    def from_head_model(head=None, num_identity: int = 30) -> "LandmarkModel":
+    def from_head_model(head=None, num_identity: int = 30, layout: str = "dlib68") -> "LandmarkModel":
         from ..data.headmodel import HeadModel
 
         head = HeadModel.load() if head is None else head
-        lm = head.landmarks68
+        if layout == "dlib68":
+            lm = np.asarray(head.landmarks68)
+        elif layout == "mediapipe":
+            from .meshmap import load_mediapipe_map
+
+            lm = load_mediapipe_map().ict_vertex
+        else:
+            raise ValueError(f"layout must be 'dlib68' or 'mediapipe', got {layout!r}")
         if not 0 <= num_identity <= head.num_identity:
             raise ValueError(f"num_identity must be in [0, {head.num_identity}], got {num_identity}")
+        normals = _model_normals(head)[lm]
         return LandmarkModel(
             mean=head.neutral[lm].astype(np.float64),
             identity=head.identity_basis[:num_identity, lm].astype(np.float64),
             expression=head.expression_basis[:, lm].astype(np.float64),
             num_total_identity=head.num_identity,
+            layout=layout,
+            vertex_ids=lm,
+            normals=normals.astype(np.float64),
         )
 
     def points(self, beta: np.ndarray, e: np.ndarray) -> np.ndarray:
-        """Landmark points ``[68, 3]`` for identity ``[Ki]`` and expression ``[53]``."""
+        """Landmark points ``[N, 3]`` for identity ``[Ki]`` and expression ``[53]``."""
         flat = self.mean.reshape(-1) + self._flat_id @ beta + self._flat_ex @ e
-        return flat.reshape(68, 3)
+        return flat.reshape(-1, 3)
+
+    def base_weights(self, cfg: "FitConfig") -> np.ndarray:
+        """``[N]`` per-point weights of the layout (dlib's jaw line: ``contour_weight``)."""
+        w = np.ones(self.num_points)
+        if self.layout == "dlib68":
+            w[CONTOUR] = cfg.contour_weight
+        return w
+
+
+_NORMALS: dict[int, np.ndarray] = {}
+
+
+def _model_normals(head) -> np.ndarray:
+    key = id(head)
+    if key not in _NORMALS:
+        _NORMALS[key] = head.vertex_normals(head.neutral)
+    return _NORMALS[key]
 
 
 def default_intrinsics(width: int, height: int, fov_deg: float = 30.0) -> np.ndarray:
@@ -177,13 +218,14 @@ class _Problem:
     def __init__(self, model: LandmarkModel, obs: np.ndarray, K: np.ndarray, cfg: FitConfig, weights: np.ndarray | None,
                  free_identity: bool, free_expression: bool):
         self.m, self.obs, self.K, self.cfg = model, obs, K, cfg
-        self.V = obs.shape[0]
-        w = np.ones(68)
-        w[CONTOUR] = cfg.contour_weight
+        self.V, self.N = obs.shape[0], obs.shape[1]
+        # per-point weights; a dense layout's points are not independent (their errors are smooth
+        # over the face), so the total weight is normalised to 68 points and the priors keep their meaning
+        w = np.broadcast_to(model.base_weights(cfg) * min(1.0, 68.0 / self.N), (self.V, self.N)).copy()
         if weights is not None:
-            w = w * weights
+            w = w * np.broadcast_to(np.asarray(weights, dtype=np.float64), (self.V, self.N))
         diag = np.linalg.norm(obs.max(axis=1) - obs.min(axis=1), axis=1)  # [V]
-        self.scale = np.sqrt(w)[None, :] / (cfg.landmark_sigma * np.maximum(diag, 1.0))[:, None]  # [V, 68]
+        self.scale = np.sqrt(w) / (cfg.landmark_sigma * np.maximum(diag, 1.0))[:, None]  # [V, N]
         self.free_id = free_identity and model.num_identity > 0
         self.free_ex = free_expression
         self.nid = model.num_identity if self.free_id else 0
@@ -207,25 +249,26 @@ class _Problem:
         return np.concatenate(out)
 
     def jacobian(self, beta, E, Rs, ts) -> np.ndarray:
-        n_lm = self.V * 136
+        n2 = 2 * self.N
+        n_lm = self.V * n2
         n_rows = n_lm + self.nid + self.V * self.nex
         n_cols = self.nid + self.V * self.nv
         J = np.zeros((n_rows, n_cols))
         for v in range(self.V):
             X = self.m.points(beta, E[v])
             _, P = _project(X, Rs[v], ts[v], self.K[v])
-            D = _dproj(P, self.K[v]) * self.scale[v][:, None, None]  # [68, 2, 3]
-            rows = slice(v * 136, (v + 1) * 136)
+            D = _dproj(P, self.K[v]) * self.scale[v][:, None, None]  # [N, 2, 3]
+            rows = slice(v * n2, (v + 1) * n2)
             c0 = self.nid + v * self.nv
             RX = P - ts[v]
-            dP_drot = -np.stack([_skew(p) for p in RX])  # [68, 3, 3]
-            J[rows, c0 : c0 + 3] = np.einsum("nij,njk->nik", D, dP_drot).reshape(136, 3)
-            J[rows, c0 + 3 : c0 + 6] = D.reshape(136, 3)
-            DR = np.einsum("nij,jk->nik", D, Rs[v])  # [68, 2, 3]: d uv / d X
+            # d(R X)/d(rotation increment) = -[RX]x, so d uv / d rot = D @ -[RX]x = cross(RX, D rows)
+            J[rows, c0 : c0 + 3] = np.cross(RX[:, None, :], D).reshape(n2, 3)
+            J[rows, c0 + 3 : c0 + 6] = D.reshape(n2, 3)
+            DR = np.einsum("nij,jk->nik", D, Rs[v])  # [N, 2, 3]: d uv / d X
             if self.free_ex:
-                J[rows, c0 + 6 : c0 + 6 + 53] = np.einsum("nik,ank->nia", DR, self.m.expression).reshape(136, 53)
+                J[rows, c0 + 6 : c0 + 6 + 53] = np.einsum("nik,ank->nia", DR, self.m.expression).reshape(n2, 53)
             if self.free_id:
-                J[rows, : self.nid] = np.einsum("nik,ank->nia", DR, self.m.identity).reshape(136, self.nid)
+                J[rows, : self.nid] = np.einsum("nik,ank->nia", DR, self.m.identity).reshape(n2, self.nid)
         if self.free_id:
             J[n_lm : n_lm + self.nid, : self.nid] = math.sqrt(self.cfg.identity_weight) * np.eye(self.nid)
         if self.free_ex:
@@ -304,16 +347,30 @@ def _initial_translation(model: LandmarkModel, obs: np.ndarray, K: np.ndarray, R
     return ray * z - X.mean(0)
 
 
+def visibility_weights(model: LandmarkModel, Rs: np.ndarray, ts: np.ndarray, occluded: float) -> np.ndarray:
+    """``[V, N]`` weights: 1 for points whose (generic) normal faces the camera, down to ``occluded``
+    for points on the far side of the head (their positions are guessed by the landmark detector),
+    a smooth ramp over ``cos = -0.1 .. 0.25`` between the normal and the direction to the camera."""
+    out = np.ones((Rs.shape[0], model.num_points))
+    for v in range(Rs.shape[0]):
+        P = model.mean @ Rs[v].T + ts[v]
+        n = model.normals @ Rs[v].T
+        c = -(n * P).sum(1) / np.maximum(np.linalg.norm(P, axis=1), 1e-9)
+        out[v] = occluded + (1.0 - occluded) * np.clip((c + 0.1) / 0.35, 0.0, 1.0)
+    return out
+
+
 def fit_landmarks(*args, **kwargs) -> FitResult:
     """Fit identity (shared), expression and head pose (per photo) to 2D landmarks (module doc).
 
     Args:
-        landmarks: ``[V, 68, 2]`` (or ``[68, 2]``) pixels.
+        landmarks: ``[V, N, 2]`` (or ``[N, 2]``) pixels, in the layout of ``model`` (dlib's 68
+            points, or the Face Mesh points of ``meshmap``; inferred from ``N`` when model is None).
         K: ``[V, 3, 3]`` or ``[3, 3]`` intrinsics.
         config: ``FitConfig``; model: a ``LandmarkModel`` (built from the shipped head when None).
         identity: ``[100]`` (or ``[Ki]``) fixed identity; estimated (shared) when None.
         init: a ``FitResult`` to warm-start pose and expression from (skips the rigid stage).
-        weights: ``[68]`` extra per-landmark weights.
+        weights: ``[N]`` or ``[V, N]`` extra per-landmark weights.
     """
     from .blas import one_blas_thread
 
@@ -322,21 +379,25 @@ def fit_landmarks(*args, **kwargs) -> FitResult:
 
 
 def _fit_landmarks(
-    landmarks: np.ndarray,  # [V, 68, 2] pixels
+    landmarks: np.ndarray,  # [V, N, 2] pixels
     K: np.ndarray,  # [V, 3, 3] or [3, 3]
     config: FitConfig | None = None,
     model: LandmarkModel | None = None,
     *,
     identity: np.ndarray | None = None,  # [100] or [Ki]: fixed identity (not estimated) when given
     init: FitResult | None = None,  # warm start (pose + expression); skips the rigid stage
-    weights: np.ndarray | None = None,  # [68] extra per-landmark weights
+    weights: np.ndarray | None = None,  # [N] or [V, N] extra per-landmark weights
 ) -> FitResult:
     cfg = config or FitConfig()
     obs = np.asarray(landmarks, dtype=np.float64)
     if obs.ndim == 2:
         obs = obs[None]
-    if obs.ndim != 3 or obs.shape[1:] != (68, 2):
-        raise ValueError(f"landmarks must have shape [V, 68, 2], got {list(np.shape(landmarks))}")
+    if model is None and obs.ndim == 3 and obs.shape[1] != 68:
+        model = LandmarkModel.from_head_model(num_identity=cfg.num_identity, layout="mediapipe")
+    model = model or LandmarkModel.from_head_model(num_identity=cfg.num_identity)
+    N = model.num_points
+    if obs.ndim != 3 or obs.shape[1:] != (N, 2):
+        raise ValueError(f"landmarks must have shape [V, {N}, 2] (layout {model.layout}), got {list(np.shape(landmarks))}")
     if not np.isfinite(obs).all():
         raise ValueError("landmarks must be finite")
     V = obs.shape[0]
@@ -344,7 +405,7 @@ def _fit_landmarks(
     K = np.broadcast_to(K, (V, 3, 3)).copy() if K.shape == (3, 3) else K
     if K.shape != (V, 3, 3):
         raise ValueError(f"K must have shape [3, 3] or [V={V}, 3, 3], got {list(K.shape)}")
-    model = model or LandmarkModel.from_head_model(num_identity=cfg.num_identity)
+    W = np.ones((V, N)) if weights is None else np.broadcast_to(np.asarray(weights, dtype=np.float64), (V, N)).copy()
     Ki = model.num_identity
     if identity is not None:
         identity = np.asarray(identity, dtype=np.float64)
@@ -365,7 +426,7 @@ def _fit_landmarks(
         Rs = np.zeros((V, 3, 3))
         ts = np.zeros((V, 3))
         for v in range(V):
-            sub = _Problem(model, obs[v : v + 1], K[v : v + 1], cfg, weights, False, False)
+            sub = _Problem(model, obs[v : v + 1], K[v : v + 1], cfg, W[v : v + 1], False, False)
             best = None
             for yaw in cfg.yaw_guesses_deg:
                 R0 = FRONTAL_R @ rodrigues(np.array([0.0, math.radians(yaw), 0.0]))
@@ -374,8 +435,10 @@ def _fit_landmarks(
                 if best is None or out[4] < best[4]:
                     best = out
             Rs[v], ts[v] = best[2][0], best[3][0]
+    if cfg.occluded_weight < 1.0 and model.normals is not None:
+        W = W * visibility_weights(model, Rs, ts, cfg.occluded_weight)
 
-    prob = _Problem(model, obs, K, cfg, weights, free_identity=identity is None, free_expression=True)
+    prob = _Problem(model, obs, K, cfg, W, free_identity=identity is None, free_expression=True)
     beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
 
     rms = np.zeros(V)

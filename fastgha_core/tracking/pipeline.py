@@ -11,7 +11,7 @@ import torch
 from ..cameras import Cameras
 from .camera import pose_to_cameras
 from .crop import DEFAULT_EXTENT_M, background_uint8, crop_array, crop_cameras, head_crop_box
-from .fit import FitConfig, FitResult, default_intrinsics, fit_landmarks
+from .fit import FitConfig, FitResult, LandmarkModel, default_intrinsics, fit_landmarks
 from .matting import MattingConfig, head_silhouette, matte_from_head
 
 __all__ = ["TrackConfig", "TrackedPhotos", "track_photos", "track_request"]
@@ -95,7 +95,8 @@ def track_photos(
         _, lm = det.detect_one(img, name)
         lms.append(lm)
         Ks.append(default_intrinsics(img.shape[1], img.shape[0], cfg.fov_deg))
-    fit = fit_landmarks(np.stack(lms), np.stack(Ks), cfg.fit, identity=identity)
+    model = LandmarkModel.from_head_model(num_identity=cfg.fit.num_identity, layout=getattr(det, "layout", "dlib68"))
+    fit = fit_landmarks(np.stack(lms), np.stack(Ks), cfg.fit, model, identity=identity)
     for v, name in enumerate(names):
         logger.info("%s: landmark RMS %.2f px, distance %.2f m", name, fit.rms_px[v], fit.translations[v, 2])
 
