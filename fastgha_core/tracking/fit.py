@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["FitConfig", "FitResult", "LandmarkModel", "fit_landmarks", "default_intrinsics", "rodrigues", "FRONTAL_R"]
+__all__ = ["FitConfig", "FitResult", "LandmarkModel", "fit_landmarks", "default_intrinsics", "intrinsics_from_35mm", "rodrigues", "FRONTAL_R"]
 
 logger = logging.getLogger(__name__)
 
@@ -57,8 +57,11 @@ class FitConfig:
 
     num_identity: int = 50  # identity modes estimated (of 100); the rest stay 0
     identity_weight: float = 0.3  # prior weight on |beta|^2 (modes ~ N(0, 1))
-    expression_weight: float = 1.0  # ridge weight on |e|^2 per photo
-    weak_expression_weight: float = 20.0  # ridge weight of the shapes in WEAKLY_OBSERVED
+    # ridge weights on |e|^2 per photo. 10 / 40 (was 1 / 20 with dlib): on calm real photos the
+    # differences between the detector's landmark definitions and the model's vertices otherwise come
+    # out as saturated shapes (browDown 0.7, mouthLeft 0.8); docs/tracking.md has the trade-off figures
+    expression_weight: float = 10.0
+    weak_expression_weight: float = 40.0  # ridge weight of the shapes in WEAKLY_OBSERVED
     landmark_sigma: float = 0.01  # landmark noise, as a fraction of the face-box diagonal
     contour_weight: float = 0.5  # weight of the 17 jaw-line landmarks (silhouette, not fixed points)
     iterations: int = 40  # LM iterations of the full fit
@@ -81,7 +84,7 @@ class FitResult:
     cost: float = 0.0
 
     def project(self, model: "LandmarkModel", v: int) -> np.ndarray:
-        """Projected model landmarks ``[68, 2]`` of photo ``v``."""
+        """Projected model landmarks ``[N, 2]`` of photo ``v``."""
         X = model.points(self.identity[: model.num_identity], self.expressions[v])
         return _project(X, self.rotations[v], self.translations[v], self.K[v])[0]
 
@@ -177,6 +180,18 @@ def default_intrinsics(width: int, height: int, fov_deg: float = 30.0) -> np.nda
     if not 1.0 <= fov_deg <= 150.0:
         raise ValueError(f"fov_deg must be in [1, 150] degrees, got {fov_deg}")
     f = 0.5 * max(width, height) / math.tan(math.radians(fov_deg) / 2)
+    return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+
+
+def intrinsics_from_35mm(width: int, height: int, focal_35mm: float) -> np.ndarray:
+    """``K [3, 3]`` from a 35 mm-equivalent focal length (EXIF ``FocalLengthIn35mmFilm``), in mm.
+
+    The equivalent focal length is defined on the diagonal: ``f_px = f_35 * diag_px / 43.27 mm``
+    (the diagonal of a 36 x 24 mm frame). Principal point at the centre, square pixels.
+    """
+    if not 4.0 <= focal_35mm <= 2000.0:
+        raise ValueError(f"focal_35mm must be in [4, 2000] mm, got {focal_35mm}")
+    f = focal_35mm * math.hypot(width, height) / math.hypot(36.0, 24.0)
     return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
 
 
