@@ -218,8 +218,10 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m fastgha_core.tracking.video", description="measure video tracking speed")
     p.add_argument("--bench", action="store_true", help="track synthetic 640x480 frames and print the frame rate")
     p.add_argument("--frames", type=int, default=150)
+    p.add_argument("--size", default="640x480", help="frame size WxH (the face is 7/8 of the height)")
     a = p.parse_args(argv)
-    frames = bench_frames(a.frames)
+    w, h = (int(x) for x in a.size.lower().split("x"))
+    frames = bench_frames(a.frames, w, h, face_height=int(h * 7 / 8))
     tr = VideoTracker()
     tr.track(frames[0])  # identity calibration + warm-up, not timed
     t0 = time.perf_counter()
@@ -227,7 +229,7 @@ def main(argv: list[str] | None = None) -> int:
     for f in frames[1:]:
         n_ok += tr.track(f) is not None
     dt = time.perf_counter() - t0
-    print(f"{len(frames) - 1} frames 640x480 in {dt:.2f} s: {(len(frames) - 1) / dt:.1f} FPS ({n_ok} tracked)")
+    print(f"{len(frames) - 1} frames {w}x{h} in {dt:.2f} s: {(len(frames) - 1) / dt:.1f} FPS ({n_ok} tracked, {tr.model.layout} landmarks)")
     return 0
 
 
