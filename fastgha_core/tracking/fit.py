@@ -68,6 +68,10 @@ class FitConfig:
     rigid_iterations: int = 10  # LM iterations of the rigid stage (per yaw guess)
     yaw_guesses_deg: tuple[float, ...] = (-60.0, -30.0, 0.0, 30.0, 60.0)
     occluded_weight: float = 0.1  # weight of points on the far side of the head (visibility_weights)
+    silhouette_weight: float = 1.0  # outline points of a photo together weigh this x its landmarks (silhouette.py)
+    silhouette_clip: float = 0.08  # outline residuals are clipped at this fraction of the face size
+    silhouette_min_yaw: float = 30.0  # use the outline for photos turned at least this much (degrees)
+    silhouette_rounds: int = 3  # outline points re-chosen this many times
     tolerance: float = 1e-7  # stop when the relative cost decrease is below this
 
 
@@ -82,6 +86,7 @@ class FitResult:
     K: np.ndarray  # [V, 3, 3] the intrinsics used
     rms_px: np.ndarray  # [V] RMS landmark reprojection error in pixels
     cost: float = 0.0
+    outline_px: np.ndarray | None = None  # [V] RMS distance of the model's outline to the mask's (px); NaN = not used
 
     def project(self, model: "LandmarkModel", v: int) -> np.ndarray:
         """Projected model landmarks ``[N, 2]`` of photo ``v``."""
@@ -251,6 +256,52 @@ class _Problem:
         ew = np.full(53, cfg.expression_weight)
         ew[[ICT53_NAMES.index(n) for n in WEAKLY_OBSERVED]] = cfg.weak_expression_weight
         self.ex_sqrt_w = np.sqrt(ew)  # [53]
+        self.sil: list[dict | None] = [None] * self.V  # per view: outline terms (set_silhouettes)
+        self.diag = diag
+
+    def set_silhouettes(self, head, targets, beta, E, Rs, ts) -> int:
+        """Choose each view's outline points at the current estimate (silhouette.py); returns their count."""
+        from .silhouette import outline_vertices
+
+        n = 0
+        for v, tg in enumerate(targets):
+            self.sil[v] = None
+            if tg is None:
+                continue
+            full_id = np.zeros(head.num_identity, dtype=np.float32)
+            full_id[: self.m.num_identity] = beta
+            verts = head.vertices(full_id, E[v].astype(np.float32)).astype(np.float64)
+            h, w = tg.sdf.shape
+            ids = outline_vertices(head, verts, Rs[v], ts[v], self.K[v], w, h)
+            if len(ids) < 5:
+                continue
+            Ki = self.m.num_identity
+            # weight: all outline points of a photo together weigh silhouette_weight x its landmarks
+            wsum = float((self.scale[v] ** 2).sum()) * 2.0
+            per = self.cfg.silhouette_weight * wsum / len(ids)
+            self.sil[v] = {
+                "mean": head.neutral[ids].astype(np.float64),
+                "idb": head.identity_basis[:Ki, ids].astype(np.float64),
+                "exb": head.expression_basis[:, ids].astype(np.float64),
+                "target": tg, "sqrt_w": math.sqrt(per), "clip": self.cfg.silhouette_clip * tg.face_px,
+            }  # fmt: skip
+            n += len(ids)
+        return n
+
+    def _sil_points(self, v, beta, e):
+        s = self.sil[v]
+        return s["mean"] + np.einsum("k,knd->nd", beta, s["idb"]) + np.einsum("k,knd->nd", e, s["exb"])
+
+    def _sil_residuals(self, beta, E, Rs, ts) -> list[np.ndarray]:
+        out = []
+        for v in range(self.V):
+            if self.sil[v] is None:
+                continue
+            s = self.sil[v]
+            uv, _ = _project(self._sil_points(v, beta, E[v]), Rs[v], ts[v], self.K[v])
+            val, _ = s["target"].sample(uv, s["clip"])
+            out.append(s["sqrt_w"] * val)
+        return out
 
     def residuals(self, beta, E, Rs, ts) -> np.ndarray:
         out = []
@@ -261,14 +312,36 @@ class _Problem:
             out.append(math.sqrt(self.cfg.identity_weight) * beta)
         if self.free_ex:
             out.append((self.ex_sqrt_w[None] * E).reshape(-1))
+        out.extend(self._sil_residuals(beta, E, Rs, ts))
         return np.concatenate(out)
 
     def jacobian(self, beta, E, Rs, ts) -> np.ndarray:
         n2 = 2 * self.N
         n_lm = self.V * n2
-        n_rows = n_lm + self.nid + self.V * self.nex
+        n_sil = sum(len(s["mean"]) for s in self.sil if s is not None)
+        n_rows = n_lm + self.nid + self.V * self.nex + n_sil
         n_cols = self.nid + self.V * self.nv
         J = np.zeros((n_rows, n_cols))
+        r0 = n_lm + self.nid + self.V * self.nex
+        for v in range(self.V):
+            if self.sil[v] is None:
+                continue
+            s = self.sil[v]
+            X = self._sil_points(v, beta, E[v])
+            uv, P = _project(X, Rs[v], ts[v], self.K[v])
+            _, g = s["target"].sample(uv, s["clip"])  # [M, 2]
+            D = np.einsum("ni,nij->nj", g, _dproj(P, self.K[v])) * s["sqrt_w"]  # [M, 3]
+            m = D.shape[0]
+            rows = slice(r0, r0 + m)
+            c0 = self.nid + v * self.nv
+            J[rows, c0 : c0 + 3] = np.cross(P - ts[v], D)
+            J[rows, c0 + 3 : c0 + 6] = D
+            DR = D @ Rs[v]  # [M, 3]
+            if self.free_ex:
+                J[rows, c0 + 6 : c0 + 6 + 53] = np.einsum("nk,ank->na", DR, s["exb"])
+            if self.free_id:
+                J[rows, : self.nid] = np.einsum("nk,ank->na", DR, s["idb"])
+            r0 += m
         for v in range(self.V):
             X = self.m.points(beta, E[v])
             _, P = _project(X, Rs[v], ts[v], self.K[v])
@@ -362,6 +435,11 @@ def _initial_translation(model: LandmarkModel, obs: np.ndarray, K: np.ndarray, R
     return ray * z - X.mean(0)
 
 
+def _yaw_deg(R: np.ndarray) -> float:
+    """Yaw of a head -> camera rotation (realsets.head_angles_deg): + = nose towards the image's right."""
+    return math.degrees(math.atan2(R[0, 2], -R[2, 2]))
+
+
 def visibility_weights(model: LandmarkModel, Rs: np.ndarray, ts: np.ndarray, occluded: float) -> np.ndarray:
     """``[V, N]`` weights: 1 for points whose (generic) normal faces the camera, down to ``occluded``
     for points on the far side of the head (their positions are guessed by the landmark detector),
@@ -402,6 +480,7 @@ def _fit_landmarks(
     identity: np.ndarray | None = None,  # [100] or [Ki]: fixed identity (not estimated) when given
     init: FitResult | None = None,  # warm start (pose + expression); skips the rigid stage
     weights: np.ndarray | None = None,  # [N] or [V, N] extra per-landmark weights
+    silhouettes: list | None = None,  # V x silhouette.SilhouetteTarget or None: outline constraint for side views
 ) -> FitResult:
     cfg = config or FitConfig()
     obs = np.asarray(landmarks, dtype=np.float64)
@@ -455,6 +534,24 @@ def _fit_landmarks(
 
     prob = _Problem(model, obs, K, cfg, W, free_identity=identity is None, free_expression=True)
     beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
+    outline = np.full(V, np.nan)
+    if silhouettes is not None and any(t is not None for t in silhouettes):
+        from ..data.headmodel import HeadModel
+
+        if len(silhouettes) != V:
+            raise ValueError(f"got {len(silhouettes)} silhouette targets for {V} photos")
+        head = HeadModel.load()
+        for _ in range(cfg.silhouette_rounds):
+            # side views only (landmarks pin frontal ones); re-decided each round as the yaw moves
+            side = [t if t is not None and abs(_yaw_deg(Rs[v])) >= cfg.silhouette_min_yaw else None for v, t in enumerate(silhouettes)]
+            if prob.set_silhouettes(head, side, beta, E, Rs, ts) == 0:
+                break
+            beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
+        for v in range(V):
+            if prob.sil[v] is not None:
+                sv = prob.sil[v]
+                uv, _ = _project(prob._sil_points(v, beta, E[v]), Rs[v], ts[v], K[v])
+                outline[v] = float(np.sqrt(np.mean(sv["target"].sample(uv, sv["clip"])[0] ** 2)))
 
     rms = np.zeros(V)
     for v in range(V):
@@ -462,4 +559,4 @@ def _fit_landmarks(
         rms[v] = float(np.sqrt(((uv - obs[v]) ** 2).sum(1).mean()))
     full_id = np.zeros(model.num_total_identity)
     full_id[:Ki] = beta
-    return FitResult(identity=full_id, expressions=E, rotations=Rs, translations=ts, K=K, rms_px=rms, cost=cost)
+    return FitResult(identity=full_id, expressions=E, rotations=Rs, translations=ts, K=K, rms_px=rms, cost=cost, outline_px=outline)

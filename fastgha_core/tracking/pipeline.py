@@ -13,6 +13,7 @@ from .camera import pose_to_cameras
 from .crop import DEFAULT_EXTENT_M, background_uint8, crop_array, crop_cameras, head_crop_box
 from .fit import FitConfig, FitResult, LandmarkModel, default_intrinsics, fit_landmarks, intrinsics_from_35mm
 from .matting import MattingConfig, head_silhouette, matte_from_head
+from .silhouette import SilhouetteTarget, person_mask
 
 __all__ = ["TrackConfig", "TrackedPhotos", "track_photos", "track_request"]
 
@@ -27,6 +28,7 @@ class TrackConfig:
     fov_deg: float = 30.0  # assumed field of view across the longer photo side (fit.default_intrinsics)
     extent_m: float = DEFAULT_EXTENT_M  # crop field at the head's depth (crop.py)
     max_rms: float = 0.06  # refuse a photo whose landmark RMS exceeds this fraction of its face size
+    use_silhouette: bool = False  # also fit side views to the person mask's outline (silhouette.py; docs/tracking.md: no gain with Face Mesh landmarks)
     fit: FitConfig = field(default_factory=FitConfig)
     matting: MattingConfig = field(default_factory=MattingConfig)
 
@@ -110,7 +112,18 @@ def track_photos(
         h, w = img.shape[:2]
         Ks.append(intrinsics_from_35mm(w, h, f35) if f35 is not None else default_intrinsics(w, h, cfg.fov_deg))
     model = LandmarkModel.from_head_model(num_identity=cfg.fit.num_identity, layout=getattr(det, "layout", "dlib68"))
-    fit = fit_landmarks(np.stack(lms), np.stack(Ks), cfg.fit, model, identity=identity)
+    targets = None
+    if cfg.use_silhouette:
+        targets = []
+        for v, img in enumerate(photos):
+            face = float(np.linalg.norm(lms[v].max(0) - lms[v].min(0)))
+            try:
+                m = _as_mask(masks[v], img.shape[:2], names[v]) if masks[v] is not None else person_mask(img)
+                targets.append(SilhouetteTarget.from_mask(m, face))
+            except (ImportError, ValueError) as e:  # no segmentation model, or an empty / full mask
+                logger.info("%s: no outline constraint (%s)", names[v], e)
+                targets.append(None)
+    fit = fit_landmarks(np.stack(lms), np.stack(Ks), cfg.fit, model, identity=identity, silhouettes=targets)
     for v, name in enumerate(names):
         logger.info("%s: landmark RMS %.2f px, distance %.2f m", name, fit.rms_px[v], fit.translations[v, 2])
         face = float(np.linalg.norm(lms[v].max(0) - lms[v].min(0)))
