@@ -68,7 +68,10 @@ def test_every_real_photo_tracks_and_turns_the_right_way():
             assert abs(r["yaw"]) <= 15.0, r
         if abs(ann) >= 20:
             assert np.sign(r["yaw"]) == np.sign(ann) and abs(r["yaw"]) >= 0.4 * abs(ann), r
-        assert r["max_expression"] <= 0.6, r  # calm codes (the broadest smile: 0.5)
+        if "smile" in r["photo"]:
+            assert r["max_expression_name"].startswith("mouthSmile"), r
+        else:
+            assert r["max_expression"] <= 0.5, r  # calm codes
     by_set: dict[str, list] = {}
     for r in rows:
         by_set.setdefault(r["set"], []).append(r)
@@ -121,3 +124,32 @@ def test_exif_orientations_track_to_the_upright_pose(tmp_path):
         ang = np.degrees(np.arccos(np.clip((np.trace(R @ ref.T) - 1) / 2, -1, 1)))
         assert ang <= 1.0, (o, ang)
         assert len(rep["landmark_residuals_px"]) > 68 and rep["landmark_rms_px"] < 6.0
+
+
+@needs_mediapipe
+def test_detector_and_fitter_on_synthetic_renders_with_known_cameras():
+    """Renders of synthetic heads (not the calibration subjects of meshmap.build_yaw_table) at known
+    yaw through MediaPipe and the fitter: within 6 degrees up to 60 of yaw; the yaw-dependent map
+    is closer to the truth at 60 than the frontal one (measured 52-57 -> 55-60)."""
+    import math
+
+    from fastgha_core.cameras import Cameras
+    from fastgha_core.data.synthetic import SyntheticSubject
+    from fastgha_core.tracking.fit import FitConfig, LandmarkModel, fit_landmarks
+
+    model = LandmarkModel.from_head_model(num_identity=50, layout="mediapipe")
+    sub = SyntheticSubject(1_000_003)
+    frame = sub.frame(np.zeros(53, np.float32))
+    err_map, err_plain = [], []
+    for az in (0.0, 40.0, 60.0):
+        cam = Cameras.look_at([math.sin(math.radians(az)), 0.0, math.cos(math.radians(az))], fov_deg=25, width=512, height=512).flatten()
+        img = (sub.render(frame, cam)[0].image.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+        truth = head_angles_deg(cam.w2c[0, :3, :3].double().numpy())[0]
+        _, lm = MESH.detect_one(img, f"render {az}")
+        K = cam.K[0].double().numpy()
+        est = head_angles_deg(fit_landmarks(lm[None], K, FitConfig(), model).rotations[0])[0]
+        plain = head_angles_deg(fit_landmarks(lm[None], K, FitConfig(yaw_map=False), model).rotations[0])[0]
+        err_map.append(abs(est - truth))
+        err_plain.append(abs(plain - truth))
+    assert max(err_map) <= 6.0, err_map
+    assert err_map[-1] < err_plain[-1], (err_map, err_plain)

@@ -72,6 +72,8 @@ class FitConfig:
     silhouette_clip: float = 0.08  # outline residuals are clipped at this fraction of the face size
     silhouette_min_yaw: float = 30.0  # use the outline for photos turned at least this much (degrees)
     silhouette_rounds: int = 3  # outline points re-chosen this many times
+    yaw_map: bool = True  # Face Mesh layout: tie points to vertices by the head's yaw (meshmap.build_yaw_table)
+    yaw_map_rounds: int = 3  # re-chosen this many times as the yaw moves
     tolerance: float = 1e-7  # stop when the relative cost decrease is below this
 
 
@@ -156,6 +158,36 @@ class LandmarkModel:
         flat = self.mean.reshape(-1) + self._flat_id @ beta + self._flat_ex @ e
         return flat.reshape(-1, 3)
 
+    @staticmethod
+    def from_vertex_ids(head, ids: np.ndarray, num_identity: int, layout: str) -> "LandmarkModel":
+        ids = np.asarray(ids, dtype=np.int64)
+        return LandmarkModel(
+            mean=head.neutral[ids].astype(np.float64),
+            identity=head.identity_basis[:num_identity, ids].astype(np.float64),
+            expression=head.expression_basis[:, ids].astype(np.float64),
+            num_total_identity=head.num_identity,
+            layout=layout,
+            vertex_ids=ids,
+            normals=_model_normals(head)[ids].astype(np.float64),
+        )
+
+    def blend(self, other: "LandmarkModel", a: float) -> "LandmarkModel":
+        """``(1 - a) * self + a * other`` point by point (both linear in identity and expression)."""
+        if a <= 0.0:
+            return self
+        if a >= 1.0:
+            return other
+        n = self.normals * (1 - a) + other.normals * a
+        return LandmarkModel(
+            mean=(1 - a) * self.mean + a * other.mean,
+            identity=(1 - a) * self.identity + a * other.identity,
+            expression=(1 - a) * self.expression + a * other.expression,
+            num_total_identity=self.num_total_identity,
+            layout=self.layout,
+            vertex_ids=self.vertex_ids,
+            normals=n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-9),
+        )
+
     def base_weights(self, cfg: "FitConfig") -> np.ndarray:
         """``[N]`` per-point weights of the layout (dlib's jaw line: ``contour_weight``)."""
         w = np.ones(self.num_points)
@@ -238,6 +270,7 @@ class _Problem:
     def __init__(self, model: LandmarkModel, obs: np.ndarray, K: np.ndarray, cfg: FitConfig, weights: np.ndarray | None,
                  free_identity: bool, free_expression: bool):
         self.m, self.obs, self.K, self.cfg = model, obs, K, cfg
+        self.ms = [model] * obs.shape[0]  # per view (the yaw-dependent Face Mesh map gives each view its own)
         self.V, self.N = obs.shape[0], obs.shape[1]
         # per-point weights; a dense layout's points are not independent (their errors are smooth
         # over the face), so the total weight is normalised to 68 points and the priors keep their meaning
@@ -246,6 +279,7 @@ class _Problem:
             w = w * np.broadcast_to(np.asarray(weights, dtype=np.float64), (self.V, self.N))
         diag = np.linalg.norm(obs.max(axis=1) - obs.min(axis=1), axis=1)  # [V]
         self.scale = np.sqrt(w) / (cfg.landmark_sigma * np.maximum(diag, 1.0))[:, None]  # [V, N]
+        self._w0 = model.base_weights(cfg) * min(1.0, 68.0 / self.N)
         self.free_id = free_identity and model.num_identity > 0
         self.free_ex = free_expression
         self.nid = model.num_identity if self.free_id else 0
@@ -258,6 +292,10 @@ class _Problem:
         self.ex_sqrt_w = np.sqrt(ew)  # [53]
         self.sil: list[dict | None] = [None] * self.V  # per view: outline terms (set_silhouettes)
         self.diag = diag
+
+    def set_weights(self, weights: np.ndarray) -> None:
+        """Replace the extra per-point weights ``[V, N]`` (the layout's own weights stay)."""
+        self.scale = np.sqrt(self._w0[None] * weights) / (self.cfg.landmark_sigma * np.maximum(self.diag, 1.0))[:, None]
 
     def set_silhouettes(self, head, targets, beta, E, Rs, ts) -> int:
         """Choose each view's outline points at the current estimate (silhouette.py); returns their count."""
@@ -306,7 +344,7 @@ class _Problem:
     def residuals(self, beta, E, Rs, ts) -> np.ndarray:
         out = []
         for v in range(self.V):
-            uv, _ = _project(self.m.points(beta, E[v]), Rs[v], ts[v], self.K[v])
+            uv, _ = _project(self.ms[v].points(beta, E[v]), Rs[v], ts[v], self.K[v])
             out.append(((uv - self.obs[v]) * self.scale[v][:, None]).reshape(-1))
         if self.free_id:
             out.append(math.sqrt(self.cfg.identity_weight) * beta)
@@ -343,7 +381,7 @@ class _Problem:
                 J[rows, : self.nid] = np.einsum("nk,ank->na", DR, s["idb"])
             r0 += m
         for v in range(self.V):
-            X = self.m.points(beta, E[v])
+            X = self.ms[v].points(beta, E[v])
             _, P = _project(X, Rs[v], ts[v], self.K[v])
             D = _dproj(P, self.K[v]) * self.scale[v][:, None, None]  # [N, 2, 3]
             rows = slice(v * n2, (v + 1) * n2)
@@ -354,9 +392,9 @@ class _Problem:
             J[rows, c0 + 3 : c0 + 6] = D.reshape(n2, 3)
             DR = np.einsum("nij,jk->nik", D, Rs[v])  # [N, 2, 3]: d uv / d X
             if self.free_ex:
-                J[rows, c0 + 6 : c0 + 6 + 53] = np.einsum("nik,ank->nia", DR, self.m.expression).reshape(n2, 53)
+                J[rows, c0 + 6 : c0 + 6 + 53] = np.einsum("nik,ank->nia", DR, self.ms[v].expression).reshape(n2, 53)
             if self.free_id:
-                J[rows, : self.nid] = np.einsum("nik,ank->nia", DR, self.m.identity).reshape(n2, self.nid)
+                J[rows, : self.nid] = np.einsum("nik,ank->nia", DR, self.ms[v].identity).reshape(n2, self.nid)
         if self.free_id:
             J[n_lm : n_lm + self.nid, : self.nid] = math.sqrt(self.cfg.identity_weight) * np.eye(self.nid)
         if self.free_ex:
@@ -433,6 +471,47 @@ def _initial_translation(model: LandmarkModel, obs: np.ndarray, K: np.ndarray, R
     c = obs.mean(0)
     ray = np.linalg.solve(K, np.array([c[0], c[1], 1.0]))
     return ray * z - X.mean(0)
+
+
+_YAW_MODELS: dict = {}
+
+
+def _yaw_models(model: "LandmarkModel"):
+    """``(yaws [B], models [B], valid [B, N])`` of the yaw-dependent Face Mesh map, or None when
+    the table is not shipped."""
+    key = (model.num_identity, id(model.vertex_ids) if model.vertex_ids is None else model.vertex_ids.tobytes())
+    if key not in _YAW_MODELS:
+        from ..data.headmodel import HeadModel
+        from .meshmap import load_mediapipe_map, load_yaw_table
+
+        tab = load_yaw_table()
+        if tab is None:
+            _YAW_MODELS[key] = None
+        else:
+            head = HeadModel.load()
+            mp_index = load_mediapipe_map().mp_index
+            vert = tab["vertex"][:, mp_index]  # [B, N]
+            valid = vert >= 0
+            models, yaws, oks = [], [], []
+            for b in range(vert.shape[0]):
+                if valid[b].mean() < 0.5:  # a yaw the detector does not reach
+                    continue
+                ids = np.where(valid[b], vert[b], model.vertex_ids)
+                models.append(LandmarkModel.from_vertex_ids(head, ids, model.num_identity, model.layout))
+                yaws.append(float(tab["yaw"][b]))
+                oks.append(valid[b])
+            _YAW_MODELS[key] = (np.array(yaws), models, np.array(oks))
+    return _YAW_MODELS[key]
+
+
+def _model_at_yaw(table, yaw: float):
+    """The blended model of the two yaw bins around ``yaw`` and the points' weights (0 = no hit)."""
+    yaws, models, oks = table
+    yaw = float(np.clip(yaw, yaws[0], yaws[-1]))
+    b = int(np.clip(np.searchsorted(yaws, yaw) - 1, 0, len(yaws) - 2))
+    a = (yaw - yaws[b]) / (yaws[b + 1] - yaws[b])
+    w = ((1 - a) * oks[b] + a * oks[b + 1]).astype(np.float64)
+    return models[b].blend(models[b + 1], a), w
 
 
 def _yaw_deg(R: np.ndarray) -> float:
@@ -529,11 +608,23 @@ def _fit_landmarks(
                 if best is None or out[4] < best[4]:
                     best = out
             Rs[v], ts[v] = best[2][0], best[3][0]
+    W_user = W.copy()
     if cfg.occluded_weight < 1.0 and model.normals is not None:
         W = W * visibility_weights(model, Rs, ts, cfg.occluded_weight)
 
     prob = _Problem(model, obs, K, cfg, W, free_identity=identity is None, free_expression=True)
     beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
+    table = _yaw_models(model) if cfg.yaw_map and model.layout == "mediapipe" else None
+    if table is not None:
+        for _ in range(cfg.yaw_map_rounds):
+            wv = W_user.copy()
+            for v in range(V):
+                prob.ms[v], hit = _model_at_yaw(table, _yaw_deg(Rs[v]))
+                wv[v] *= hit
+                if cfg.occluded_weight < 1.0:
+                    wv[v] *= visibility_weights(prob.ms[v], Rs[v : v + 1], ts[v : v + 1], cfg.occluded_weight)[0]
+            prob.set_weights(wv)
+            beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
     outline = np.full(V, np.nan)
     if silhouettes is not None and any(t is not None for t in silhouettes):
         from ..data.headmodel import HeadModel
@@ -555,7 +646,7 @@ def _fit_landmarks(
 
     rms = np.zeros(V)
     for v in range(V):
-        uv, _ = _project(model.points(beta, E[v]), Rs[v], ts[v], K[v])
+        uv, _ = _project(prob.ms[v].points(beta, E[v]), Rs[v], ts[v], K[v])
         rms[v] = float(np.sqrt(((uv - obs[v]) ** 2).sum(1).mean()))
     full_id = np.zeros(model.num_total_identity)
     full_id[:Ki] = beta

@@ -17,6 +17,12 @@ point is tied to one ICT vertex, computed once and shipped as
 3. Every Face Mesh point takes the nearest vertex of the fitted ICT face (vertices 0-9408);
    points farther than ``MAX_SNAP_MM`` are left out (none are, with these portraits).
 
+**Yaw-dependent map** (``assets/headmodel/mediapipe_ict_yaw.npz``, ``build_yaw_table``, rebuild
+with ``--yaw``): the Face Mesh squeezes the far half of a turned head onto the visible half, so
+beyond ~40 degrees its points no longer sit on the vertices above. On renders of synthetic ICT
+heads at known yaw (every 15 degrees) each point is tied to the surface point it actually lands
+on; the fitter re-chooses the table's bins by the current yaw (``FitConfig.yaw_map``).
+
 MediaPipe's own depth places the face-outline points (which, in a frontal photo, lie on the
 cheeks' far slope): tying them instead to the ICT vertex seen at their image position under a
 dlib fit removes a 5-7 degree pitch offset on frontal photos but makes turned heads come out
@@ -66,6 +72,15 @@ def load_mediapipe_map(path: str | None = None) -> MediaPipeMap:
     """The shipped correspondence (module doc)."""
     d = json.loads(Path(path or MAP_ASSET).read_text())
     return MediaPipeMap(d["mp_index"], d["ict_vertex"], d["snap_mm"])
+
+
+def load_yaw_table(path: str | None = None) -> dict | None:
+    """The shipped yaw-dependent table (``build_yaw_table``), or None when absent."""
+    p = Path(path) if path else YAW_ASSET
+    if not p.is_file():
+        return None
+    with np.load(p) as d:
+        return {k: d[k] for k in d.files}
 
 
 def _umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -129,6 +144,15 @@ def build_mediapipe_map() -> MediaPipeMap:
 
 
 def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m fastgha_core.tracking.meshmap", description="rebuild the Face Mesh -> ICT maps")
+    p.add_argument("--yaw", action="store_true", help="rebuild the yaw-dependent table (synthetic renders) instead")
+    if p.parse_args(argv).yaw:
+        d = build_yaw_table()
+        np.savez_compressed(YAW_ASSET, **d)
+        print(f"wrote {YAW_ASSET}: yaw bins {d['yaw'].tolist()}, points with a hit per bin {(d['vertex'] >= 0).sum(1).tolist()}")
+        return 0
     m = build_mediapipe_map()
     MAP_ASSET.write_text(json.dumps({
         "source": "fastgha_core/tracking/meshmap.py (python -m fastgha_core.tracking.meshmap)",
@@ -140,3 +164,69 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())
+
+
+# ---------------------------------------------------------------------------- yaw-dependent map
+YAW_BINS = (-90.0, -75.0, -60.0, -45.0, -30.0, -15.0, 0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
+YAW_ASSET = MAP_ASSET.with_name("mediapipe_ict_yaw.npz")
+CALIBRATION_SEEDS = tuple(range(1_000_100, 1_000_108))  # synthetic held-out subjects (data/synthetic.py)
+
+
+def build_yaw_table(seeds=CALIBRATION_SEEDS, size: int = 512, fov_deg: float = 25.0) -> dict:
+    """Where the Face Mesh puts its points on a turned head, measured on synthetic renders.
+
+    The Face Mesh squeezes the far half of a turned face onto the visible half: on renders of the
+    ICT head with known cameras, a 75-degree head fitted with the frontal map comes out at ~57.
+    For each yaw in ``YAW_BINS`` and each synthetic subject (``data/synthetic.py``, neutral
+    expression, pitch 0, 1 m, ``fov_deg``) the render's Face Mesh points are cast onto the true
+    mesh (the camera-facing face/head vertex whose projection is nearest), the hit vertices' generic
+    positions are averaged over subjects and snapped to the nearest generic vertex. Returns
+    ``{"yaw": [B], "vertex": [B, 468] int (-1 = no hit in most renders), "hits": [B, 468]}``.
+    """
+    import math
+
+    from scipy.spatial import cKDTree
+
+    from ..cameras import Cameras
+    from ..data.synthetic import SyntheticSubject
+    from .faces import MeshDetector
+
+    det = MeshDetector(min_face_px=1.0)
+    B = len(YAW_BINS)
+    acc = np.zeros((B, 468, 3))
+    cnt = np.zeros((B, 468))
+    subj0 = None
+    for seed in seeds:
+        sub = SyntheticSubject(seed)
+        head = sub.model
+        subj0 = head
+        frame = sub.frame(np.zeros(head.num_expression, np.float32))
+        verts = sub.base.astype(np.float64)  # neutral expression: frame vertices = base
+        normals = head.vertex_normals(verts)
+        cand = np.arange(0, 11248)
+        for b, yaw in enumerate(YAW_BINS):
+            a = -math.radians(yaw)  # a camera at azimuth -yaw sees the head turned by +yaw
+            cam = Cameras.look_at([math.sin(a), 0.0, math.cos(a)], fov_deg=fov_deg, width=size, height=size).flatten()
+            view = sub.render(frame, cam)[0]
+            img = (view.image.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+            faces = det.detect_all(img)
+            if not faces:
+                continue
+            pts = faces[0][1]
+            w2c = cam.w2c[0].double().numpy()
+            K = cam.K[0].double().numpy()
+            P = verts[cand] @ w2c[:3, :3].T + w2c[:3, 3]
+            uv = (P @ K.T)[:, :2] / (P @ K.T)[:, 2:]
+            front = ((normals[cand] @ w2c[:3, :3].T) * P).sum(1) < 0
+            ids = cand[front]
+            d, j = cKDTree(uv[front]).query(pts)
+            face_px = np.linalg.norm(pts.max(0) - pts.min(0))
+            ok = d < 0.02 * face_px
+            acc[b, ok] += head.neutral[ids[j[ok]]]
+            cnt[b, ok] += 1
+    tree = cKDTree(subj0.neutral[:11248].astype(np.float64))
+    vertex = np.full((B, 468), -1, dtype=np.int64)
+    good = cnt >= max(1, len(seeds) // 2)
+    mean = acc[good] / cnt[good][:, None]
+    vertex[good] = tree.query(mean)[1]
+    return {"yaw": np.array(YAW_BINS), "vertex": vertex, "hits": cnt.astype(np.int16)}
