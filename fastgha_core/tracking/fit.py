@@ -613,17 +613,24 @@ def _fit_landmarks(
         W = W * visibility_weights(model, Rs, ts, cfg.occluded_weight)
 
     prob = _Problem(model, obs, K, cfg, W, free_identity=identity is None, free_expression=True)
-    beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
     table = _yaw_models(model) if cfg.yaw_map and model.layout == "mediapipe" else None
-    if table is not None:
-        for _ in range(cfg.yaw_map_rounds):
-            wv = W_user.copy()
-            for v in range(V):
-                prob.ms[v], hit = _model_at_yaw(table, _yaw_deg(Rs[v]))
-                wv[v] *= hit
-                if cfg.occluded_weight < 1.0:
-                    wv[v] *= visibility_weights(prob.ms[v], Rs[v : v + 1], ts[v : v + 1], cfg.occluded_weight)[0]
-            prob.set_weights(wv)
+
+    def use_yaw_map():
+        wv = W_user.copy()
+        for v in range(V):
+            prob.ms[v], hit = _model_at_yaw(table, _yaw_deg(Rs[v]))
+            wv[v] *= hit
+            if cfg.occluded_weight < 1.0:
+                wv[v] *= visibility_weights(prob.ms[v], Rs[v : v + 1], ts[v : v + 1], cfg.occluded_weight)[0]
+        prob.set_weights(wv)
+
+    if table is not None and init is not None:  # warm start (video): the map of the previous pose, one solve
+        use_yaw_map()
+        beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
+    else:
+        beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
+        for _ in range(cfg.yaw_map_rounds if table is not None else 0):
+            use_yaw_map()
             beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
     outline = np.full(V, np.nan)
     if silhouettes is not None and any(t is not None for t in silhouettes):
