@@ -263,3 +263,20 @@ def test_video_tracker_follows_a_moving_face():
     assert out[-1].t[0] > out[0].t[0]
     cams = out[-1].cameras(640, 480)
     assert cams.width == 640
+
+
+def test_dlib_fallback_still_tracks_a_frontal_portrait():
+    from fastgha_core.tracking import TrackConfig, track_photos
+    from fastgha_core.tracking.faces import FacesUnavailableError, load_face_detector
+    from fastgha_core.tracking.realsets import head_angles_deg
+
+    try:
+        det = load_face_detector(backend="dlib")
+    except FacesUnavailableError:
+        pytest.skip("needs dlib-bin and face-recognition-models (the 'faces' extra)")
+    res = track_photos([_grace_hopper()], TrackConfig(size=64), detector=det, names=["hopper.jpg"])
+    assert res.layout == "dlib68" and res.landmarks[0].shape == (68, 2)
+    yaw, pitch, roll = head_angles_deg(res.fit.rotations[0])
+    assert abs(yaw) < 10 and abs(pitch) < 15 and abs(roll) < 10, (yaw, pitch, roll)
+    with pytest.raises(ValueError, match="backend must be"):
+        load_face_detector(backend="opencv")
