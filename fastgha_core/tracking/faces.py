@@ -18,7 +18,8 @@ normalised ``x * width``, ``y * height``). The face box is the landmarks' boundi
   27-35 nose, 36-47 eyes, 48-67 mouth), in our pixel convention (corner of the top-left pixel is
   (0, 0), so dlib's integer pixel positions get +0.5).
 
-Policy for photos (:meth:`FaceDetector.detect_one`):
+Policy for photos (``detect_one`` of either detector; MediaPipe's box is the landmarks' box, it
+has no score, so the weak-detection rule is dlib's only):
 - no face -> ``NoFaceError``;
 - faces whose box side is at least ``ignore_ratio`` (1/3) of the largest one count; more than one
   such face -> ``SeveralFacesError`` (smaller background faces are ignored and logged);

@@ -1,4 +1,5 @@
-"""Fit the ICT-FaceKit head model to 68 2D landmarks (bounded Levenberg-Marquardt with priors).
+"""Fit the ICT-FaceKit head model to 2D landmarks: one joint fit per person (bounded
+Levenberg-Marquardt with priors).
 
 Unknowns, for ``V`` photos of one person:
 - identity ``beta [Ki]``: the first ``num_identity`` (50) ICT identity modes, **shared** by all
@@ -7,19 +8,25 @@ Unknowns, for ``V`` photos of one person:
   ``expression_weight * |e_v|^2`` pulling unobservable shapes to 0; head rotation ``R_v``
   (head -> camera, updated multiplicatively ``R <- exp([d]x) R``) and translation ``t_v`` (metres).
 
-The 3D landmarks are fixed vertices of the model (``HeadModel.landmarks68``), linear in
-``beta`` and ``e``: ``X = n + B_id beta + B_e e``. They are projected with the given pinhole ``K``
-(the focal length is an assumption made by the caller, see :func:`default_intrinsics`):
-``u = K (R X + t)``. Residuals are landmark errors divided by ``landmark_sigma`` x the face size
-(the landmark box diagonal), so weights do not depend on the image resolution. The 17 jaw-line
-landmarks of dlib follow the visible silhouette, not fixed skin points, so they get the lower
-weight ``contour_weight``.
+The 3D landmarks are fixed vertices of the model in one of two layouts (``LandmarkModel``):
+dlib's 68 points (``HeadModel.landmarks68``) or the MediaPipe Face Mesh points
+(``meshmap.py``), linear in ``beta`` and ``e``: ``X = n + B_id beta + B_e e``. They are projected
+with the given pinhole ``K`` (one focal length for the set, chosen by the caller: EXIF or
+:func:`default_intrinsics`): ``u = K (R X + t)``. Residuals are landmark errors divided by
+``landmark_sigma`` x the face size (the landmark box diagonal), so weights do not depend on the
+image resolution; a dense layout's total weight is normalised to 68 points. dlib's 17 jaw-line
+landmarks follow the visible silhouette, not fixed skin points, so they get ``contour_weight``;
+Face Mesh points on the far side of the head get ``occluded_weight`` (``visibility_weights``).
+
+Stages: a rigid-only fit per photo (pose only) from five yaw guesses (-60 .. +60 degrees) keeps
+the best; the joint fit; for the Face Mesh layout, ``yaw_map_rounds`` rounds that re-tie each
+photo's points to the vertices the detector lands on at its current yaw (``meshmap``'s yaw
+table); optionally the outline of a person mask for side views (``silhouette.py``).
 
 Solver: Levenberg-Marquardt on the stacked residuals with the analytic Jacobian (dense normal
-equations: at most 30 + 8 x 59 unknowns). The box [0, 1] on ``e`` is kept by an active set:
-weights at a bound whose gradient points outwards are frozen for the step, the step is clamped.
-A rigid-only stage (pose only, expression and identity at 0) starts from three yaw guesses
-(-40, 0, +40 degrees) and keeps the best, so profile-ish photos converge.
+equations; checked against finite differences in the tests). The box [0, 1] on ``e`` is kept by
+an active set: weights at a bound whose gradient points outwards are frozen for the step, the
+step is clamped.
 """
 
 from __future__ import annotations
