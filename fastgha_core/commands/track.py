@@ -59,6 +59,8 @@ def run(args) -> int:
             rgb, f35 = _read_upright(p)
         except (UnidentifiedImageError, OSError) as e:
             raise CLIError(f"{p} is not an image file PIL can read ({type(e).__name__}: {e})") from None
+        except ValueError as e:  # fastgha_core.images.ImageDecodeError (too large, unsupported mode)
+            raise CLIError(f"{p}: {e}") from None
         photos.append(rgb)
         focals.append(f35)
         mp = p.with_name(p.stem + "_mask.png")
