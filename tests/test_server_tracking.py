@@ -121,6 +121,7 @@ def test_photo_tracker_output_matches_model_input():
 
 def test_missing_faces_extra_says_what_is_missing(monkeypatch):
     monkeypatch.setitem(sys.modules, "dlib", None)  # `import dlib` now raises ImportError
+    monkeypatch.setitem(sys.modules, "mediapipe", None)  # and so does `import mediapipe`
     tracker = PhotoTracker()
     with pytest.raises(ApiError) as e:
         tracker.check_available()

@@ -80,8 +80,10 @@ def _rot_y(a: float) -> np.ndarray:
 
 
 def test_fit_rejects_bad_shapes():
-    with pytest.raises(ValueError, match=r"\[V, 68, 2\]"):
+    with pytest.raises(ValueError, match=r"\[V, 468, 2\] \(layout mediapipe\), got \[2, 60, 2\]"):
         fit_landmarks(np.zeros((2, 60, 2)), np.eye(3))
+    with pytest.raises(ValueError, match=r"\[V, 68, 2\] \(layout dlib68\)"):
+        fit_landmarks(np.zeros((2, 60, 2)), np.eye(3), model=LandmarkModel.from_head_model(num_identity=5))
     with pytest.raises(ValueError, match="K must"):
         fit_landmarks(np.zeros((2, 68, 2)), np.zeros((3, 3, 3)))
 
@@ -162,10 +164,13 @@ def test_portrait_is_near_frontal_and_masked(photo):
     assert crops.shape == (1, 3, 128, 128) and masks.shape == (1, 1, 128, 128) and expr.shape == (1, 53)
     assert cams.width == 128 and len(cams) == 1
     R = cams.R[0].double().numpy()
-    # official portraits face the camera: within 15 degrees of frontal (fitter error ~1-2 deg, plus
-    # the sitter's slight head turn and tilt: astronaut 7.5 deg, Grace Hopper 2.9 deg). The astronaut
-    # photo also has a weak false detection on the suit (score 0.12 vs 1.16), which must be ignored
-    assert rotation_error_deg(R, FRONTAL_R) < 15.0
+    # official portraits face the camera: yaw and roll within 10 degrees. Pitch within 20: the
+    # MediaPipe correspondence (meshmap.py) puts frontal heads 5-7 degrees lower than dlib's 68 points
+    # (astronaut: dlib -7.0, MediaPipe -14.7 degrees)
+    from fastgha_core.tracking.realsets import head_angles_deg
+
+    yaw, pitch, roll = head_angles_deg(R)
+    assert abs(yaw) < 10.0 and abs(pitch) < 20.0 and abs(roll) < 10.0, (yaw, pitch, roll)
     z = float(cams.t[0, 2])
     assert 0.3 < z < 3.0  # plausible distance for a head filling a portrait with the 30-degree assumption
     m = masks[0, 0]
@@ -231,8 +236,8 @@ def test_missing_faces_extra_names_the_extra(monkeypatch):
     real = builtins.__import__
 
     def fake(name, *a, **k):
-        if name == "dlib":
-            raise ImportError("No module named 'dlib'")
+        if name in ("dlib", "mediapipe"):
+            raise ImportError(f"No module named '{name}'")
         return real(name, *a, **k)
 
     monkeypatch.setattr(builtins, "__import__", fake)
@@ -258,3 +263,20 @@ def test_video_tracker_follows_a_moving_face():
     assert out[-1].t[0] > out[0].t[0]
     cams = out[-1].cameras(640, 480)
     assert cams.width == 640
+
+
+def test_dlib_fallback_still_tracks_a_frontal_portrait():
+    from fastgha_core.tracking import TrackConfig, track_photos
+    from fastgha_core.tracking.faces import FacesUnavailableError, load_face_detector
+    from fastgha_core.tracking.realsets import head_angles_deg
+
+    try:
+        det = load_face_detector(backend="dlib")
+    except FacesUnavailableError:
+        pytest.skip("needs dlib-bin and face-recognition-models (the 'faces' extra)")
+    res = track_photos([_grace_hopper()], TrackConfig(size=64), detector=det, names=["hopper.jpg"])
+    assert res.layout == "dlib68" and res.landmarks[0].shape == (68, 2)
+    yaw, pitch, roll = head_angles_deg(res.fit.rotations[0])
+    assert abs(yaw) < 10 and abs(pitch) < 15 and abs(roll) < 10, (yaw, pitch, roll)
+    with pytest.raises(ValueError, match="backend must be"):
+        load_face_detector(backend="opencv")

@@ -1,12 +1,13 @@
 NAME = "track"
-HELP = "track photos of one person (dlib landmarks + ICT head fit) into a request folder: crops, cameras.json, masks, expressions.json"
+HELP = "track photos of one person (MediaPipe Face Mesh landmarks + one joint ICT head fit) into a request folder: crops, cameras.json, masks, expressions.json"
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("--images", nargs="+", required=True, help="photos of ONE person (PNG/JPEG); a mask <stem>_mask.png beside a photo is used")
     parser.add_argument("--out", required=True, help="request folder to write (created; existing files of the same names are replaced)")
     parser.add_argument("--size", type=int, default=256, help="side of the square crops in pixels (default 256; the model's prepare() resizes)")
-    parser.add_argument("--fov", type=float, default=30.0, help="assumed field of view across the longer photo side, degrees (default 30)")
+    parser.add_argument("--fov", type=float, default=30.0, help="assumed field of view across the longer photo side, degrees (default 30; "
+                        "ignored when the photos carry an EXIF 35 mm-equivalent focal length)")
     parser.add_argument("--json", default=None, help="also write a tracking report (poses, landmark errors, expressions) here")
 
 
@@ -28,20 +29,24 @@ def run(args) -> int:
     log = logging.getLogger(__name__)
     if args.size < 16:
         raise CLIError(f"--size must be at least 16, got {args.size}")
-    photos, masks, names = [], [], []
+    photos, masks, names, focals = [], [], [], []
     for p in map(Path, args.images):
         if not p.is_file():
             raise CLIError(f"{p} does not exist")
         mp = p.with_name(p.stem + "_mask.png")
         try:  # upright (EXIF orientation applied) 8-bit pixels whatever the file's mode
-            photos.append(read_image(p).rgb)
+            decoded = read_image(p)
             masks.append(read_mask(mp) if mp.is_file() else None)
         except ImageDecodeError as e:
             raise CLIError(str(e)) from None
+        photos.append(decoded.rgb)
+        focals.append(decoded.exif_focal_35mm)
         names.append(str(p))
     try:
-        res = track_photos(photos, TrackConfig(size=args.size, fov_deg=args.fov), masks=masks, names=names)
+        res = track_photos(photos, TrackConfig(size=args.size, fov_deg=args.fov), masks=masks, names=names, focal_35mm=focals)
     except FacesUnavailableError as e:
+        raise CLIError(str(e)) from None
+    except ValueError as e:  # NoFaceError, SeveralFacesError, TinyFaceError, a photo that cannot be placed
         raise CLIError(str(e)) from None
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -53,14 +58,21 @@ def run(args) -> int:
     expr = {"space": "ict53", "names": list(ICT53_NAMES), "images": [f"{s}.png" for s in stems], "expressions": res.expressions.round(4).tolist()}
     (out / "expressions.json").write_text(json.dumps(expr))
     if args.json:
+        from ..tracking.realsets import head_angles_deg
+
         report = {
             "images": names,
+            "landmarks": res.layout,
+            "focal_px": [float(res.fit.K[i][0, 0]) for i in range(len(names))],
+            "focal_source": "exif_35mm" if any(f is not None for f in focals) else f"default fov {args.fov} deg",
             "identity": res.fit.identity.round(4).tolist(),
             "photos": [
                 {
                     "image": names[i],
                     "crop": f"{stems[i]}.png",
                     "landmark_rms_px": float(res.fit.rms_px[i]),
+                    "landmark_residuals_px": np.linalg.norm(res.residuals[i], axis=1).round(2).tolist(),
+                    "yaw_pitch_roll_deg": [round(a, 2) for a in head_angles_deg(res.fit.rotations[i])],
                     "head_rotation": res.fit.rotations[i].tolist(),
                     "head_translation_m": res.fit.translations[i].tolist(),
                     "K_photo": res.fit.K[i].tolist(),

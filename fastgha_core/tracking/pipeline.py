@@ -11,8 +11,9 @@ import torch
 from ..cameras import Cameras
 from .camera import pose_to_cameras
 from .crop import DEFAULT_EXTENT_M, background_uint8, crop_array, crop_cameras, head_crop_box
-from .fit import FitConfig, FitResult, default_intrinsics, fit_landmarks
+from .fit import FitConfig, FitResult, LandmarkModel, default_intrinsics, fit_landmarks, intrinsics_from_35mm
 from .matting import MattingConfig, head_silhouette, matte_from_head
+from .silhouette import SilhouetteTarget, person_mask
 
 __all__ = ["TrackConfig", "TrackedPhotos", "track_photos", "track_request"]
 
@@ -26,6 +27,8 @@ class TrackConfig:
     size: int = 256  # output crop side in pixels
     fov_deg: float = 30.0  # assumed field of view across the longer photo side (fit.default_intrinsics)
     extent_m: float = DEFAULT_EXTENT_M  # crop field at the head's depth (crop.py)
+    max_rms: float = 0.06  # refuse a photo whose landmark RMS exceeds this fraction of its face size
+    use_silhouette: bool = False  # also fit side views to the person mask's outline (silhouette.py; docs/tracking.md: no gain with Face Mesh landmarks)
     fit: FitConfig = field(default_factory=FitConfig)
     matting: MattingConfig = field(default_factory=MattingConfig)
 
@@ -39,9 +42,11 @@ class TrackedPhotos:
     cameras: Cameras  # [V] of the crops
     photo_cameras: Cameras | list[Cameras]  # per photo, of the full photo (sizes may differ)
     expressions: np.ndarray  # [V, 53] ict53
-    landmarks: list[np.ndarray]  # V x [68, 2] detected, in photo pixels
+    landmarks: list[np.ndarray]  # V x [N, 2] detected, in photo pixels (layout below)
     fit: FitResult
     mask_given: list[bool]
+    layout: str = "mediapipe"  # landmark layout: "mediapipe" (Face Mesh points) or "dlib68"
+    residuals: list[np.ndarray] = field(default_factory=list)  # V x [N, 2] fitted minus detected, pixels
 
 
 def _as_photo(img, i: int, name: str) -> np.ndarray:
@@ -74,8 +79,16 @@ def track_photos(
     names: list[str] | None = None,  # used in error messages
     detector=None,  # a faces.FaceDetector (default: load_face_detector())
     identity: np.ndarray | None = None,  # [100] fixed identity; estimated when None
+    focal_35mm: list[float | None] | None = None,  # V x EXIF 35 mm-equivalent focal length (mm) or None
 ) -> TrackedPhotos:
-    """Track photos of **one** person (shared identity); see the package doc."""
+    """Track photos of **one** person (shared identity); see the package doc.
+
+    Intrinsics: one focal length for the set. When any photo carries an EXIF 35 mm-equivalent
+    focal length, their median is used for every photo (``fit.intrinsics_from_35mm``, the photos
+    of one person are assumed to come from one camera); otherwise ``config.fov_deg`` across the
+    longer side (``fit.default_intrinsics``). Errors (``NoFaceError``, ``SeveralFacesError``,
+    ``TinyFaceError``, ``ValueError``) name the photo.
+    """
     from ..data.headmodel import HeadModel
     from .faces import load_face_detector
 
@@ -90,14 +103,36 @@ def track_photos(
         raise ValueError(f"got {len(images)} photos, {len(masks)} masks and {len(names)} names")
     det = detector or load_face_detector()
     photos = [_as_photo(im, i, n) for i, (im, n) in enumerate(zip(images, names))]
+    exif = [float(f) for f in (focal_35mm or []) if f is not None and 4.0 <= float(f) <= 2000.0]
+    f35 = float(np.median(exif)) if exif else None
     lms, Ks = [], []
     for img, name in zip(photos, names):
         _, lm = det.detect_one(img, name)
         lms.append(lm)
-        Ks.append(default_intrinsics(img.shape[1], img.shape[0], cfg.fov_deg))
-    fit = fit_landmarks(np.stack(lms), np.stack(Ks), cfg.fit, identity=identity)
+        h, w = img.shape[:2]
+        Ks.append(intrinsics_from_35mm(w, h, f35) if f35 is not None else default_intrinsics(w, h, cfg.fov_deg))
+    model = LandmarkModel.from_head_model(num_identity=cfg.fit.num_identity, layout=getattr(det, "layout", "dlib68"))
+    targets = None
+    if cfg.use_silhouette:
+        targets = []
+        for v, img in enumerate(photos):
+            face = float(np.linalg.norm(lms[v].max(0) - lms[v].min(0)))
+            try:
+                m = _as_mask(masks[v], img.shape[:2], names[v]) if masks[v] is not None else person_mask(img)
+                targets.append(SilhouetteTarget.from_mask(m, face))
+            except (ImportError, ValueError) as e:  # no segmentation model, or an empty / full mask
+                logger.info("%s: no outline constraint (%s)", names[v], e)
+                targets.append(None)
+    fit = fit_landmarks(np.stack(lms), np.stack(Ks), cfg.fit, model, identity=identity, silhouettes=targets)
     for v, name in enumerate(names):
         logger.info("%s: landmark RMS %.2f px, distance %.2f m", name, fit.rms_px[v], fit.translations[v, 2])
+        face = float(np.linalg.norm(lms[v].max(0) - lms[v].min(0)))
+        if not np.isfinite(fit.rms_px[v]) or fit.rms_px[v] > cfg.max_rms * face or fit.translations[v, 2] <= 0:
+            raise ValueError(
+                f"cannot place the head in {name}: the fitted head model misses its landmarks by {fit.rms_px[v]:.1f} px RMS "
+                f"({100 * fit.rms_px[v] / face:.0f}% of the face size, at most {100 * cfg.max_rms:.0f}% accepted); "
+                "is it a photo of the same person as the others, with the face unobstructed?"
+            )
 
     head = HeadModel.load()
     faces = head.visible_faces(eyelashes=False)
@@ -133,6 +168,8 @@ def track_photos(
         landmarks=lms,
         fit=fit,
         mask_given=[m is not None for m in masks],
+        layout=model.layout,
+        residuals=[fit.project(model, v) - lms[v] for v in range(len(lms))],
     )
 
 
@@ -150,7 +187,7 @@ def track_request(images: list[np.ndarray], size: int, masks=None):
         faces.FacesUnavailableError (an ImportError) when the ``faces`` extra is missing;
         ValueError (NoFaceError / SeveralFacesError / TinyFaceError) naming the photo.
     """
-    res = track_photos(list(images), TrackConfig(size=int(size)), masks=masks)
+    res = track_photos(list(images), TrackConfig(size=int(size)), masks=masks)  # names: "photo <i>"
     crops = torch.from_numpy(res.crops).permute(0, 3, 1, 2).float() / 255.0
     m = torch.from_numpy(res.masks)[:, None]
     return crops, res.cameras, m, torch.from_numpy(res.expressions)

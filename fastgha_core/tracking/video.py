@@ -1,6 +1,9 @@
 """Per-frame expression + head-pose tracking for video driving (webcam or a clip).
 
-Per frame (``VideoTracker.track``):
+Per frame (``VideoTracker.track``), with MediaPipe (the default detector): its Face Mesh graph
+in tracking mode gives the landmarks (its face detector runs only when the face is lost), then
+steps 3-4. With dlib (fallback):
+
 1. **Face box**: dlib's HOG detector on the frame downscaled to ``detect_width`` pixels (no
    upsampling), only every ``detect_every`` frames or when tracking was lost; in between the box
    comes from the previous frame's landmarks (their bounding box mapped to a detector-like box by
@@ -110,7 +113,7 @@ class VideoTracker:
     def __init__(self, identity: np.ndarray | None = None, config: VideoConfig | None = None, detector=None):
         self.cfg = config or VideoConfig()
         self.det = detector or load_face_detector()
-        self.model = LandmarkModel.from_head_model(num_identity=self.cfg.fit.num_identity)
+        self.model = LandmarkModel.from_head_model(num_identity=self.cfg.fit.num_identity, layout=getattr(self.det, "layout", "dlib68"))
         self.fast_cfg = FitConfig(**{**self.cfg.fit.__dict__, "iterations": self.cfg.iterations})
         self.identity = None if identity is None else np.asarray(identity, dtype=np.float64)
         self.reset()
@@ -125,6 +128,28 @@ class VideoTracker:
         self.f_expr = OneEuroFilter(c.expr_min_cutoff, c.expr_beta)
         self.f_t = OneEuroFilter(c.pose_min_cutoff, c.pose_beta)
         self.f_R = OneEuroFilter(c.pose_min_cutoff, c.pose_beta)
+        if hasattr(self.det, "reset_video"):
+            self.det.reset_video()
+
+    def _landmarks(self, frame: np.ndarray) -> tuple[np.ndarray | None, bool]:
+        """Landmarks of this frame and whether a detector ran (MediaPipe: its own tracking mode)."""
+        if hasattr(self.det, "track_frame"):
+            return self.det.track_frame(frame), self.prev_lm is None
+        detected = False
+        if self.prev_lm is None or self.since_detect >= self.cfg.detect_every:
+            box = self._detect(frame)
+            if box is None:
+                return None, True
+            detected, self.since_detect = True, 0
+        else:
+            box = self._box_from_landmarks(self.prev_lm)
+            self.since_detect += 1
+        lm = self.det.landmarks(frame, box)
+        if detected:
+            b = FaceBox.from_landmarks(lm)
+            size = np.array([b.right - b.left, b.bottom - b.top] * 2)
+            self.box_offset = (np.array([box.left, box.top, box.right, box.bottom]) - np.array([b.left, b.top, b.right, b.bottom])) / size
+        return lm, detected
 
     def _detect(self, frame: np.ndarray) -> FaceBox | None:
         h, w = frame.shape[:2]
@@ -147,21 +172,10 @@ class VideoTracker:
         """Track one ``[H, W, 3]`` uint8 RGB frame; ``None`` when no face is found."""
         t_now = self.frame_index / 30.0 if timestamp is None else float(timestamp)
         self.frame_index += 1
-        detected = False
-        if self.prev_lm is None or self.since_detect >= self.cfg.detect_every:
-            box = self._detect(frame)
-            if box is None:
-                self.prev, self.prev_lm = None, None
-                return None
-            detected, self.since_detect = True, 0
-        else:
-            box = self._box_from_landmarks(self.prev_lm)
-            self.since_detect += 1
-        lm = self.det.landmarks(frame, box)
-        if detected:
-            b = FaceBox.from_landmarks(lm)
-            size = np.array([b.right - b.left, b.bottom - b.top] * 2)
-            self.box_offset = (np.array([box.left, box.top, box.right, box.bottom]) - np.array([b.left, b.top, b.right, b.bottom])) / size
+        lm, detected = self._landmarks(frame)
+        if lm is None:
+            self.prev, self.prev_lm = None, None
+            return None
         h, w = frame.shape[:2]
         K = default_intrinsics(w, h, self.cfg.fov_deg)
         if self.identity is None:  # first frame: estimate the identity once, then keep it fixed
@@ -204,8 +218,10 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m fastgha_core.tracking.video", description="measure video tracking speed")
     p.add_argument("--bench", action="store_true", help="track synthetic 640x480 frames and print the frame rate")
     p.add_argument("--frames", type=int, default=150)
+    p.add_argument("--size", default="640x480", help="frame size WxH (the face is 7/8 of the height)")
     a = p.parse_args(argv)
-    frames = bench_frames(a.frames)
+    w, h = (int(x) for x in a.size.lower().split("x"))
+    frames = bench_frames(a.frames, w, h, face_height=int(h * 7 / 8))
     tr = VideoTracker()
     tr.track(frames[0])  # identity calibration + warm-up, not timed
     t0 = time.perf_counter()
@@ -213,7 +229,7 @@ def main(argv: list[str] | None = None) -> int:
     for f in frames[1:]:
         n_ok += tr.track(f) is not None
     dt = time.perf_counter() - t0
-    print(f"{len(frames) - 1} frames 640x480 in {dt:.2f} s: {(len(frames) - 1) / dt:.1f} FPS ({n_ok} tracked)")
+    print(f"{len(frames) - 1} frames {w}x{h} in {dt:.2f} s: {(len(frames) - 1) / dt:.1f} FPS ({n_ok} tracked, {tr.model.layout} landmarks)")
     return 0
 
 

@@ -1,0 +1,119 @@
+"""Tracking on the real multi-view photo sets: estimated yaw against the annotated one.
+
+``python -m fastgha_core.tracking.realsets [--root ../shared/realsets] [--json out.json]``
+
+The sets (non-commercial evaluation material, never shipped) live outside the repository, in
+``../shared/realsets`` relative to the repository root or where ``FASTGHA_REALSETS`` points; each
+sub-folder holds the photos of one person, and each file name carries the annotated yaw as
+``yaw<signed degrees>`` (``yaw0``, ``yaw+55``, ``yaw-70``): 0 = facing the camera, + = nose towards
+the image's right edge (annotations are estimates, +-10-15 degrees).
+
+Each set is tracked jointly (``track_photos``: one identity, one field of view); per photo the
+report gives the annotated and estimated yaw, the estimated pitch and roll, the landmark RMS and
+the largest expression weight.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["realsets_root", "annotated_yaw", "head_angles_deg", "evaluate_realsets"]
+
+_YAW = re.compile(r"yaw([+-]?\d+(?:\.\d+)?)")
+
+
+def realsets_root() -> Path:
+    """``$FASTGHA_REALSETS`` or ``<repository root>/../shared/realsets`` (may not exist)."""
+    env = os.environ.get("FASTGHA_REALSETS")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[2].parent / "shared" / "realsets"
+
+
+def annotated_yaw(name: str) -> float | None:
+    """Degrees from a file name's ``yaw<deg>`` tag, or None."""
+    m = _YAW.search(Path(name).stem)
+    return float(m.group(1)) if m else None
+
+
+def head_angles_deg(R: np.ndarray) -> tuple[float, float, float]:
+    """(yaw, pitch, roll) in degrees of a head -> camera rotation ``R [3, 3]`` (OpenCV camera).
+
+    yaw: + = nose towards the image's right edge; pitch: + = nose up; roll: + = the head's up axis
+    turned clockwise in the image. 0, 0, 0 = looking straight into the camera (``fit.FRONTAL_R``).
+    """
+    n = R[:, 2]  # the nose direction (head +z) in camera axes
+    up = R[:, 1]  # head +y
+    yaw = math.degrees(math.atan2(n[0], -n[2]))
+    pitch = math.degrees(math.atan2(-n[1], math.hypot(n[0], n[2])))
+    roll = math.degrees(math.atan2(up[0], -up[1]))
+    return yaw, pitch, roll
+
+
+def _read(path: Path) -> np.ndarray:
+    try:
+        from ..images import read_image  # the project's one decoder (EXIF orientation applied)
+
+        return read_image(path, max_pixels=64_000_000).rgb
+    except ImportError:  # before fastgha_core.images exists: PIL with the EXIF orientation applied
+        from PIL import Image, ImageOps
+
+        with Image.open(path) as im:
+            return np.asarray(ImageOps.exif_transpose(im).convert("RGB"))
+
+
+def evaluate_realsets(root: Path | None = None, detector=None, config=None) -> list[dict]:
+    """One dict per photo of every set under ``root`` (module doc). Raises like ``track_photos``."""
+    from .pipeline import TrackConfig, track_photos
+
+    root = Path(root) if root is not None else realsets_root()
+    sets = sorted(p for p in root.iterdir() if p.is_dir())
+    if not sets:
+        raise ValueError(f"no photo sets (sub-folders) in {root}")
+    rows = []
+    for d in sets:
+        paths = sorted(p for p in d.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+        res = track_photos([_read(p) for p in paths], config or TrackConfig(), names=[f"{d.name}/{p.name}" for p in paths], detector=detector)
+        for v, p in enumerate(paths):
+            yaw, pitch, roll = head_angles_deg(res.fit.rotations[v])
+            ann = annotated_yaw(p.name)
+            top = int(np.argmax(res.expressions[v]))
+            from ..expressions import ICT53_NAMES
+
+            rows.append({
+                "set": d.name, "photo": p.name, "yaw_annotated": ann, "yaw": round(yaw, 1), "pitch": round(pitch, 1),
+                "roll": round(roll, 1), "yaw_error": None if ann is None else round(abs(yaw - ann), 1),
+                "rms_px": round(float(res.fit.rms_px[v]), 2), "max_expression": round(float(res.expressions[v, top]), 2),
+                "max_expression_name": ICT53_NAMES[top],
+            })  # fmt: skip
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m fastgha_core.tracking.realsets", description=__doc__.split("\n")[0])
+    p.add_argument("--root", default=None, help="folder of photo sets (default: ../shared/realsets or $FASTGHA_REALSETS)")
+    p.add_argument("--json", default=None, help="also write the rows here")
+    a = p.parse_args(argv)
+    rows = evaluate_realsets(Path(a.root) if a.root else None)
+    print("| set | photo | yaw annotated | yaw | error | pitch | roll | RMS px | largest expression |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['set']} | {r['photo']} | {r['yaw_annotated']} | {r['yaw']} | {r['yaw_error']} | {r['pitch']} | {r['roll']} | "
+              f"{r['rms_px']} | {r['max_expression_name']} {r['max_expression']} |")  # fmt: skip
+    errs = [r["yaw_error"] for r in rows if r["yaw_error"] is not None]
+    print(f"{len(rows)} photos, yaw error median {np.median(errs):.1f} deg, max {max(errs):.1f} deg")
+    if a.json:
+        Path(a.json).write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,155 @@
+"""Tracking on real and synthetic photos at wide head poses (issue: tracking that holds on real photos).
+
+- The real multi-view sets (non-commercial, outside the repository: ``../shared/realsets`` or
+  ``$FASTGHA_REALSETS``): every photo tracks; frontal photos within 15 degrees of yaw; turned
+  heads turn the right way and in the annotated order. (Yaw within 15 degrees of the annotation
+  is NOT reached beyond ~50 degrees: the Face Mesh compresses strongly turned heads, see
+  docs/tracking.md.)
+- Synthetic observations with known cameras up to 75 degrees of yaw and +-30 of pitch.
+- The 8 EXIF orientations of one portrait give the same pose as the upright photo.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+
+from fastgha_core.tracking.evaluate import evaluate
+from fastgha_core.tracking.realsets import annotated_yaw, head_angles_deg, realsets_root
+
+try:
+    from fastgha_core.tracking.faces import MeshDetector
+
+    MESH = MeshDetector()
+except ImportError:
+    MESH = None
+needs_mediapipe = pytest.mark.skipif(MESH is None, reason="needs the 'faces' extra with mediapipe (make install)")
+ROOT = realsets_root()
+needs_realsets = pytest.mark.skipif(not ROOT.is_dir(), reason=f"needs the real photo sets in {ROOT} (not shipped)")
+
+
+def test_wide_pose_synthetic_rotation_accuracy():
+    """Face Mesh layout, yaw +-75, pitch +-30, 1.5 px noise: the fitter alone (no detector)."""
+    r = evaluate(renders=12, views=4, noise_px=1.5, seed=5, layout="mediapipe", max_yaw=75.0, max_pitch=30.0)
+    assert np.median(r["rot_deg"]) <= 2.0 and np.percentile(r["rot_deg"], 95) <= 5.0, r["rot_deg"]
+    assert np.median(r["rel_rot_deg"]) <= 3.0, r["rel_rot_deg"]
+    assert r["expr_geom_mm"].mean() < 0.8 * r["expr_geom_neutral_mm"].mean()
+    assert r["expr_abs"].shape == (12, 53)
+
+
+def test_head_angles_sign_convention():
+    from fastgha_core.tracking.fit import FRONTAL_R, rodrigues
+
+    # head turned about its up axis by +30 degrees: the nose (head +z) swings towards head +x, the
+    # subject's left, which a camera facing the subject sees on the image's right: yaw +30
+    R = FRONTAL_R @ rodrigues(np.radians([0.0, 30.0, 0.0]))
+    yaw, pitch, roll = head_angles_deg(R)
+    assert yaw == pytest.approx(30.0, abs=1e-6) and abs(pitch) < 1e-6 and abs(roll) < 1e-6
+    R = FRONTAL_R @ rodrigues(np.radians([-20.0, 0.0, 0.0]))  # about head +x: the nose goes up (head +y)
+    assert head_angles_deg(R)[1] == pytest.approx(20.0, abs=1e-6)
+    assert annotated_yaw("02_yaw+85_profile_right.jpg") == 85.0 and annotated_yaw("01_yaw-70_left.jpg") == -70.0
+    assert annotated_yaw("x.jpg") is None
+
+
+@needs_mediapipe
+@needs_realsets
+def test_every_real_photo_tracks_and_turns_the_right_way():
+    from fastgha_core.tracking.realsets import evaluate_realsets
+
+    rows = evaluate_realsets(ROOT, detector=MESH)
+    assert len(rows) >= 10
+    for r in rows:
+        ann = r["yaw_annotated"]
+        if ann is None:
+            continue
+        if abs(ann) < 1:
+            assert abs(r["yaw"]) <= 15.0, r
+        if abs(ann) >= 20:
+            assert np.sign(r["yaw"]) == np.sign(ann) and abs(r["yaw"]) >= 0.4 * abs(ann), r
+        if "smile" in r["photo"]:
+            assert r["max_expression_name"].startswith("mouthSmile"), r
+        else:
+            assert r["max_expression"] <= 0.5, r  # calm codes
+    by_set: dict[str, list] = {}
+    for r in rows:
+        by_set.setdefault(r["set"], []).append(r)
+    for rs in by_set.values():  # estimated yaws keep the annotated order where annotations differ by >= 30 degrees
+        for a in rs:
+            for b in rs:
+                if a["yaw_annotated"] is not None and b["yaw_annotated"] is not None and a["yaw_annotated"] >= b["yaw_annotated"] + 30:
+                    assert a["yaw"] > b["yaw"], (a, b)
+
+
+def _orient(img: np.ndarray, orientation: int) -> bytes:
+    """JPEG bytes whose pixels are stored so that EXIF ``orientation`` shows ``img`` upright."""
+    from PIL import Image
+
+    im = Image.fromarray(img)
+    # the inverse of what exif_transpose applies for each orientation
+    inv = {1: None, 2: Image.Transpose.FLIP_LEFT_RIGHT, 3: Image.Transpose.ROTATE_180, 4: Image.Transpose.FLIP_TOP_BOTTOM,
+           5: Image.Transpose.TRANSPOSE, 6: Image.Transpose.ROTATE_90, 7: Image.Transpose.TRANSVERSE, 8: Image.Transpose.ROTATE_270}  # fmt: skip
+    if inv[orientation] is not None:
+        im = im.transpose(inv[orientation])
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    buf = io.BytesIO()
+    im.save(buf, format="PNG", exif=exif.tobytes())
+    return buf.getvalue()
+
+
+@needs_mediapipe
+def test_exif_orientations_track_to_the_upright_pose(tmp_path):
+    import json
+
+    import skimage.data
+
+    from fastgha_core.cli import main
+
+    img = skimage.data.astronaut()
+    paths = []
+    for o in range(1, 9):
+        p = tmp_path / f"astronaut_o{o}.png"
+        p.write_bytes(_orient(img, o))
+        paths.append(str(p))
+    rc = main(["track", "--images", paths[0], "--out", str(tmp_path / "req0"), "--size", "64", "--json", str(tmp_path / "r0.json")])
+    assert rc == 0
+    ref = np.array(json.loads((tmp_path / "r0.json").read_text())["photos"][0]["head_rotation"])
+    for o, p in enumerate(paths[1:], start=2):
+        rc = main(["track", "--images", p, "--out", str(tmp_path / f"req{o}"), "--size", "64", "--json", str(tmp_path / f"r{o}.json")])
+        assert rc == 0
+        rep = json.loads((tmp_path / f"r{o}.json").read_text())["photos"][0]
+        R = np.array(rep["head_rotation"])
+        ang = np.degrees(np.arccos(np.clip((np.trace(R @ ref.T) - 1) / 2, -1, 1)))
+        assert ang <= 1.0, (o, ang)
+        assert len(rep["landmark_residuals_px"]) > 68 and rep["landmark_rms_px"] < 6.0
+
+
+@needs_mediapipe
+def test_detector_and_fitter_on_synthetic_renders_with_known_cameras():
+    """Renders of synthetic heads (not the calibration subjects of meshmap.build_yaw_table) at known
+    yaw through MediaPipe and the fitter: within 6 degrees up to 60 of yaw; the yaw-dependent map
+    is closer to the truth at 60 than the frontal one (measured 52-57 -> 55-60)."""
+    import math
+
+    from fastgha_core.cameras import Cameras
+    from fastgha_core.data.synthetic import SyntheticSubject
+    from fastgha_core.tracking.fit import FitConfig, LandmarkModel, fit_landmarks
+
+    model = LandmarkModel.from_head_model(num_identity=50, layout="mediapipe")
+    sub = SyntheticSubject(1_000_003)
+    frame = sub.frame(np.zeros(53, np.float32))
+    err_map, err_plain = [], []
+    for az in (0.0, 40.0, 60.0):
+        cam = Cameras.look_at([math.sin(math.radians(az)), 0.0, math.cos(math.radians(az))], fov_deg=25, width=512, height=512).flatten()
+        img = (sub.render(frame, cam)[0].image.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+        truth = head_angles_deg(cam.w2c[0, :3, :3].double().numpy())[0]
+        _, lm = MESH.detect_one(img, f"render {az}")
+        K = cam.K[0].double().numpy()
+        est = head_angles_deg(fit_landmarks(lm[None], K, FitConfig(), model).rotations[0])[0]
+        plain = head_angles_deg(fit_landmarks(lm[None], K, FitConfig(yaw_map=False), model).rotations[0])[0]
+        err_map.append(abs(est - truth))
+        err_plain.append(abs(plain - truth))
+    assert max(err_map) <= 6.0, err_map
+    assert err_map[-1] < err_plain[-1], (err_map, err_plain)
