@@ -76,6 +76,7 @@ class ServerContext:
     work_pool: ThreadPoolExecutor | None = None  # uploads: decoding, reconstruction, disk
     reconstruct_slots: asyncio.Semaphore | None = None
     streams: StreamRegistry | None = None
+    jobs: Any = None  # JobQueue (server/jobs.py): avatar creation
     ready: bool = False
 
     async def run_work(self, fn, *args):
