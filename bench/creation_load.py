@@ -4,7 +4,7 @@ running stream while other avatars are being created (issue 18 item 1, issue 17 
 Starts a real server (``uvicorn --factory server.app:create_app``) from ``--repo`` (default: this
 checkout; point it at an older checkout to compare) and measures:
 
-* ``memory``: one 131 KB request carrying eight 16 KB greyscale PNGs that each decode to
+* ``memory``: one 180 KB request carrying eight 22.5 KB greyscale PNGs that each decode to
   4096 x 4096 (the default per-image pixel limit), then three such requests at once. Reported:
   the server's peak resident memory above its idle level for each phase (Linux
   ``/proc/<pid>/status`` ``VmHWM``, reset between phases through ``/proc/<pid>/clear_refs``),
@@ -95,11 +95,22 @@ class Server:
 
 
 # ---------------------------------------------------------------- memory
+def bomb_png(side: int = 4096, level: int = 200) -> bytes:
+    """A greyscale PNG of one grey level, ``side`` x ``side``: 22.5 KB at 4096 (deflate at its limit)."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    raw = (b"\x00" + bytes([level]) * side) * side  # filter byte 0 + one row
+    ihdr = struct.pack(">IIBBBBB", side, side, 8, 0, 0, 0, 0)  # 8-bit greyscale
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(raw, 9)) + chunk(b"IEND", b"")
+
+
 def attack_request(side: int = 4096, n: int = 8):
     """Eight PNGs of one grey level (about 16 KB each) decoding to ``side`` x ``side``, and cameras."""
-    buf = io.BytesIO()
-    Image.new("L", (side, side), 200).save(buf, format="PNG", optimize=True)
-    png = buf.getvalue()
+    png = bomb_png(side)
     sys.path.insert(0, str(HERE))
     from fastgha_core.cameras import cameras_to_json, orbit_cameras
 

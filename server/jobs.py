@@ -397,6 +397,11 @@ class JobQueue:
         self._workers: list[asyncio.Task] = []
         self._pool: ThreadPoolExecutor | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        from prometheus_client import Gauge
+
+        g = Gauge("fastgha_creation_jobs", "avatar creations: running, or waiting (queued or uploading)", ["state"], registry=ctx.metrics.registry)
+        g.labels(state="running").set_function(lambda: self._running)
+        g.labels(state="waiting").set_function(lambda: self._waiting)
 
     # ------------------------------------------------------------ life
     async def start(self) -> None:
