@@ -186,6 +186,8 @@ def decode_photo(photo: Photo, *, max_pixels: int, max_side: int, mask: bool = F
                 im.draft(im.mode, target)  # DCT-domain downscale to the smallest scale >= target
             im.load()
             has_alpha = im.mode in ("RGBA", "LA", "PA") or (im.mode == "P" and "transparency" in im.info)
+            if im.size != target and im.mode in ("L", "LA", "RGB", "RGBA"):
+                im = im.resize(target, Image.Resampling.BILINEAR, reducing_gap=2.0)  # before any conversion: fewer bytes
             if mask:
                 im = im.convert("RGBA").getchannel("A") if has_alpha else im.convert("L")
             else:
