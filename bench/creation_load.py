@@ -11,13 +11,14 @@ checkout; point it at an older checkout to compare) and measures:
   and the HTTP status of every request.
 * ``fps``: one avatar streamed lock-step (one request in flight) for ``--seconds`` while idle,
   then for ``--seconds`` while another client creates avatars back to back from the shipped
-  sample; reported: delivered frames per second of each phase and their ratio (issue 17's
-  target: within 20 %), and how many creations finished meanwhile.
+  sample, ``--rounds`` times alternately; reported: delivered frames per second of each phase,
+  their ratio per round and the median ratio (issue 17's target: within 20 %), and how many
+  creations finished meanwhile.
 
 Usage (numbers go to docs/benchmarks.md)::
 
     python bench/creation_load.py memory
-    python bench/creation_load.py fps --seconds 20 --size 256
+    python bench/creation_load.py fps --rounds 4 --seconds 8 --size 256
     python bench/creation_load.py fps --nice 0        # creation threads at normal priority, for comparison
 """
 
@@ -192,7 +193,6 @@ def fps(args) -> dict:
             r = httpx.post(srv.base + "/v1/avatars", files=files, data={"cameras": cams}, headers={"X-API-Key": KEY}, timeout=600)
             av = r.json()
             _stream_fps(srv.base, av, 3.0, args.size)  # warm
-            idle, idle_ms = _stream_fps(srv.base, av, args.seconds, args.size)
             stop = threading.Event()
             made, times = [0], []
 
@@ -203,14 +203,21 @@ def fps(args) -> dict:
                     times.append(time.perf_counter() - t)
                     made[0] += code == 201
 
-            th = threading.Thread(target=creator, daemon=True)
-            th.start()
-            time.sleep(0.5)
-            busy, busy_ms = _stream_fps(srv.base, av, args.seconds, args.size)
-            stop.set()
-            th.join()
-            out.update(idle_fps=round(idle, 2), busy_fps=round(busy, 2), ratio=round(busy / idle, 3),
-                       idle_render_ms_p50=round(idle_ms, 2), busy_render_ms_p50=round(busy_ms, 2),
+            rounds = []
+            for _ in range(args.rounds):  # idle and busy phases alternate, so that drifting background load hits both
+                idle, idle_ms = _stream_fps(srv.base, av, args.seconds, args.size)
+                stop.clear()
+                th = threading.Thread(target=creator, daemon=True)
+                th.start()
+                time.sleep(0.5)
+                busy, busy_ms = _stream_fps(srv.base, av, args.seconds, args.size)
+                stop.set()
+                th.join()
+                rounds.append({"idle_fps": round(idle, 2), "busy_fps": round(busy, 2), "ratio": round(busy / idle, 3),
+                               "idle_render_ms_p50": round(idle_ms, 2), "busy_render_ms_p50": round(busy_ms, 2)})  # fmt: skip
+                print(rounds[-1], flush=True)
+            med = lambda k: float(np.median([r[k] for r in rounds]))  # noqa: E731
+            out.update(rounds=rounds, idle_fps=med("idle_fps"), busy_fps=med("busy_fps"), ratio_median=med("ratio"),
                        creations=made[0], creation_s_median=round(float(np.median(times)), 2) if times else None)  # fmt: skip
             print(out, flush=True)
         finally:
@@ -222,7 +229,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("what", choices=("memory", "fps"))
     ap.add_argument("--repo", default=str(HERE), help="checkout whose server/ to run (default: this one)")
-    ap.add_argument("--seconds", type=float, default=15.0)
+    ap.add_argument("--seconds", type=float, default=8.0, help="fps: length of each idle and each busy phase")
+    ap.add_argument("--rounds", type=int, default=4, help="fps: idle/busy phase pairs (medians reported)")
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--nice", type=int, default=10, help="FASTGHA_CREATION_NICE of the server")
     ap.add_argument("--log", default=os.path.join(tempfile.gettempdir(), "fastgha-creation-load.log"))
