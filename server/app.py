@@ -289,6 +289,20 @@ def _ply_bytes(avatar) -> bytes:
 
 # ---------------------------------------------------------------- the app
 _CREATE_OPENAPI = {
+    "parameters": [
+        {
+            "name": "Prefer",
+            "in": "header",
+            "required": False,
+            "schema": {"type": "string", "example": "respond-async"},
+            "description": "respond-async: answer 202 at once with a status resource (a creation job) instead of waiting for 201",
+        }
+    ],
+    "responses": {
+        "202": {"description": "accepted (Prefer: respond-async): avatar_id, token, status, status_url, events_url, stream_url"},
+        "429": {"description": "too_many_jobs: this client's creations fill its share; see Retry-After"},
+        "503": {"description": "queue_full: the creation queue is full; see Retry-After"},
+    },
     "requestBody": {
         "required": True,
         "content": {
