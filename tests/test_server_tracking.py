@@ -102,7 +102,7 @@ def test_tiny_face_is_refused(server):
     small = small.resize((small.width // 4, small.height // 4), Image.BILINEAR)  # face box ~45 px < 80 px
     r = _post(server, [("images", ("small.png", _png(np.asarray(small)), "image/png"))])
     assert r.status_code == 422, r.text
-    assert r.json()["error"]["code"] == "face_too_small" and "image 0" in r.json()["error"]["message"]
+    assert r.json()["error"]["code"] == "face_too_small" and "small.png" in r.json()["error"]["message"]
 
 
 @needs_faces
