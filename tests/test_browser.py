@@ -277,6 +277,7 @@ def test_demo_page_nits(page, server):
     # the stats row stays one row
     tops = page.evaluate("[...document.querySelectorAll('#stats > div')].map((d) => d.offsetTop)")
     assert len(set(tops)) == 1, tops
+    assert page.evaluate("(() => { const s = document.getElementById('stats'); return s.scrollWidth <= s.clientWidth; })()")  # nothing cut off
     # picking files: the sample list no longer names a sample; a broken cameras.json keeps the photos
     import httpx
 

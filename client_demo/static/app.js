@@ -546,11 +546,12 @@
     const recent = ft.filter((t) => now - t <= 1000).length;
     // nothing to render: the picture is up to date, not "0 fps"
     const still = S.inFlight === null && !S.dirty;
-    $("st-fps").textContent = !ft.length ? "–" : (recent === 0 && still ? "idle (picture up to date)" : `${recent} fps`);
+    $("st-fps").textContent = !ft.length ? "–" : (recent === 0 && still ? "idle" : `${recent} fps`);
+    $("st-fps").title = recent === 0 && still ? "the picture is up to date: nothing to render until something changes" : "frames drawn in the last second";
     const lat = [...S.latencies].sort((a, b) => a - b);
     $("st-lat").textContent = lat.length ? lat[Math.floor(lat.length / 2)].toFixed(0) : "–";
     $("st-render").textContent = S.lastRenderMs == null ? "–" : S.lastRenderMs.toFixed(1);
-    $("st-dropped").textContent = `${S.serverDropped} server · ${S.coalesced} coalesced`;
+    $("st-dropped").textContent = `${S.serverDropped} · ${S.coalesced}`;
     $("st-frames").textContent = String(S.frames);
   }, 250);
 
