@@ -516,6 +516,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.get("/v1/avatars/{avatar_id}", tags=["avatars"])
     async def get_avatar(avatar_id: str, request: Request):
         job, meta = await _job_or_meta(request, avatar_id)
+        if job is not None and job.status == "failed":
+            raise ApiError(404, "avatar_not_found", f"the avatar's creation failed ({job.error.code}): see /v1/avatars/{avatar_id}/status")
         if job is not None:
             raise ApiError(409, "avatar_not_ready", f"the avatar is still being created ({job.status}, stage {job.stage}): see /v1/avatars/{avatar_id}/status")
         ctx = _ctx(request)

@@ -312,14 +312,24 @@ def test_failed_job_reports_the_error_naming_the_file(server, samples, tmp_path)
     files, cams = _sample_parts(samples)
     files[2] = ("images", ("IMG_0042.jpg", files[2][1][1][: len(files[2][1][1]) // 3], "image/jpeg"))  # truncated: fails decoding
     r = _post(server, files, KEYS[2], {"cameras": cams})
-    if r.status_code == 400:  # the header probe may already see it
-        err = r.json()["error"]
-    else:
-        assert r.status_code == 202, r.text
-        st = _wait(server, r.json(), lambda s: s["status"] in ("ready", "failed"))
-        assert st["status"] == "failed", st
-        err = st["error"]
-    assert err["code"] == "invalid_image" and "IMG_0042.jpg" in err["message"] and "0x" not in err["message"], err
+    assert r.status_code == 202, r.text  # its header is intact: the request queues, decoding fails
+    job = r.json()
+    st = _wait(server, job, lambda s: s["status"] in ("ready", "failed"))
+    assert st["status"] == "failed" and st["progress"] < 1.0, st
+    err = st["error"]
+    assert err["status"] == 400 and err["code"] == "invalid_image", err
+    assert "IMG_0042.jpg" in err["message"] and "0x" not in err["message"] and "image 2" not in err["message"], err
+    h = {"Authorization": f"Bearer {job['token']}"}
+    assert httpx.get(f"{server.base}/v1/avatars/{job['avatar_id']}", headers=h).status_code == 404
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    with connect(f"{server.ws_base}/v1/avatars/{job['avatar_id']}/stream?token={job['token']}") as ws:
+        last = json.loads(ws.recv(timeout=30))
+        assert last["type"] == "progress" and last["status"] == "failed" and last["error"]["code"] == "invalid_image"
+        with pytest.raises(ConnectionClosed) as ei:
+            ws.recv(timeout=30)
+    assert ei.value.rcvd.code == 4404 and ei.value.rcvd.reason == "creation_failed: invalid_image"
     # the Python client sends paths under their own names and raises the job's error as a CreationError
     broken = tmp_path / "IMG_0042.jpg"
     broken.write_bytes(files[2][1][1])
