@@ -375,6 +375,30 @@ def test_a_slow_upload_holds_its_place_and_a_vanished_one_gives_it_back(server, 
     assert server.alive()
 
 
+def test_a_job_reported_ready_survives_kill_9(model_dir, samples, tmp_path):
+    import signal
+
+    from websockets.sync.client import connect
+
+    data = tmp_path / "data"
+    srv = ServerProcess(model_dir, data, None, tmp_path / "a.log", FASTGHA_API_KEYS=",".join(KEYS), FASTGHA_WARMUP="false")
+    try:
+        files, cams = _sample_parts(samples)
+        job = _post(srv, files, KEYS[0], {"cameras": cams}).json()
+        st = _wait(srv, job, lambda s: s["status"] in ("ready", "failed"))
+        assert st["status"] == "ready", st
+    finally:
+        srv.stop(signal.SIGKILL)  # the moment it said ready
+    srv = ServerProcess(model_dir, data, None, tmp_path / "b.log", FASTGHA_API_KEYS=",".join(KEYS), FASTGHA_WARMUP="false")
+    try:
+        after = _status(srv, job)  # no job in memory any more: the status comes from the stored avatar
+        assert after["status"] == "ready" and after["avatar"]["num_gaussians"] == st["avatar"]["num_gaussians"]
+        with connect(f"{srv.ws_base}/v1/avatars/{job['avatar_id']}/stream?token={job['token']}") as ws:
+            assert json.loads(ws.recv(timeout=60))["type"] == "ready"
+    finally:
+        srv.stop()
+
+
 # ---------------------------------------------------------------- memory (issue 18 item 1)
 def bomb_png(side: int = 4096, level: int = 200) -> bytes:
     """A greyscale PNG of one grey level, ``side`` x ``side``: 22.5 KB at 4096 (deflate at its limit)."""
