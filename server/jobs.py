@@ -96,6 +96,25 @@ class Photo:
     size: tuple[int, int] = (0, 0)  # (width, height) of the stored pixels, from the header
 
 
+try:  # the one decoder of every ingest path (fastgha_core/images.py), where this checkout has it
+    from fastgha_core import images as _shared
+except ImportError:  # older checkouts: Pillow here, pixels as stored
+    _shared = None
+
+
+def _upright_size(im) -> tuple[int, int]:
+    """``(width, height)`` of the image as decoded: the shared decoder applies EXIF orientation,
+    so cameras describe the upright image (orientations 5-8 swap the sides); read from the header."""
+    w, h = im.size
+    if _shared is None:
+        return w, h
+    try:
+        orientation = int(im.getexif().get(0x0112, 1))
+    except Exception:  # unreadable EXIF: the decoder ignores it too
+        orientation = 1
+    return (h, w) if orientation in (5, 6, 7, 8) else (w, h)
+
+
 def _open_checked(data: bytes, name: str, max_pixels: int):
     """Pillow image with only the header read; 400/413 ``ApiError`` naming ``name``."""
     from PIL import Image
@@ -143,7 +162,7 @@ def probe_request(
     total = 0
     for p in images + (masks or []):
         im = _open_checked(p.data, p.name, max_pixels)
-        p.size = im.size
+        p.size = _upright_size(im)
         im.close()
         total += p.size[0] * p.size[1]
     if total > max_request_pixels:
@@ -164,9 +183,8 @@ def probe_request(
 def decode_photo(photo: Photo, *, max_pixels: int, max_side: int, mask: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
     """Decode one upload, downscaled while decoding so that its longer side is <= ``max_side``.
 
-    The one place the creation path decodes pixels (Pillow: JPEG and PNG; the pixel limit is
-    checked from the header before decoding; EXIF orientation is ignored because a client's
-    ``K`` describes the stored pixel grid). A JPEG is decoded at a reduced DCT scale (1/2, 1/4,
+    The one place the creation path decodes pixels (JPEG and PNG; the pixel limit is checked
+    from the header before decoding). A JPEG is decoded at a reduced DCT scale (1/2, 1/4,
     1/8) when that suffices, so its full raster never exists in memory.
 
     Returns:
@@ -174,8 +192,22 @@ def decode_photo(photo: Photo, *, max_pixels: int, max_side: int, mask: bool = F
         ``mask=True``: ``(mask [h, w] uint8, None)``: the alpha channel when there is one, else luminance.
     Raises:
         ApiError 400 ``invalid_image`` / 413 ``image_too_large``, naming ``photo.name``.
+
+    Where ``fastgha_core.images`` exists, it decodes (same downscale-while-decoding, plus EXIF
+    orientation applied and every pixel mode normalised; its errors become the same ApiErrors,
+    and 400 ``unsupported_image_mode``).
     """
     from PIL import Image
+
+    if _shared is not None:
+        kw = {"max_pixels": max_pixels, "max_side": max_side, "formats": _FORMATS}
+        try:
+            if mask:
+                return _shared.decode_mask_bytes(photo.data, photo.name, **kw), None
+            d = _shared.decode_image_bytes(photo.data, photo.name, **kw)
+            return d.rgb, d.alpha
+        except _shared.ImageDecodeError as e:
+            raise ApiError(413 if e.code == "image_too_large" else 400, e.code, e.message) from None
 
     im = _open_checked(photo.data, photo.name, max_pixels)
     target = _target_size(*im.size, max_side)
@@ -647,8 +679,6 @@ class JobQueue:
             state.timings_ms[f"{name}_ms"] = 1e3 * (time.perf_counter() - t)
             progress(name, 1.0)
         avatar = state.avatar
-        if len(avatar.gaussians) == 0:
-            raise ApiError(400, "empty_avatar", "the reconstruction contains no Gaussians: check that the cameras look at the head")
         # ---- saving (the avatar is durable before the job reports ready)
         progress("saving", 0.0)
         n = len(avatar.gaussians)

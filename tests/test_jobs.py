@@ -48,7 +48,19 @@ def _smooth(h: int, w: int) -> np.ndarray:
 
 
 # ---------------------------------------------------------------- units
-def test_decode_photo_downscales_while_decoding_like_a_full_decode_then_resize():
+@pytest.fixture(params=["shared", "pillow"])
+def decoder(request, monkeypatch):
+    """Both decoders of ``decode_photo``: ``fastgha_core.images`` (where present) and the Pillow fallback."""
+    import server.jobs as jobs
+
+    if request.param == "pillow":
+        monkeypatch.setattr(jobs, "_shared", None)
+    elif jobs._shared is None:
+        pytest.skip("needs the shared decoder fastgha_core/images.py")
+    return request.param
+
+
+def test_decode_photo_downscales_while_decoding_like_a_full_decode_then_resize(decoder):
     arr = _smooth(600, 800)
     for data in (_png(arr), _jpeg(arr)):
         rgb, alpha = decode_photo(Photo("a.img", data), max_pixels=10**7, max_side=200)
@@ -59,7 +71,7 @@ def test_decode_photo_downscales_while_decoding_like_a_full_decode_then_resize()
     np.testing.assert_array_equal(full, arr)  # no downscale below max_side: exact pixels
 
 
-def test_decode_photo_alpha_and_masks():
+def test_decode_photo_alpha_and_masks(decoder):
     rgba = np.dstack([_smooth(40, 60), np.tile(np.arange(60, dtype=np.uint8) * 4, (40, 1))])
     rgb, alpha = decode_photo(Photo("p.png", _png(rgba)), max_pixels=10**6, max_side=1000)
     np.testing.assert_array_equal(rgb, rgba[..., :3])
@@ -71,7 +83,7 @@ def test_decode_photo_alpha_and_masks():
     np.testing.assert_array_equal(m2, rgba[..., 3])  # a mask with alpha: the alpha channel
 
 
-def test_errors_name_files_by_their_filenames_never_an_index_or_a_repr():
+def test_errors_name_files_by_their_filenames_never_an_index_or_a_repr(decoder):
     good = _png(_smooth(30, 40))
     cases = [
         (Photo("IMG_0042.jpg", good[:60]), "invalid_image"),
@@ -103,6 +115,29 @@ def test_errors_name_files_by_their_filenames_never_an_index_or_a_repr():
     assert safe_filename("C:\\Users\\me\\IMG 1.JPG", 0) == "IMG 1.JPG"
     assert safe_filename(None, 2) == "unnamed image 3" and safe_filename("", 0, "mask") == "unnamed mask 1"
     assert safe_filename("a\x00b.png", 0) == "a?b.png"
+
+
+def test_exif_rotated_photo_is_probed_and_decoded_upright():
+    """With the shared decoder (``fastgha_core.images``: EXIF orientation applied, cameras describe
+    the upright image) the header probe and the decoder agree on the upright size."""
+    pytest.importorskip("fastgha_core.images", reason="needs the shared decoder fastgha_core/images.py")
+    from types import SimpleNamespace
+
+    stored = _smooth(30, 40)  # stored 40 wide, 30 high; orientation 6: shown 30 wide, 40 high
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    buf = io.BytesIO()
+    Image.fromarray(stored).save(buf, format="JPEG", quality=95, exif=exif.tobytes())
+    photo = Photo("portrait.jpg", buf.getvalue())
+    upright_cam = SimpleNamespace(width=30, height=40)
+    probe_request([photo], None, [upright_cam], max_pixels=10**6, max_request_pixels=10**7)
+    assert photo.size == (30, 40)
+    rgb, _ = decode_photo(photo, max_pixels=10**6, max_side=1000)
+    assert rgb.shape == (40, 30, 3)
+    with pytest.raises(ApiError) as ei:  # a camera of the stored (sideways) grid is refused, naming the file
+        probe_request([Photo("portrait.jpg", buf.getvalue())], None, [SimpleNamespace(width=40, height=30)],
+                      max_pixels=10**6, max_request_pixels=10**7)  # fmt: skip
+    assert ei.value.code == "camera_size_mismatch" and "portrait.jpg" in ei.value.message
 
 
 def test_job_progress_is_monotonic_over_its_stages():
