@@ -600,9 +600,11 @@ class JobQueue:
                 error = ApiError(404, "avatar_deleted", "the avatar was deleted before it was created")
             except asyncio.CancelledError:
                 raise
-            except Exception:
-                log.exception("creating avatar %s failed", job.id)
-                error = ApiError(500, "internal_error", "creating the avatar failed (internal error)")
+            except Exception as e:
+                error = _known_error(e)
+                if error is None:
+                    log.exception("creating avatar %s failed", job.id)
+                    error = ApiError(500, "internal_error", "creating the avatar failed (internal error)")
             finally:
                 self._release(job.client, job.nbytes, waiting=False)
             dt = time.time() - job.started
@@ -709,6 +711,18 @@ class JobQueue:
             if k in meta:
                 out[k] = meta[k]
         return out
+
+
+def _known_error(e: Exception) -> ApiError | None:
+    """The typed answer of an error the app's handlers know (a full disk: 507), raised inside a job."""
+    try:
+        from .store import StorageFullError  # the hardened store: disk full while saving
+    except ImportError:
+        return None
+    if isinstance(e, StorageFullError):
+        log.error("saving an avatar failed: %s", e.strerror or e)
+        return ApiError(507, "insufficient_storage", "the server has no disk space left to store this avatar; nothing was stored")
+    return None
 
 
 def _busy(status: int, code: str, message: str, retry_after: int) -> ApiError:
