@@ -256,6 +256,16 @@ async def _photo(part: Any, index: int, what: str) -> Photo:
     return Photo(safe_filename(part.filename, index, what), await part.read())
 
 
+def _parse_cameras(text) -> list[Cameras]:
+    """The ``cameras`` field: the hardened parser (bounded numbers, renderable cameras) where this
+    checkout has it (``server.protocol.parse_cameras_json``), else strict JSON + ``cameras_from_json``."""
+    try:
+        from .protocol import parse_cameras_json
+    except ImportError:
+        return cameras_from_json(loads_strict(text))
+    return parse_cameras_json(text)
+
+
 def _prefers_async(request: Request) -> bool:
     """RFC 7240 ``Prefer: respond-async``: answer 202 with a status resource instead of waiting."""
     prefs = ",".join(request.headers.getlist("prefer")).lower()
@@ -450,7 +460,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         else:
             cam_text = await cam_field.read() if isinstance(cam_field, UploadFile) else cam_field
             try:
-                cams = cameras_from_json(loads_strict(cam_text))
+                cams = _parse_cameras(cam_text)
             except ProtocolError as e:
                 raise ApiError(400, "non_finite_number" if e.code == "non_finite_number" else "invalid_cameras", e.message) from None
             except ValueError as e:

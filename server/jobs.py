@@ -681,6 +681,7 @@ class JobQueue:
             state.timings_ms[f"{name}_ms"] = 1e3 * (time.perf_counter() - t)
             progress(name, 1.0)
         avatar = state.avatar
+        _check_head(len(avatar.gaussians), s)
         # ---- saving (the avatar is durable before the job reports ready)
         progress("saving", 0.0)
         n = len(avatar.gaussians)
@@ -711,6 +712,21 @@ class JobQueue:
             if k in meta:
                 out[k] = meta[k]
         return out
+
+
+def _check_head(n: int, settings) -> None:
+    """Refuse a reconstruction that holds no head (422 ``no_head_reconstructed``, the hardened
+    protocol's ``check_reconstruction``), where this checkout has that check."""
+    from .protocol import ProtocolError
+
+    try:
+        from .protocol import check_reconstruction
+    except ImportError:
+        return
+    try:
+        check_reconstruction(n, settings.min_avatar_gaussians)
+    except ProtocolError as e:
+        raise ApiError(422, e.code, e.message) from None
 
 
 def _known_error(e: Exception) -> ApiError | None:
