@@ -28,7 +28,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
 from fastgha_core import __version__
-from fastgha_core.cameras import Cameras, cameras_from_json, orbit_cameras
+from fastgha_core.cameras import Cameras, orbit_cameras
 
 from . import auth
 from .context import ServerContext, StreamRegistry
@@ -37,7 +37,7 @@ from .frames import FrameRenderer
 from .jobs import CreationRequest, JobQueue, Photo, extra_stages_for, probe_request, safe_filename
 from .logs import install_token_redaction
 from .metrics import CONTENT_TYPE_LATEST
-from .protocol import ProtocolError, loads_strict
+from .protocol import ProtocolError
 from .samples import make_samples_router
 from .settings import Settings, get_settings
 from .store import AvatarStore
@@ -262,6 +262,10 @@ def _parse_cameras(text) -> list[Cameras]:
     try:
         from .protocol import parse_cameras_json
     except ImportError:
+        from fastgha_core.cameras import cameras_from_json
+
+        from .protocol import loads_strict
+
         return cameras_from_json(loads_strict(text))
     return parse_cameras_json(text)
 

@@ -56,14 +56,6 @@ class Settings(BaseSettings):
     max_image_pixels: int = Field(16_777_216, ge=64, description="largest width*height of one uploaded image")
     max_images: int = Field(8, ge=1, le=64, description="most images per avatar")
     max_concurrent_reconstructions: int = Field(1, ge=1, description="reconstructions running at once; others queue")
-    # creation jobs (server/jobs.py, docs/protocol.md "Creation jobs")
-    max_queued_jobs: int = Field(8, ge=0, description="creations waiting for a slot; more answer 503 queue_full")
-    max_jobs_per_client: int = Field(4, ge=1, description="creations queued or running per API key (or address without keys); more answer 429")
-    max_queued_upload_bytes: int = Field(128 * 1024 * 1024, ge=1024, description="upload bytes held by queued and running creations; more answer 503")
-    max_request_pixels: int = Field(134_217_728, ge=64, description="largest sum of width*height over the images and masks of one request (read from headers, before decoding)")
-    decode_max_side: int = Field(1024, ge=64, description="photos are downscaled while decoding so that their longer side is at most this (never below the model's input size)")
-    job_ttl_seconds: float = Field(600.0, gt=0, description="finished creation jobs answer their status resource for this long")
-    creation_nice: int = Field(10, ge=0, le=19, description="nice value of the creation threads, so that rendering streams keep their frame rate")
 
     # ------------------------------------------------------------ streaming
     max_output_size: int = Field(1024, ge=16, le=8192, description="cap on the output width and height of a frame")
@@ -85,6 +77,15 @@ class Settings(BaseSettings):
         7 * 24 * 3600.0, ge=0, description="idle avatars are deleted after this long; 0 = never"
     )
     expiry_interval_seconds: float = Field(300.0, gt=0, description="how often expired avatars are swept")
+
+    # ------------------------------------------------------------ creation jobs (server/jobs.py, docs/protocol.md)
+    max_queued_jobs: int = Field(8, ge=0, description="creations waiting for a slot; more answer 503 queue_full")
+    max_jobs_per_client: int = Field(4, ge=1, description="creations queued or running per API key (or address without keys); more answer 429")
+    max_queued_upload_bytes: int = Field(128 * 1024 * 1024, ge=1024, description="upload bytes held by queued and running creations; more answer 503")
+    max_request_pixels: int = Field(134_217_728, ge=64, description="largest sum of width*height over the images and masks of one request (read from headers, before decoding)")
+    decode_max_side: int = Field(1024, ge=64, description="photos are downscaled while decoding so that their longer side is at most this (never below the model's input size)")
+    job_ttl_seconds: float = Field(600.0, gt=0, description="finished creation jobs answer their status resource for this long")
+    creation_nice: int = Field(10, ge=0, le=19, description="nice value of the creation threads, so that rendering streams keep their frame rate")
 
     # ------------------------------------------------------------ misc
     static_dir: Path | None = Field(
