@@ -483,3 +483,60 @@ def test_decompression_amplification_is_bounded(model_dir, tmp_path):
         assert growth < 600, f"peak RSS grew by {growth:.0f} MB"  # was 4.5 GB before decoding moved into the queue
     finally:
         srv.stop()
+
+
+# ---------------------------------------------------------------- the extra-stage hook (test-time refinement plugs in here)
+def test_an_extra_stage_sees_the_prepared_inputs_reports_progress_and_replaces_the_avatar(model_dir, samples, tmp_path):
+    """``JobQueue(extra_stages=[("refining", fn)])`` in-process with a real model and store."""
+    import asyncio
+    import dataclasses
+
+    from fastgha_core import load_model
+    from fastgha_core.cameras import cameras_from_json
+    from fastgha_core.model.avatar import CanonicalAvatar
+    from server.context import ServerContext
+    from server.jobs import JobQueue
+    from server.settings import Settings
+    from server.store import AvatarStore
+
+    ctx = ServerContext(settings=Settings(data_dir=tmp_path, warmup=False))
+    ctx.model = load_model(str(model_dir), device="cpu")
+    ctx.store = AvatarStore(tmp_path, 10**9, 0, load_fn=CanonicalAvatar.load)
+    seen: dict = {}
+
+    def refine(state, fraction) -> None:
+        seen.update(images=tuple(state.images.shape), masks=tuple(state.masks.shape), views=len(state.cameras.K),
+                    size=(state.cameras.width, state.cameras.height), names=list(state.names), n=len(state.avatar.gaussians))  # fmt: skip
+        fraction(0.5)
+        keep = len(state.avatar.gaussians) // 2
+        state.avatar = dataclasses.replace(state.avatar, gaussians=state.avatar.gaussians[:keep])
+
+    imgs = sorted(samples.glob("[0-9][0-9].jpg"))
+    photos = [Photo(p.name, p.read_bytes()) for p in imgs]
+    masks = [Photo(f"{p.stem}_mask.png", (samples / f"{p.stem}_mask.png").read_bytes()) for p in imgs]
+    cams = cameras_from_json(json.loads((samples / "cameras.json").read_text()))
+    probe_request(photos, masks, cams, max_pixels=10**7, max_request_pixels=10**8)
+
+    async def run():
+        q = JobQueue(ctx, tracker=None, extra_stages=[("refining", refine)])
+        await q.start()
+        try:
+            job, token = q.submit(q.reserve("test", 1), CreationRequest(photos, masks, cams))
+            stages = []  # every update (watchers may see them coalesced)
+            update = job.update
+            job.update = lambda st, f: (update(st, f), stages.append((job.stage, job.progress)))
+            await q.wait(job)
+            return job, stages
+        finally:
+            await q.stop()
+
+    job, stages = asyncio.run(run())
+    assert job.status == "ready", job.error and job.error.message
+    s = ctx.model.config.input_size
+    assert seen["images"] == (4, 3, s, s) and seen["masks"] == (4, 1, s, s) and seen["views"] == 4 and seen["size"] == (s, s)
+    assert seen["names"] == [p.name for p in imgs]
+    assert job.stages == ["queued", "decoding", "reconstructing", "refining", "saving"]
+    assert "refining" in [st for st, _ in stages] and [p for _, p in stages] == sorted(p for _, p in stages)
+    meta = ctx.store.get_meta(job.id)
+    assert meta["num_gaussians"] == seen["n"] // 2 == job.result["num_gaussians"] and "refining_ms" in meta
+    assert len(ctx.store.get(job.id).avatar.gaussians) == seen["n"] // 2  # the stage's avatar is what was saved
