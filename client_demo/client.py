@@ -8,6 +8,7 @@ or ``server``), so it can be copied into an application as one file::
     client = FastGHAClient("http://127.0.0.1:8000", api_key="...")
     avatar = client.create_avatar(["0.jpg", "1.jpg", "2.jpg", "3.jpg"], cameras)   # cameras: list of dicts
     avatar = client.create_avatar(["me.jpg"])   # no cameras: the server tracks the photo (its `faces` extra)
+    avatar = client.create_avatar(paths, progress=lambda st: print(st["stage"], st["progress"]))
     cam = orbit_camera(yaw_deg=20, width=256, height=256)
     frames = client.stream_sync(avatar, [{"expression": {"jawOpen": w}, "camera": cam} for w in (0, .5, 1)])
     frames[0].image()            # uint8 [H, W, 3]
@@ -15,6 +16,12 @@ or ``server``), so it can be copied into an application as one file::
 
 Cameras are our JSON camera objects ``{"K": 3x3, "w2c": 4x4, "width", "height"}`` (OpenCV:
 x right, y down, z forward; metres; head-centric world with +y up and +z out of the face).
+
+Creation is a job on the server: ``create_avatar`` asks for it with ``Prefer: respond-async``,
+gets ``202`` with the avatar's id and token at once, polls ``GET /v1/avatars/{id}/status`` and
+hands every status (``stage``, ``progress`` in [0, 1], ``queue_position``) to ``progress``
+until the avatar is ready. A server whose creation queue is full answers 429 / 503 with
+``Retry-After``: ``ServerBusy`` carries it, and ``busy_wait_s`` retries for that long.
 
 Streaming (``stream`` / ``stream_sync``) keeps at most ``max_in_flight`` requests unanswered.
 The default 1 (lock-step) gets every request rendered; 2 (one rendering, one waiting) hides
@@ -31,7 +38,7 @@ import json
 import math
 import struct
 import time
-from collections.abc import AsyncIterator, Iterable, Sequence
+from collections.abc import AsyncIterator, Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -47,6 +54,8 @@ __all__ = [
     "Frame",
     "StreamStats",
     "StreamError",
+    "CreationError",
+    "ServerBusy",
     "look_at_camera",
     "orbit_camera",
     "load_request_dir",
@@ -69,6 +78,22 @@ class StreamError(RuntimeError):
         self.message = message
 
 
+class CreationError(RuntimeError):
+    """The server refused a creation or its job failed: ``status`` (HTTP), ``code``, ``message``."""
+
+    def __init__(self, status: int, code: str, message: str, what: str = "POST /v1/avatars") -> None:
+        super().__init__(f"{what} -> HTTP {status} {code}: {message}")
+        self.status, self.code, self.message = status, code, message
+
+
+class ServerBusy(CreationError):
+    """429 / 503: the server's creation queue is full; ``retry_after`` seconds (its ``Retry-After``)."""
+
+    def __init__(self, status: int, code: str, message: str, retry_after: float) -> None:
+        super().__init__(status, code, message)
+        self.retry_after = retry_after
+
+
 @dataclass(frozen=True)
 class Avatar:
     """What ``POST /v1/avatars`` returned. Keep the token: the server stores only its hash."""
@@ -78,7 +103,7 @@ class Avatar:
     num_gaussians: int
     reconstruction_ms: float
     expression_space: str
-    round_trip_ms: float = 0.0  # client-side time of the create call (upload + reconstruction)
+    round_trip_ms: float = 0.0  # client-side time of the create call (upload, queue, reconstruction)
     tracking_ms: float | None = None  # server-side photo tracking, when the photos came without cameras
 
 
@@ -247,6 +272,14 @@ def _as_bytes(item: Any) -> tuple[bytes, str]:
     raise ValueError(f"an image must be a path, bytes, a PIL image or a uint8 array, got {type(item).__name__}")
 
 
+def _upload_name(item: Any, index: int, ctype: str, suffix: str = "") -> str:
+    """The filename sent with an upload: a path's own name, else ``photo<N><suffix>.<ext>`` (1-based),
+    so that the server's error messages name the file the caller knows."""
+    if isinstance(item, (str, Path)):
+        return Path(item).name
+    return f"photo{index + 1}{suffix}.{ctype.split('/')[1]}"
+
+
 def _ws_url(base: str, path: str) -> str:
     parts = urlsplit(base)
     scheme = {"http": "ws", "https": "wss", "ws": "ws", "wss": "wss"}.get(parts.scheme)
@@ -294,11 +327,44 @@ class FastGHAClient:
         """``GET /v1/model``: name, expression space and names, sizes, device."""
         return self._check(httpx.get(self.url + "/v1/model", timeout=self.timeout)).json()
 
-    def create_avatar(self, images: Sequence[Any], cameras: Sequence[dict] | None = None, masks: Sequence[Any] | None = None) -> Avatar:
+    def _error_of(self, r: httpx.Response) -> CreationError:
+        try:
+            err = r.json()["error"]
+            code, msg = str(err["code"]), str(err["message"])
+        except Exception:
+            code, msg = "http_error", r.text[:200]
+        if r.status_code in (429, 503):
+            try:
+                retry = float(r.headers.get("retry-after", "1"))
+            except ValueError:
+                retry = 1.0
+            return ServerBusy(r.status_code, code, msg, retry)
+        return CreationError(r.status_code, code, msg, f"{r.request.method} {r.request.url.path}")
+
+    def create_avatar(
+        self,
+        images: Sequence[Any],
+        cameras: Sequence[dict] | None = None,
+        masks: Sequence[Any] | None = None,
+        *,
+        progress: Callable[[dict], None] | None = None,
+        busy_wait_s: float = 0.0,
+        poll_s: float = 0.25,
+    ) -> Avatar:
         """Reconstruct an avatar from 1-8 photos (paths, bytes, PIL images or uint8 arrays) and their cameras.
 
         Without ``cameras`` the server finds the face in each photo and estimates them (it needs its
-        ``faces`` extra, and answers ``cameras_required`` otherwise).
+        ``faces`` extra, and answers ``cameras_required`` otherwise). Files are sent under their own
+        names (``photo<N>.png`` for arrays and bytes), which the server's error messages use.
+
+        Args:
+            progress: called with every status of the creation job (``status`` queued / running /
+                ready, ``stage``, ``progress`` in [0, 1], ``queue_position``).
+            busy_wait_s: when the server's queue is full (429 / 503), retry after its ``Retry-After``
+                for up to this many seconds; 0 raises ``ServerBusy`` at once.
+            poll_s: seconds between status polls.
+        Raises:
+            ServerBusy: the queue stayed full. CreationError: the request was refused or the job failed.
         """
         if cameras is not None and len(images) != len(cameras):
             raise ValueError(f"need one camera per image, got {len(images)} images and {len(cameras)} cameras")
@@ -307,25 +373,54 @@ class FastGHAClient:
         files = []
         for i, img in enumerate(images):
             data, ctype = _as_bytes(img)
-            files.append(("images", (f"{i}.{ctype.split('/')[1]}", data, ctype)))
+            files.append(("images", (_upload_name(img, i, ctype), data, ctype)))
         for i, m in enumerate(masks or []):
             data, ctype = _as_bytes(m)
-            files.append(("masks", (f"{i}_mask.{ctype.split('/')[1]}", data, ctype)))
-        headers = {"X-API-Key": self.api_key} if self.api_key else {}
-        t0 = time.perf_counter()
+            files.append(("masks", (_upload_name(m, i, ctype, "_mask"), data, ctype)))
+        headers = {"Prefer": "respond-async", **({"X-API-Key": self.api_key} if self.api_key else {})}
         data = {"cameras": json.dumps(list(cameras))} if cameras is not None else {}
-        r = httpx.post(self.url + "/v1/avatars", files=files, data=data, headers=headers, timeout=self.timeout)
+        t0 = time.perf_counter()
+        deadline = time.monotonic() + busy_wait_s
+        while True:
+            r = httpx.post(self.url + "/v1/avatars", files=files, data=data, headers=headers, timeout=self.timeout)
+            if r.status_code < 400:
+                break
+            err = self._error_of(r)
+            if isinstance(err, ServerBusy) and time.monotonic() + err.retry_after <= deadline:
+                if progress is not None:
+                    progress({"status": "busy", "stage": "queued", "progress": 0.0, "queue_position": None, "retry_after": err.retry_after})
+                time.sleep(err.retry_after)
+                continue
+            raise err
+        d = r.json()
+        if r.status_code == 202:  # a job: poll its status until the avatar is ready
+            token, aid = d["token"], d["avatar_id"]
+            auth = {"Authorization": f"Bearer {token}"}
+            while True:
+                if progress is not None:
+                    progress({k: v for k, v in d.items() if k != "token"})
+                if d["status"] == "failed":
+                    e = d.get("error") or {}
+                    raise CreationError(int(e.get("status", 500)), e.get("code", "failed"), e.get("message", ""), "creating the avatar")
+                if d["status"] == "ready":
+                    d = {**d["avatar"], "token": token}
+                    break
+                time.sleep(poll_s)
+                r = httpx.get(f"{self.url}/v1/avatars/{aid}/status", headers=auth, timeout=self.timeout)
+                if r.status_code >= 400:
+                    raise self._error_of(r)
+                d = r.json()
         rt = 1e3 * (time.perf_counter() - t0)
-        d = self._check(r).json()
         tracking = d.get("tracking_ms")
         return Avatar(
             d["avatar_id"], d["token"], int(d["num_gaussians"]), float(d["reconstruction_ms"]), d["expression_space"], rt,
             float(tracking) if tracking is not None else None,
         )
 
-    def create_avatar_from_dir(self, folder: str | Path) -> Avatar:
+    def create_avatar_from_dir(self, folder: str | Path, **kw: Any) -> Avatar:
+        """``create_avatar`` of a request folder (``load_request_dir``); ``kw`` as ``create_avatar``'s."""
         images, cams, masks = load_request_dir(folder)
-        return self.create_avatar(images, cams, masks)
+        return self.create_avatar(images, cams, masks, **kw)
 
     def avatar_info(self, avatar: Avatar) -> dict:
         return self._check(httpx.get(f"{self.url}/v1/avatars/{avatar.avatar_id}", headers=self._auth(avatar), timeout=self.timeout)).json()
@@ -374,6 +469,8 @@ class FastGHAClient:
         sent_at: dict[int, float] = {}
         async with self.connect(avatar) as ws:
             ready = json.loads(await asyncio.wait_for(ws.recv(), frame_timeout))
+            while ready.get("type") == "progress":  # opened before the avatar was ready: creation progress
+                ready = json.loads(await asyncio.wait_for(ws.recv(), frame_timeout))
             if ready.get("type") != "ready":
                 raise StreamError(ready.get("code", "unexpected_message"), str(ready.get("message", ready)))
             if options:

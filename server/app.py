@@ -8,8 +8,9 @@ contracts are in ``docs/protocol.md``.
 from __future__ import annotations
 
 import asyncio
+import hashlib
+import json
 import logging
-import math
 import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -20,9 +21,10 @@ from typing import Any
 import torch
 from fastapi import FastAPI, Request, Response
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, StreamingResponse
 from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 
 from fastgha_core import __version__
 from fastgha_core.cameras import Cameras, orbit_cameras
@@ -31,15 +33,15 @@ from . import auth
 from .context import ServerContext, StreamRegistry
 from .errors import ApiError, CloseCode, error_body
 from .frames import FrameRenderer
-from .imaging import decode_image, decode_mask
+from .jobs import CreationRequest, JobQueue, Photo, extra_stages_for, probe_request, safe_filename
 from .logs import install_token_redaction
 from .metrics import CONTENT_TYPE_LATEST
-from .protocol import ProtocolError, check_reconstruction, parse_cameras_json
+from .protocol import ProtocolError, parse_cameras_json
 from .samples import make_samples_router
 from .security import install as install_security
 from .settings import Settings, get_settings
 from .store import AvatarStore
-from .streaming import _safe_close, stream_endpoint
+from .streaming import stream_endpoint
 from .tracking import PhotoTracker
 
 __all__ = ["create_app"]
@@ -58,6 +60,7 @@ _STATUS_CODES = {
     415: "unsupported_media_type",
     422: "invalid_request",
     429: "too_many_requests",
+    503: "service_unavailable",
 }
 
 
@@ -176,11 +179,11 @@ async def _lifespan(app: FastAPI):
     s = ctx.settings
     ctx.work_pool = ThreadPoolExecutor(max_workers=max(2, s.max_concurrent_reconstructions + 1), thread_name_prefix="fastgha-work")
     ctx.render_pool = ThreadPoolExecutor(max_workers=s.render_workers, thread_name_prefix="fastgha-render")
-    ctx.reconstruct_slots = asyncio.Semaphore(s.max_concurrent_reconstructions)
     ctx.streams = StreamRegistry(s.max_streams_per_avatar, s.max_streams_total)
     if not s.api_key_list:
         log.warning("FASTGHA_API_KEYS is not set: anyone who can reach this server can create avatars")
     await ctx.run_work(_load, ctx)
+    await ctx.jobs.start()
     ctx.ready = True
     sweeper = asyncio.create_task(_expiry_loop(ctx), name="fastgha-expiry")
     try:
@@ -191,6 +194,7 @@ async def _lifespan(app: FastAPI):
         await asyncio.gather(sweeper, return_exceptions=True)
         for session in ctx.streams.sessions():
             await session.close(CloseCode.GOING_AWAY, "server shutting down")
+        await ctx.jobs.stop()
         ctx.render_pool.shutdown(wait=True, cancel_futures=True)
         ctx.work_pool.shutdown(wait=True, cancel_futures=True)
         log.info("shut down")
@@ -230,11 +234,14 @@ async def _read_body(request: Request, limit: int) -> bytes:
         if n > limit:
             raise ApiError(413, "upload_too_large", f"upload of {n} bytes exceeds the limit of {limit}")
     chunks, total = [], 0
-    async for chunk in request.stream():
-        total += len(chunk)
-        if total > limit:
-            raise ApiError(413, "upload_too_large", f"upload exceeds the limit of {limit} bytes")
-        chunks.append(chunk)
+    try:
+        async for chunk in request.stream():
+            total += len(chunk)
+            if total > limit:
+                raise ApiError(413, "upload_too_large", f"upload exceeds the limit of {limit} bytes")
+            chunks.append(chunk)
+    except ClientDisconnect:  # nobody is left to answer; its place in the queue is released by the caller
+        raise ApiError(400, "client_disconnected", "the client went away before the upload was complete") from None
     return b"".join(chunks)
 
 
@@ -274,57 +281,33 @@ async def _parse_form(request: Request, s: Settings):
         raise ApiError(400, "invalid_multipart", f"the multipart body could not be parsed ({type(e).__name__}: {e})") from None
 
 
-async def _part_bytes(part: Any, what: str) -> bytes:
-    if isinstance(part, UploadFile):
-        return await part.read()
-    raise ApiError(400, "invalid_multipart", f"{what} must be a file part, got a text field")
+async def _photo(part: Any, index: int, what: str) -> Photo:
+    """An uploaded file part as a ``Photo`` named by its filename (never by an index or a repr)."""
+    if not isinstance(part, UploadFile):
+        raise ApiError(400, "invalid_multipart", f"every '{what}s' part must be a file, got a text field (part {index + 1})")
+    return Photo(safe_filename(part.filename, index, what), await part.read())
 
 
-def _decode_inputs(blobs: list[bytes], mask_blobs: list[bytes] | None, cams: list[Cameras] | None, max_pixels: int):
-    images, masks = [], []
-    for i, data in enumerate(blobs):
-        img, alpha = decode_image(data, f"image {i}", max_pixels)
-        h, w = img.shape[-2:]
-        cam = cams[i] if cams is not None else None  # None: the server tracks the photos (server/tracking.py)
-        if cam is not None and (cam.width, cam.height) != (w, h):
-            raise ApiError(
-                400,
-                "camera_size_mismatch",
-                f"camera {i} describes a {cam.width}x{cam.height} image but image {i} is {w}x{h}",
-            )
-        mask = None
-        if mask_blobs is not None:
-            mask = decode_mask(mask_blobs[i], f"mask {i}", max_pixels)
-            if tuple(mask.shape[-2:]) != (h, w):
-                raise ApiError(400, "mask_size_mismatch", f"mask {i} is {mask.shape[-1]}x{mask.shape[-2]}, image {i} is {w}x{h}")
-        elif alpha is not None:
-            mask = alpha  # an RGBA photo carries its own matte
-        images.append(img)
-        masks.append(mask)
-    if all(m is None for m in masks):
-        return images, None
-    return images, [m if m is not None else torch.ones(1, *img.shape[-2:]) for m, img in zip(masks, images)]
+def _prefers_async(request: Request) -> bool:
+    """RFC 7240 ``Prefer: respond-async``: answer 202 with a status resource instead of waiting."""
+    prefs = ",".join(request.headers.getlist("prefer")).lower()
+    return any(p.strip().split(";")[0].strip() == "respond-async" for p in prefs.split(","))
 
 
-def _track_and_reconstruct(ctx: ServerContext, tracker: PhotoTracker, images: list, masks: list | None):
-    """Photos without cameras: track them (crops, cameras, masks), then reconstruct; times both."""
-    t0 = time.perf_counter()
-    crops, cams, crop_masks, _ = tracker.track(images, masks, int(ctx.model.config.input_size))
-    track_ms = 1e3 * (time.perf_counter() - t0)
-    avatar, recon_ms = _reconstruct(ctx, crops, cams, crop_masks)
-    return avatar, recon_ms, track_ms
+def _client_key(request: Request, api_keys: list[str]) -> str:
+    """Who a creation counts against: the API key sent (hashed), else the peer address."""
+    if api_keys:
+        key = request.headers.get("x-api-key") or auth.bearer_from(request.headers, {}) or ""
+        return "key:" + hashlib.sha256(key.encode("utf-8", "replace")).hexdigest()[:16]
+    return "addr:" + (request.client.host if request.client else "?")
 
 
-def _reconstruct(ctx: ServerContext, images, cams, masks):
-    model = ctx.model
-    t0 = time.perf_counter()
+def _declared_length(request: Request, limit: int) -> int:
     try:
-        x, c = model.prepare(images, cams, masks)
-    except ValueError as e:
-        raise ApiError(400, "invalid_input", str(e)) from None
-    with torch.inference_mode():
-        avatar = model.reconstruct(x.to(ctx.device), c.to(ctx.device))
-    return avatar, 1e3 * (time.perf_counter() - t0)
+        n = int(request.headers.get("content-length", ""))
+    except ValueError:
+        return limit
+    return n if 0 <= n <= limit else limit
 
 
 def _ply_bytes(avatar) -> bytes:
@@ -338,6 +321,20 @@ def _ply_bytes(avatar) -> bytes:
 
 # ---------------------------------------------------------------- the app
 _CREATE_OPENAPI = {
+    "parameters": [
+        {
+            "name": "Prefer",
+            "in": "header",
+            "required": False,
+            "schema": {"type": "string", "example": "respond-async"},
+            "description": "respond-async: answer 202 at once with a status resource (a creation job) instead of waiting for 201",
+        }
+    ],
+    "responses": {
+        "202": {"description": "accepted (Prefer: respond-async): avatar_id, token, status, status_url, events_url, stream_url"},
+        "429": {"description": "too_many_jobs: this client's creations fill its share; see Retry-After"},
+        "503": {"description": "queue_full: the creation queue is full; see Retry-After"},
+    },
     "requestBody": {
         "required": True,
         "content": {
@@ -374,6 +371,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.ctx = ServerContext(settings=s)
     install_security(app, s)  # 507/410 errors and security headers (server/security.py)
     tracker = PhotoTracker()  # photos without cameras (server/tracking.py); loads dlib on first use
+    app.state.ctx.jobs = JobQueue(app.state.ctx, tracker, extra_stages_for(app.state.ctx))  # started in lifespan
 
     if s.cors_origin_list:
         from fastapi.middleware.cors import CORSMiddleware
@@ -382,13 +380,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             CORSMiddleware,
             allow_origins=s.cors_origin_list,
             allow_methods=["GET", "POST", "DELETE"],
-            allow_headers=["Authorization", "Content-Type", "X-API-Key"],
+            allow_headers=["Authorization", "Content-Type", "X-API-Key", "Prefer"],
+            expose_headers=["Location", "Retry-After", "Preference-Applied"],
         )
 
     # ------------------------------------------------------------ errors
     @app.exception_handler(ApiError)
     async def _api_error(request: Request, exc: ApiError):
-        return JSONResponse(exc.body(), status_code=exc.status)
+        return JSONResponse(exc.body(), status_code=exc.status, headers=getattr(exc, "headers", None))
 
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(request: Request, exc: StarletteHTTPException):
@@ -444,8 +443,36 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.post("/v1/avatars", status_code=201, tags=["avatars"], openapi_extra=_CREATE_OPENAPI)
     async def create_avatar(request: Request):
+        """Create an avatar: ``201`` when it is ready, or ``202`` at once with ``Prefer: respond-async``."""
         ctx = _ctx(request)
         auth.check_api_key(request.headers, s.api_key_list)
+        respond_async = _prefers_async(request)
+        # a place in the bounded queue before the body is read: 429 / 503 + Retry-After when full
+        ticket = ctx.jobs.reserve(_client_key(request, s.api_key_list), _declared_length(request, s.max_upload_bytes))
+        try:
+            creq = await _read_creation(ctx, request)
+            job, token = ctx.jobs.submit(ticket, creq)
+        except BaseException:
+            ticket.release()
+            raise
+        if respond_async:
+            urls = {
+                "status_url": f"/v1/avatars/{job.id}/status",
+                "events_url": f"/v1/avatars/{job.id}/events",
+                "stream_url": f"/v1/avatars/{job.id}/stream",
+            }
+            return JSONResponse(
+                {**job.snapshot(), "token": token, **urls},
+                status_code=202,
+                headers={"Location": urls["status_url"], "Retry-After": "1", "Preference-Applied": "respond-async"},
+            )
+        await ctx.jobs.wait(job)
+        if job.error is not None:
+            raise job.error
+        return JSONResponse({**job.result, "token": token}, status_code=201)
+
+    async def _read_creation(ctx: ServerContext, request: Request) -> CreationRequest:
+        """Parse and check the upload (headers only: no pixel is decoded before the job runs)."""
         form = await _parse_form(request, s)
         max_images = min(s.max_images, int(getattr(ctx.model.config, "max_views", s.max_images)))
         parts = form.getlist("images")
@@ -468,53 +495,66 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         mask_parts = form.getlist("masks")
         if mask_parts and len(mask_parts) != len(parts):
             raise ApiError(400, "mask_count_mismatch", f"{len(parts)} images but {len(mask_parts)} masks; send none or one per image")
-        blobs = [await _part_bytes(p, f"image {i}") for i, p in enumerate(parts)]
-        mask_blobs = [await _part_bytes(p, f"mask {i}") for i, p in enumerate(mask_parts)] if mask_parts else None
+        images = [await _photo(p, i, "image") for i, p in enumerate(parts)]
+        masks = [await _photo(p, i, "mask") for i, p in enumerate(mask_parts)] if mask_parts else None
         await form.close()
-        images, masks = await ctx.run_work(_decode_inputs, blobs, mask_blobs, cams, s.max_image_pixels)
-        track_ms = None
-        async with ctx.reconstruct_slots:
-            if cams is None:
-                avatar, recon_ms, track_ms = await ctx.run_work(_track_and_reconstruct, ctx, tracker, images, masks)
-            else:
-                avatar, recon_ms = await ctx.run_work(_reconstruct, ctx, images, cams, masks)
-        ctx.metrics.reconstruct_seconds.observe(recon_ms / 1e3)
-        avatar_id, token = auth.new_avatar_id(), auth.new_token()
-        n = len(avatar.gaussians)
-        try:
-            check_reconstruction(n, s.min_avatar_gaussians)  # an empty avatar is refused, not stored
-        except ProtocolError as e:
-            raise ApiError(422, e.code, e.message) from None
-        meta = {
-            "avatar_id": avatar_id,
-            "token_sha256": auth.hash_token(token),
-            "model": ctx.model.config.name,
-            "expression_space": ctx.model.expression_space.name,
-            "num_gaussians": n,
-            "num_images": len(images),
-            "reconstruction_ms": round(recon_ms, 1),
-            "created_at": time.time(),
-        }
-        if track_ms is not None:
-            meta["tracking_ms"] = round(track_ms, 1)
-        await ctx.run_work(ctx.store.put, avatar_id, avatar, meta)
-        ctx.metrics.avatars_created.inc()
-        log.info("created avatar %s: %d Gaussians from %d images in %.0f ms", avatar_id, n, len(images), recon_ms)
-        return JSONResponse(
-            {
-                "avatar_id": avatar_id,
-                "token": token,
-                "num_gaussians": n,
-                "reconstruction_ms": round(recon_ms, 1),
-                "expression_space": meta["expression_space"],
-                **({"tracking_ms": meta["tracking_ms"]} if track_ms is not None else {}),
-            },
-            status_code=201,
+        await ctx.run_work(
+            lambda: probe_request(images, masks, cams, max_pixels=s.max_image_pixels, max_request_pixels=s.max_request_pixels)
         )
+        return CreationRequest(images, masks, cams)
+
+    async def _job_or_meta(request: Request, avatar_id: str):
+        """``(job, None)`` for an avatar being created, ``(None, meta)`` for a stored one; checks the token."""
+        ctx = _ctx(request)
+        auth.check_avatar_id(avatar_id)
+        job = ctx.jobs.get(avatar_id)
+        if job is None or job.status == "ready":
+            return None, await _authorize(request, avatar_id)
+        token = auth.bearer_from(request.headers, request.query_params)
+        if not token:
+            raise ApiError(401, "token_required", "this avatar's token is required (Authorization: Bearer or ?token=)")
+        if not auth.token_matches(token, job.token_sha256):
+            raise ApiError(403, "invalid_token", "the token does not belong to this avatar")
+        return job, None
+
+    def _stored_status(meta: dict) -> dict:
+        keys = ("avatar_id", "num_gaussians", "reconstruction_ms", "expression_space", "tracking_ms")
+        return {"avatar_id": meta["avatar_id"], "status": "ready", "stage": "ready", "stage_progress": 1.0, "progress": 1.0,
+                "queue_position": None, "avatar": {k: meta[k] for k in keys if k in meta}}  # fmt: skip
+
+    @app.get("/v1/avatars/{avatar_id}/status", tags=["avatars"])
+    async def avatar_status(avatar_id: str, request: Request):
+        """The creation job's status: ``queued`` / ``running`` (``stage``, ``progress``) / ``ready`` / ``failed``."""
+        job, meta = await _job_or_meta(request, avatar_id)
+        if job is None:
+            return _stored_status(meta)
+        return JSONResponse(job.snapshot(), headers=None if job.done else {"Retry-After": "1"})
+
+    @app.get("/v1/avatars/{avatar_id}/events", tags=["avatars"], response_class=StreamingResponse)
+    async def avatar_events(avatar_id: str, request: Request):
+        """Server-sent events: one ``progress`` event per change of the status, then ``ready`` or ``failed``."""
+        job, meta = await _job_or_meta(request, avatar_id)
+
+        async def events():
+            if job is None:
+                yield f"event: ready\ndata: {json.dumps(_stored_status(meta))}\n\n"
+                return
+            async for snap in _ctx(request).jobs.watch(job):
+                if snap is None:
+                    yield ": keep-alive\n\n"
+                    continue
+                kind = snap["status"] if snap["status"] in ("ready", "failed") else "progress"
+                yield f"event: {kind}\ndata: {json.dumps(snap)}\n\n"
+
+        return StreamingResponse(events(), media_type="text/event-stream", headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"})
 
     @app.get("/v1/avatars/{avatar_id}", tags=["avatars"])
     async def get_avatar(avatar_id: str, request: Request):
-        meta = await _authorize(request, avatar_id)
+        job, meta = await _job_or_meta(request, avatar_id)
+        if job is not None and job.status == "failed":
+            raise ApiError(404, "avatar_not_found", f"the avatar's creation failed ({job.error.code}): see /v1/avatars/{avatar_id}/status")
+        if job is not None:
+            raise ApiError(409, "avatar_not_ready", f"the avatar is still being created ({job.status}, stage {job.stage}): see /v1/avatars/{avatar_id}/status")
         ctx = _ctx(request)
         return {**_public_meta(meta), "active_streams": len(ctx.streams.sessions(avatar_id))}
 
@@ -534,8 +574,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.delete("/v1/avatars/{avatar_id}", status_code=204, tags=["avatars"], response_class=Response)
     async def delete_avatar(avatar_id: str, request: Request):
-        await _authorize(request, avatar_id)
+        job, _ = await _job_or_meta(request, avatar_id)
         ctx = _ctx(request)
+        if job is not None:  # still being created: cancel it (a queued job never runs, a running one is not kept)
+            ctx.jobs.cancel(job)
+            if not job.done:
+                await ctx.jobs.wait(job)  # a running job stops at its next stage; if it was saved, it is removed below
         await ctx.run_work(ctx.store.delete, avatar_id)
         for session in ctx.streams.sessions(avatar_id):
             await session.close(CloseCode.NOT_FOUND, "avatar_deleted")

@@ -77,6 +77,7 @@ class ServerContext:
     work_pool: ThreadPoolExecutor | None = None  # uploads: decoding, reconstruction, disk
     reconstruct_slots: asyncio.Semaphore | None = None
     streams: StreamRegistry | None = None
+    jobs: Any = None  # JobQueue (server/jobs.py): avatar creation
     ready: bool = False
     log_throttle: Any = None  # streaming.LogThrottle: one traceback per kind of repeated error
 

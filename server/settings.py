@@ -130,6 +130,15 @@ class Settings(BaseSettings):
     )
     expiry_interval_seconds: float = Field(300.0, gt=0, description="how often expired avatars are swept")
 
+    # ------------------------------------------------------------ creation jobs (server/jobs.py, docs/protocol.md)
+    max_queued_jobs: int = Field(8, ge=0, description="creations waiting for a slot; more answer 503 queue_full")
+    max_jobs_per_client: int = Field(4, ge=1, description="creations queued or running per API key (or address without keys); more answer 429")
+    max_queued_upload_bytes: int = Field(128 * 1024 * 1024, ge=1024, description="upload bytes held by queued and running creations; more answer 503")
+    max_request_pixels: int = Field(134_217_728, ge=64, description="largest sum of width*height over the images and masks of one request (read from headers, before decoding)")
+    decode_max_side: int = Field(1024, ge=64, description="photos are downscaled while decoding so that their longer side is at most this (never below the model's input size)")
+    job_ttl_seconds: float = Field(600.0, gt=0, description="finished creation jobs answer their status resource for this long")
+    creation_nice: int = Field(10, ge=0, le=19, description="nice value of the creation threads, so that rendering streams keep their frame rate")
+
     # ------------------------------------------------------------ misc
     static_dir: Path | None = Field(
         None, description="folder served at / (the browser demo); default client_demo/static when it exists"

@@ -363,6 +363,11 @@ async def stream_endpoint(websocket: WebSocket, avatar_id: str) -> None:
         if not token:
             raise _Close(CloseCode.UNAUTHORIZED, "token_required")
         meta = await ctx.run_work(ctx.store.get_meta, avatar_id)
+        if meta is None and ctx.jobs is not None:  # still being created: progress messages until ready (server/jobs.py)
+            refusal = await ctx.jobs.wait_on_socket(websocket, avatar_id, token)
+            if refusal is not None:
+                raise _Close(*refusal)
+            meta = await ctx.run_work(ctx.store.get_meta, avatar_id)
         if meta is None:
             raise _Close(CloseCode.NOT_FOUND, "avatar_not_found")
         if not token_matches(token, meta.get("token_sha256", "")):

@@ -80,6 +80,7 @@ class PhotoTracker:
         images: list[Tensor],  # V x [3, H_i, W_i] float in [0, 1]
         masks: list[Tensor] | None,  # V x [1, H_i, W_i] alpha in [0, 1], or None
         size: int,  # the model's input side S
+        names: list[str] | None = None,  # the photos' filenames, for error messages
     ) -> tuple[Tensor, Cameras, Tensor, Tensor]:
         """Crops ``[V, 3, T, T]`` (not matted), ``Cameras [V]``, masks ``[V, 1, T, T]``, ict53 ``[V, 53]``.
 
@@ -91,7 +92,7 @@ class PhotoTracker:
         side = max(int(size), TRACK_MIN_SIZE)
         photos = [(img.clamp(0, 1) * 255.0).round().to(torch.uint8).permute(1, 2, 0).numpy() for img in images]  # V x [H, W, 3]
         mlist = [m[0].numpy() for m in masks] if masks is not None else None  # V x [H, W]
-        names = [f"image {i}" for i in range(len(images))]
+        names = list(names) if names is not None else [f"image {i}" for i in range(len(images))]
         t0 = time.perf_counter()
         with self._lock:
             det = self._load()

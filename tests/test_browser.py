@@ -3,7 +3,10 @@
 A real server process serves the demo at ``/`` (``server_process.py``: a 64 x 64 tiny model
 whose deformation output layer is non-zero, and a synthetic sample subject). The page loads
 the sample with one click, creates the avatar, receives frames, and the canvas must show a
-picture that changes when an expression slider moves and when the camera is dragged.
+picture that changes when an expression slider moves and when the camera is dragged. Other
+tests create an avatar from one photo alone (the server tracks it) and watch the creation job's
+progress, get the queue's 429 with its ``Retry-After``, check the page's small promises (issue
+19 item 11), and move ``jawOpen`` on the shipped model to see the mouth region change.
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from server_process import API_KEY, ServerProcess, make_model_dir, make_sample_dir
+from server_process import API_KEY, SAMPLE_NAME, ServerProcess, make_model_dir, make_sample_dir
 
 CHROMIUM = "/usr/bin/chromium"
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
@@ -43,13 +46,18 @@ def server(tmp_path_factory):
     samples = tmp_path_factory.mktemp("samples")
     make_sample_dir(samples)
     model = make_model_dir(tmp_path_factory.mktemp("model"))
-    srv = ServerProcess(model, tmp_path_factory.mktemp("data"), samples, tmp_path_factory.mktemp("logs") / "server.log")
+    srv = ServerProcess(model, tmp_path_factory.mktemp("data"), samples, tmp_path_factory.mktemp("logs") / "server.log",
+                        FASTGHA_MAX_JOBS_PER_CLIENT="2")  # fmt: skip
     yield srv
     srv.stop()
 
 
 @pytest.fixture()
 def page(server):
+    yield from _page_of(server)
+
+
+def _page_of(server):
     profile = tempfile.mkdtemp(prefix="fastgha-chromium-")
     errors: list[str] = []
     with sync_api.sync_playwright() as p:
@@ -153,3 +161,173 @@ def test_demo_reports_a_refused_api_key(page):
     page.click("#create")
     page.wait_for_function("document.getElementById('messages').innerText.includes('invalid_api_key')", timeout=30_000)
     assert page.evaluate("window.fastghaDemo.avatar") is None
+
+
+# ---------------------------------------------------------------- photos alone, progress, the queue, page nits
+def _faces_installed() -> bool:
+    try:
+        from fastgha_core.tracking.faces import load_face_detector
+
+        load_face_detector()
+        return True
+    except ImportError:
+        return False
+
+
+def _portrait() -> bytes:
+    import matplotlib.cbook as cbook
+
+    return Path(cbook.get_sample_data("grace_hopper.jpg", asfileobj=False)).read_bytes()
+
+
+def _hold_places(server, n: int) -> list:
+    """``n`` creation requests whose body never comes: each holds a place in the queue (admission
+    happens before the body is read) until its socket closes."""
+    import socket
+    import time
+
+    import httpx
+
+    def waiting() -> float:
+        for line in httpx.get(server.base + "/metrics").text.splitlines():
+            if line.startswith('fastgha_creation_jobs{state="waiting"}'):
+                return float(line.split()[-1])
+        return -1.0
+
+    base = waiting()
+    socks = []
+    for _ in range(n):
+        s = socket.create_connection(("127.0.0.1", server.port))
+        s.sendall(b"POST /v1/avatars HTTP/1.1\r\nHost: x\r\nX-API-Key: " + API_KEY.encode()
+                  + b"\r\nContent-Type: multipart/form-data; boundary=b\r\nContent-Length: 100000\r\n\r\n--b\r\n")  # fmt: skip
+        socks.append(s)
+    deadline = time.monotonic() + 30
+    while waiting() < base + n and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert waiting() == base + n
+    return socks
+
+
+@pytest.mark.skipif(not _faces_installed(), reason="needs the 'faces' extra (dlib-bin, face-recognition-models)")
+def test_demo_creates_an_avatar_from_one_photo_alone_and_shows_progress(page, server):
+    import httpx
+
+    page.wait_for_function("window.fastghaDemo.model !== null", timeout=30_000)
+    page.fill("#api-key", API_KEY)
+    page.set_input_files("#file-input", files=[{"name": "hopper.jpg", "mimeType": "image/jpeg", "buffer": _portrait()}])
+    page.wait_for_function("!document.getElementById('create').disabled", timeout=10_000)
+    assert "1 photo(s), no cameras" in page.inner_text("#input-summary")
+    # a slower creation first (eight photos to track), so that the page's job waits in the queue
+    files = [("images", (f"hopper{i}.jpg", _portrait(), "image/jpeg")) for i in range(8)]
+    slow = httpx.post(server.base + "/v1/avatars", files=files, headers={"X-API-Key": API_KEY, "Prefer": "respond-async"}, timeout=60)
+    assert slow.status_code == 202, slow.text
+    page.click("#create")
+    page.wait_for_function("document.getElementById('recon').innerText.includes('in the queue')", timeout=30_000)
+    assert page.locator("#job-bar").is_visible()
+    page.wait_for_function("window.fastghaDemo.frames >= 1", timeout=240_000)
+    _wait_settled(page, 0)
+    log = page.evaluate("window.fastghaDemo.progressLog")
+    assert log[0]["status"] == "queued" and log[0]["queue_position"] == 1, log
+    assert log[-1]["status"] == "ready" and log[-1]["progress"] == 1.0
+    assert "tracking" in [e["stage"] for e in log] or "reconstructing" in [e["stage"] for e in log]
+    assert [e["progress"] for e in log] == sorted(e["progress"] for e in log)
+    assert "tracking" in page.inner_text("#recon") and "Gaussians" in page.inner_text("#recon")
+    assert not page.locator("#job-bar").is_visible()
+    assert _pixels(page).std() > 3.0
+
+
+def test_demo_reports_a_full_queue_with_its_retry_time(page, server):
+    page.wait_for_function("!document.getElementById('load-sample').disabled", timeout=30_000)
+    page.fill("#api-key", API_KEY)
+    page.click("#load-sample")
+    page.wait_for_function("!document.getElementById('create').disabled", timeout=30_000)
+    socks = _hold_places(server, 2)  # this API key's share (FASTGHA_MAX_JOBS_PER_CLIENT=2)
+    try:
+        page.click("#create")
+        page.wait_for_function("document.getElementById('messages').innerText.includes('too_many_jobs')", timeout=30_000)
+        text = page.inner_text("#messages")
+        assert "HTTP 429" in text and "try again in" in text
+        assert page.evaluate("window.fastghaDemo.avatar") is None
+        assert not page.locator("#create").is_disabled()  # one can try again
+    finally:
+        for s in socks:
+            s.close()
+    page.click("#create")
+    page.wait_for_function("window.fastghaDemo.frames >= 1", timeout=60_000)
+
+
+def test_demo_page_nits(page, server):
+    page.wait_for_function("!document.getElementById('load-sample').disabled", timeout=30_000)
+    # every paired slider is there (cheekPuff_L and cheekPuff_R)
+    for name in ("cheekPuff_L", "cheekPuff_R", "eyeWide_L", "eyeWide_R"):
+        assert page.locator(f"#s-{name}").is_visible(), name
+    page.fill("#api-key", API_KEY)
+    page.select_option("#size", "128")
+    page.click("#load-sample")
+    page.wait_for_function("!document.getElementById('create').disabled", timeout=30_000)
+    assert page.input_value("#sample-select") == SAMPLE_NAME
+    page.click("#create")
+    page.wait_for_function("window.fastghaDemo.frames >= 1", timeout=60_000)
+    _wait_settled(page, 0)
+    # the log names the size actually streamed (the size box), not the server's default
+    page.wait_for_function("document.getElementById('messages').innerText.includes('stream ready')", timeout=10_000)
+    assert "128×128" in page.inner_text("#messages")
+    # a still picture is "idle", not "0 fps"
+    page.wait_for_timeout(1500)
+    assert page.inner_text("#st-fps").startswith("idle")
+    # the stats row stays one row
+    tops = page.evaluate("[...document.querySelectorAll('#stats > div')].map((d) => d.offsetTop)")
+    assert len(set(tops)) == 1, tops
+    assert page.evaluate("(() => { const s = document.getElementById('stats'); return s.scrollWidth <= s.clientWidth; })()")  # nothing cut off
+    # picking files: the sample list no longer names a sample; a broken cameras.json keeps the photos
+    import httpx
+
+    jpg = httpx.get(f"{server.base}/v1/samples/{SAMPLE_NAME}/00.jpg").content
+    page.set_input_files("#file-input", files=[
+        {"name": "me1.jpg", "mimeType": "image/jpeg", "buffer": jpg},
+        {"name": "me2.jpg", "mimeType": "image/jpeg", "buffer": jpg},
+        {"name": "cameras.json", "mimeType": "application/json", "buffer": b"[{not json"},
+    ])  # fmt: skip
+    page.wait_for_function("document.getElementById('messages').innerText.includes('ignored cameras.json')", timeout=10_000)
+    assert page.input_value("#sample-select") == ""
+    assert "2 photo(s), no cameras" in page.inner_text("#input-summary")
+    assert page.locator("#thumbs img").count() == 2
+    assert not page.locator("#create").is_disabled()
+
+
+# ---------------------------------------------------------------- jawOpen on the shipped model
+@pytest.fixture(scope="module")
+def shipped_server(tmp_path_factory):
+    """The shipped ``tiny`` model and the shipped sample subjects (``fastgha_core/assets``)."""
+    srv = ServerProcess("tiny", tmp_path_factory.mktemp("data-shipped"), None, tmp_path_factory.mktemp("logs") / "shipped.log")
+    yield srv
+    srv.stop()
+
+
+@pytest.mark.xfail(
+    reason="the shipped tiny model's jawOpen moves the whole head (neck and crown change about as much as the mouth: "
+    "mouth 3.5 vs crown 2.8 mean summed-RGB change); issue 16's expression work makes the jaw open",
+    strict=False,
+)
+def test_jaw_open_changes_the_mouth_region(shipped_server):
+    import numpy as np
+
+    for pg in _page_of(shipped_server):
+        pg.wait_for_function("!document.getElementById('load-sample').disabled", timeout=30_000)
+        pg.fill("#api-key", API_KEY)
+        pg.click("#load-sample")
+        pg.wait_for_function("!document.getElementById('create').disabled", timeout=30_000)
+        pg.click("#create")
+        pg.wait_for_function("window.fastghaDemo.frames >= 1", timeout=120_000)
+        _wait_settled(pg, 0)
+        neutral = _pixels(pg)
+        n = pg.evaluate("window.fastghaDemo.frames")
+        pg.fill("#s-jawOpen", "1")
+        _wait_settled(pg, n)
+        opened = _pixels(pg)
+        assert neutral.shape == opened.shape == (256, 256, 3)
+        d = np.abs(opened - neutral).sum(-1)  # [H, W] summed RGB change
+        # default frontal camera, 1 m, 20 degrees: the head-centric mouth projects around row 185, column 128
+        mouth = d[160:215, 98:158].mean()
+        crown = d[20:80, 78:178].mean()  # top of the head: jawOpen should hardly touch it
+        assert mouth > 2.0 and mouth > 2.0 * crown, (mouth, crown)

@@ -202,6 +202,7 @@ def test_client_command_writes_frames_and_mp4(server, request_dir, tmp_path, cap
     assert Image.open(jpgs[0]).size == (48, 48)
     assert out.stat().st_size > 0 and out.read_bytes()[4:8] == b"ftyp"
     assert "6 frames of 6 requested" in text and "fps" in text and "p95" in text
+    assert "creating the avatar: decoding" in text or "creating the avatar: queued" in text  # the job's progress
 
 
 def test_loadtest_two_clients_report(server, request_dir, tmp_path, capsys):

@@ -83,16 +83,17 @@ def test_python_client_creates_an_avatar_from_a_photo_without_cameras(server):
 
 
 @needs_faces
-def test_photo_without_face_gets_no_face_with_its_index(server):
+def test_photo_without_face_gets_no_face_with_its_filename(server):
     blank = _png(np.full((240, 320, 3), 128, np.uint8))
     r = _post(server, [("images", ("blank.png", blank, "image/png"))])
     assert r.status_code == 422, r.text
     err = r.json()["error"]
-    assert err["code"] == "no_face" and "image 0" in err["message"]
-    # the second photo is the faceless one: the message names it
-    r = _post(server, [("images", ("hopper.jpg", _portrait_jpeg(), "image/jpeg")), ("images", ("blank.png", blank, "image/png"))])
+    assert err["code"] == "no_face" and "blank.png" in err["message"] and "image 0" not in err["message"]
+    # the second photo is the faceless one: the message names it by its filename, never by an index
+    r = _post(server, [("images", ("hopper.jpg", _portrait_jpeg(), "image/jpeg")), ("images", ("IMG_0042.png", blank, "image/png"))])
     assert r.status_code == 422 and r.json()["error"]["code"] == "no_face"
-    assert "image 1" in r.json()["error"]["message"]
+    msg = r.json()["error"]["message"]
+    assert "IMG_0042.png" in msg and "image 1" not in msg and "hopper.jpg" not in msg
 
 
 @needs_faces
@@ -101,7 +102,7 @@ def test_tiny_face_is_refused(server):
     small = small.resize((small.width // 4, small.height // 4), Image.BILINEAR)  # face box ~45 px < 80 px
     r = _post(server, [("images", ("small.png", _png(np.asarray(small)), "image/png"))])
     assert r.status_code == 422, r.text
-    assert r.json()["error"]["code"] == "face_too_small" and "image 0" in r.json()["error"]["message"]
+    assert r.json()["error"]["code"] == "face_too_small" and "small.png" in r.json()["error"]["message"]
 
 
 @needs_faces

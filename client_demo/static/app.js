@@ -1,7 +1,9 @@
 // FastGHA browser demo: plain JS, no build step. Protocol: docs/protocol.md.
 //
-// Flow: load photos + cameras.json (files or a shipped sample) -> POST /v1/avatars ->
-// WebSocket /v1/avatars/{id}/stream. Requests are sent latest-wins: at most one request in
+// Flow: load 1-8 photos (+ cameras.json, + masks; or a shipped sample) -> POST /v1/avatars with
+// "Prefer: respond-async" (202: a creation job) -> poll /v1/avatars/{id}/status, showing the
+// job's stage and progress -> WebSocket /v1/avatars/{id}/stream once it is ready. Photos without
+// cameras.json are tracked by the server. Requests are sent latest-wins: at most one request in
 // flight; while it renders, UI changes only mark the state dirty, and the newest state is sent
 // when the frame arrives. So the server is never flooded and the picture follows the sliders.
 "use strict";
@@ -12,7 +14,7 @@
     "jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthSmile_L", "mouthSmile_R", "browInnerUp_L", "browInnerUp_R",
     "browDown_L", "browDown_R", "mouthFunnel", "mouthPucker", "cheekPuff_L", "cheekPuff_R", "eyeWide_L", "eyeWide_R",
   ];
-  const MAX_MAIN = 12;
+  const MAX_MAIN = 16;  // every name above: cheekPuff_L and cheekPuff_R (and each other pair) stay together
   const FATAL_CLOSE = {  // close codes where reconnecting with the same token cannot help
     4401: "the avatar token was refused", 4404: "the avatar no longer exists", 4409: "the avatar was made by another model",
     4429: "too many messages", 1009: "message too large",
@@ -22,9 +24,11 @@
   // ------------------------------------------------------------------ state (one object, inspectable in tests)
   const S = {
     model: null,            // GET /v1/model
-    inputs: null,           // {images: [File|Blob], names, masks: [..]|null, cameras: [..]}
+    inputs: null,           // {images: [File|Blob], masks: [..]|null, cameras: [..]|null (the server tracks), camerasFrom}
     sequence: null,         // [[E numbers], ...] from the sample's expressions
     avatar: null,           // {avatar_id, token, ...}
+    job: null,              // the creation job being watched: {avatar_id, token, status, stage, progress, ...}
+    progressLog: [],        // every job status shown, for tests: [{status, stage, progress, queue_position}]
     values: {},             // expression name -> weight
     cam: { ...CAM_DEFAULT },
     size: 256,
@@ -162,14 +166,19 @@
     for (const img of S.inputs.images) {
       const el = document.createElement("img");
       el.src = URL.createObjectURL(img);
+      el.title = img.name || "";
       t.append(el);
     }
     const n = S.inputs.images.length;
-    const ok = S.inputs.cameras && S.inputs.cameras.length === n && n > 0;
-    $("input-summary").textContent = `${n} photo(s), ${S.inputs.cameras ? S.inputs.cameras.length : 0} camera(s)` +
-      (S.inputs.masks ? `, ${S.inputs.masks.length} mask(s)` : "") + (S.sequence ? `, ${S.sequence.length}-frame sequence` : "") +
-      (ok ? "" : " — need one camera per photo (cameras.json)");
-    $("create").disabled = !ok;
+    const cams = S.inputs.cameras;
+    const maxImages = (S.model && S.model.max_images) || 8;
+    let problem = "";
+    if (n === 0) problem = " — drop 1 to 8 photos";
+    else if (n > maxImages) problem = ` — at most ${maxImages} photos`;
+    else if (cams && cams.length !== n) problem = ` — cameras.json holds ${cams.length} camera(s) for ${n} photo(s)`;
+    $("input-summary").textContent = `${n} photo(s), ` + (cams ? `${cams.length} camera(s)` : "no cameras (the server finds the face)") +
+      (S.inputs.masks ? `, ${S.inputs.masks.length} mask(s)` : "") + (S.sequence ? `, ${S.sequence.length}-frame sequence` : "") + problem;
+    $("create").disabled = problem !== "" || S.job !== null;
   }
 
   async function takeFiles(fileList) {
@@ -180,27 +189,42 @@
     const stem = (f) => f.name.replace(/\.[^.]+$/, "");
     const images = files.filter((f) => isImg(f) && !stem(f).endsWith("_mask")).sort((a, b) => a.name.localeCompare(b.name));
     const maskByStem = new Map(files.filter((f) => isImg(f) && stem(f).endsWith("_mask")).map((f) => [stem(f).slice(0, -5), f]));
-    let cameras = S.inputs && S.inputs.cameras;
-    try {
-      if (camFile) {
+    const old = S.inputs;
+    // new photos keep earlier cameras only when those came from a cameras.json of the user's own
+    let cameras = old && (images.length === 0 || old.camerasFrom === "file") ? old.cameras : null;
+    let camerasFrom = cameras ? old.camerasFrom : null;
+    if (camFile) {
+      try {
         let c = JSON.parse(await camFile.text());
         if (c && !Array.isArray(c) && Array.isArray(c.cameras)) c = c.cameras;
-        if (!Array.isArray(c)) throw new Error("cameras.json must be a JSON array of camera objects");
+        if (!Array.isArray(c)) throw new Error("it must be a JSON array of camera objects");
         cameras = c;
+        camerasFrom = "file";
+      } catch (e) {  // a broken cameras.json must not throw away the photos dropped with it
+        say(`ignored ${camFile.name}: ${e.message}; the photos are kept${images.length ? " (without cameras the server finds the face)" : ""}`, "err");
       }
-      if (seqFile) {
-        const s = JSON.parse(await seqFile.text());
-        const frames = Array.isArray(s) ? s : s.frames;
-        if (Array.isArray(frames)) { S.sequence = frames; $("play").disabled = false; }
+    }
+    if (seqFile) {
+      try {
+        const q = JSON.parse(await seqFile.text());
+        const frames = Array.isArray(q) ? q : q.frames;
+        if (!Array.isArray(frames)) throw new Error("expected a list of frames or {frames: [...]}");
+        S.sequence = frames;
+        $("play").disabled = false;
+      } catch (e) {
+        say(`ignored ${seqFile.name}: ${e.message}`, "err");
       }
-    } catch (e) {
-      say(`could not read ${camFile ? camFile.name : "JSON"}: ${e.message}`, "err");
+    }
+    if (images.length === 0 && !(old && old.images.length)) {
+      if (!camFile && !seqFile) say("no photos among the dropped files (JPEG or PNG)", "err");
+      if (camFile && cameras) S.inputs = { images: [], masks: null, cameras, camerasFrom };
+      showInputs();
       return;
     }
-    if (images.length === 0 && !(S.inputs && S.inputs.images.length)) { say("no photos among the dropped files (JPEG or PNG)", "err"); return; }
-    const imgs = images.length ? images : S.inputs.images;
-    const masks = images.length && images.every((f) => maskByStem.has(stem(f))) ? images.map((f) => maskByStem.get(stem(f))) : null;
-    S.inputs = { images: imgs, masks: images.length ? masks : S.inputs.masks, cameras };
+    const imgs = images.length ? images : old.images;
+    const masks = images.length ? (images.every((f) => maskByStem.has(stem(f))) ? images.map((f) => maskByStem.get(stem(f))) : null) : old.masks;
+    S.inputs = { images: imgs, masks, cameras, camerasFrom };
+    if (images.length) $("sample-select").value = "";  // the list no longer names what is loaded
     showInputs();
   }
 
@@ -216,7 +240,7 @@
       if (!r.ok) throw new Error(await apiError(r));
       const { samples } = await r.json();
       const sel = $("sample-select");
-      sel.innerHTML = "";
+      sel.innerHTML = '<option value="">(your own photos)</option>';
       for (const s of samples) {
         const o = document.createElement("option");
         o.value = s.name;
@@ -225,6 +249,7 @@
         sel.append(o);
       }
       if (samples.length === 0) sel.innerHTML = '<option value="">(no samples shipped)</option>';
+      else sel.value = samples[0].name;
       $("load-sample").disabled = samples.length === 0;
     } catch (e) {
       say(`no sample list (${e.message}); drop your own photos and cameras.json`, "info");
@@ -257,7 +282,7 @@
         S.sequence = e.frames;
         if (e.fps) $("play-fps").value = String(e.fps);
       }
-      S.inputs = { images, masks, cameras };
+      S.inputs = { images, masks, cameras, camerasFrom: "sample" };
       $("play").disabled = !S.sequence;
       showInputs();
       say(`loaded sample ${info.name}`, "ok");
@@ -269,35 +294,76 @@
   });
 
   // ------------------------------------------------------------------ create / delete / PLY
+  function showJob(st) {
+    // one line under the Create button: the stage, the queue position and a progress bar
+    S.progressLog.push({ status: st.status, stage: st.stage, progress: st.progress, queue_position: st.queue_position });
+    const pct = Math.round(100 * (st.progress || 0));
+    const where = st.queue_position ? ` (position ${st.queue_position} in the queue)` : "";
+    $("job-bar").hidden = false;
+    $("job-bar").value = st.progress || 0;
+    $("recon").textContent = `${st.stage}${where} · ${pct} %`;
+  }
+
+  const sleep = (ms) => new Promise((res) => setTimeout(res, ms));
+
+  async function watchJob(job) {
+    // poll the status resource until the job is done (the server answers in well under a frame)
+    let st = job;
+    for (;;) {
+      if (S.job !== job) return null;  // superseded (deleted / new avatar)
+      showJob(st);
+      if (st.status === "ready" || st.status === "failed") return st;
+      await sleep(250);
+      const r = await fetch(`/v1/avatars/${job.avatar_id}/status`, { headers: { Authorization: `Bearer ${job.token}` } });
+      if (!r.ok) throw new Error(await apiError(r));
+      st = await r.json();
+    }
+  }
+
   $("create").addEventListener("click", async () => {
-    if (!S.inputs) return;
+    if (!S.inputs || S.job) return;
     const fd = new FormData();
-    S.inputs.images.forEach((f, i) => fd.append("images", f, f.name || `${i}.jpg`));
-    fd.append("cameras", JSON.stringify(S.inputs.cameras));
-    if (S.inputs.masks) S.inputs.masks.forEach((f, i) => fd.append("masks", f, f.name || `${i}_mask.png`));
-    const headers = {};
+    S.inputs.images.forEach((f, i) => fd.append("images", f, f.name || `photo${i + 1}.jpg`));
+    if (S.inputs.cameras) fd.append("cameras", JSON.stringify(S.inputs.cameras));
+    if (S.inputs.masks) S.inputs.masks.forEach((f, i) => fd.append("masks", f, f.name || `photo${i + 1}_mask.png`));
+    const headers = { Prefer: "respond-async" };  // 202 + a status resource instead of waiting (docs/protocol.md)
     const key = $("api-key").value.trim();
     if (key) headers["X-API-Key"] = key;
     $("create").disabled = true;
-    $("recon").textContent = "reconstructing…";
+    $("recon").textContent = "uploading…";
     const t0 = performance.now();
     try {
       const r = await fetch("/v1/avatars", { method: "POST", body: fd, headers });
+      if (r.status === 429 || r.status === 503) {
+        const wait = r.headers.get("Retry-After");
+        throw new Error(`${await apiError(r)}; the server is busy${wait ? `: try again in ${wait} s` : ""}`);
+      }
       if (!r.ok) throw new Error(await apiError(r));
-      const av = await r.json();
-      const rt = performance.now() - t0;
+      const job = await r.json();
       closeStream();
+      S.avatar = null;
+      S.job = job;
+      $("delete").disabled = false;  // deleting cancels a job that is still running
+      say(`avatar ${job.avatar_id} accepted: ${job.status}`, "info");
+      const st = r.status === 202 ? await watchJob(job) : { status: "ready", avatar: job };
+      if (st === null) return;
+      if (st.status === "failed") throw new Error(`${st.error.code}: ${st.error.message} (HTTP ${st.error.status})`);
+      const av = { ...st.avatar, token: job.token };
+      const rt = performance.now() - t0;
       S.avatar = av;
-      $("recon").textContent = `reconstruction ${av.reconstruction_ms.toFixed(0)} ms (round trip ${rt.toFixed(0)} ms) · ${av.num_gaussians.toLocaleString()} Gaussians`;
+      $("recon").textContent = `reconstruction ${av.reconstruction_ms.toFixed(0)} ms` + (av.tracking_ms != null ? `, tracking ${av.tracking_ms.toFixed(0)} ms` : "") +
+        ` (round trip ${rt.toFixed(0)} ms) · ${av.num_gaussians.toLocaleString()} Gaussians`;
       say(`avatar ${av.avatar_id} created`, "ok");
       $("download-ply").disabled = false;
-      $("delete").disabled = false;
       openStream();
     } catch (e) {
       $("recon").textContent = "";
+      if (!S.avatar) $("delete").disabled = true;
       say(`creating the avatar failed: ${e.message}`, "err");
     } finally {
-      $("create").disabled = !S.inputs;
+      S.job = null;
+      $("job-bar").hidden = true;
+      showInputs();
     }
   });
 
@@ -320,10 +386,11 @@
   });
 
   $("delete").addEventListener("click", async () => {
-    if (!S.avatar) return;
-    const av = S.avatar;
+    const av = S.avatar || S.job;  // a job still running is cancelled
+    if (!av) return;
     closeStream();
     S.avatar = null;
+    S.job = null;
     $("download-ply").disabled = true;
     $("delete").disabled = true;
     $("overlay").classList.remove("hidden");
@@ -394,7 +461,7 @@
       S.reconnectAttempt = 0;
       setStatus("streaming");
       $("overlay").classList.add("hidden");
-      say(`stream ready: ${msg.width}×${msg.height} default, ${msg.expression_space}`, "ok");
+      say(`stream ready: frames at ${S.size}×${S.size}, ${msg.expression_space}`, "ok");
       markDirty();
     } else if (msg.type === "error") {
       say(`server: ${msg.code}: ${msg.message}`, "err");
@@ -477,11 +544,14 @@
     const ft = S.frameTimes;
     const now = performance.now();
     const recent = ft.filter((t) => now - t <= 1000).length;
-    $("st-fps").textContent = ft.length ? String(recent) : "–";
+    // nothing to render: the picture is up to date, not "0 fps"
+    const still = S.inFlight === null && !S.dirty;
+    $("st-fps").textContent = !ft.length ? "–" : (recent === 0 && still ? "idle" : `${recent} fps`);
+    $("st-fps").title = recent === 0 && still ? "the picture is up to date: nothing to render until something changes" : "frames drawn in the last second";
     const lat = [...S.latencies].sort((a, b) => a - b);
     $("st-lat").textContent = lat.length ? lat[Math.floor(lat.length / 2)].toFixed(0) : "–";
     $("st-render").textContent = S.lastRenderMs == null ? "–" : S.lastRenderMs.toFixed(1);
-    $("st-dropped").textContent = `${S.serverDropped} server · ${S.coalesced} coalesced`;
+    $("st-dropped").textContent = `${S.serverDropped} · ${S.coalesced}`;
     $("st-frames").textContent = String(S.frames);
   }, 250);
 

@@ -213,6 +213,24 @@ def _open_video_source(args, stop):
         raise CLIError(str(e)) from None
 
 
+class _ProgressPrinter:
+    """Prints the creation job's progress: one line per stage (and per queue position)."""
+
+    def __init__(self) -> None:
+        self.last = None
+
+    def __call__(self, st: dict) -> None:
+        if st.get("status") == "busy":
+            print(f"creating the avatar: the server is busy, retrying in {st['retry_after']:g} s", flush=True)
+            return
+        key = (st.get("stage"), st.get("queue_position"))
+        if key == self.last or st.get("status") == "ready":
+            return
+        self.last = key
+        where = f" (position {st['queue_position']} in the queue)" if st.get("queue_position") else ""
+        print(f"creating the avatar: {st.get('stage')}{where}, {100 * float(st.get('progress', 0)):.0f} %", flush=True)
+
+
 def run(args) -> int:
     import os
     import threading
@@ -274,7 +292,7 @@ def run(args) -> int:
     fps_out = fps_out or 25.0
 
     try:
-        avatar = client.create_avatar(images, cams, masks)
+        avatar = client.create_avatar(images, cams, masks, progress=_ProgressPrinter(), busy_wait_s=120.0)
     except RuntimeError as e:  # an HTTP error answer (e.g. a wrong API key), as one line
         raise CLIError(str(e)) from None
     print(f"avatar {avatar.avatar_id}: {avatar.num_gaussians} Gaussians, reconstruction {avatar.reconstruction_ms:.0f} ms "

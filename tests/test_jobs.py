@@ -1,0 +1,542 @@
+"""Avatar creation as a job (``server/jobs.py``): units of the decoder and the progress, and end to
+end against real server processes (``server_process.py``: a 64 x 64 tiny model): ``Prefer:
+respond-async`` -> 202, the status resource, server-sent events, a stream opened before the avatar
+is ready, the bounded queue's 429 / 503 with ``Retry-After``, cancelling by DELETE, error messages
+that name files by their filenames, the Python client's progress and ``ServerBusy``, and the
+memory of the decompression-amplification attack (issue 18 item 1)."""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import io
+import json
+import socket
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from PIL import Image
+
+from client_demo.client import CreationError, FastGHAClient, ServerBusy
+from server.errors import ApiError
+from server.jobs import STAGES, CreationRequest, Job, Photo, decode_photo, probe_request, safe_filename
+from server_process import SAMPLE_NAME, ServerProcess, make_model_dir, make_sample_dir
+
+pytestmark = pytest.mark.timeout(300)
+
+KEYS = ("key-one", "key-two", "key-three")
+
+
+def _png(arr: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(arr).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def _jpeg(arr: np.ndarray, quality: int = 95) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(arr).save(buf, format="JPEG", quality=quality)
+    return buf.getvalue()
+
+
+def _smooth(h: int, w: int) -> np.ndarray:
+    yy, xx = np.mgrid[0:h, 0:w]
+    return np.stack([128 + 100 * np.sin(xx / 37.0), 128 + 100 * np.cos(yy / 23.0), (xx + yy) % 256], -1).astype(np.uint8)
+
+
+# ---------------------------------------------------------------- units
+@pytest.fixture(params=["shared", "pillow"])
+def decoder(request, monkeypatch):
+    """Both decoders of ``decode_photo``: ``fastgha_core.images`` (where present) and the Pillow fallback."""
+    import server.jobs as jobs
+
+    if request.param == "pillow":
+        monkeypatch.setattr(jobs, "_shared", None)
+    elif jobs._shared is None:
+        pytest.skip("needs the shared decoder fastgha_core/images.py")
+    return request.param
+
+
+def test_decode_photo_downscales_while_decoding_like_a_full_decode_then_resize(decoder):
+    arr = _smooth(600, 800)
+    for data in (_png(arr), _jpeg(arr)):
+        rgb, alpha = decode_photo(Photo("a.img", data), max_pixels=10**7, max_side=200)
+        assert rgb.shape == (150, 200, 3) and rgb.dtype == np.uint8 and alpha is None
+        ref = np.asarray(Image.open(io.BytesIO(data)).convert("RGB").resize((200, 150), Image.Resampling.LANCZOS), dtype=float)
+        assert np.abs(rgb.astype(float) - ref).mean() < 4.0  # the same picture (JPEG: DCT-scaled decode)
+    full, _ = decode_photo(Photo("a.png", _png(arr)), max_pixels=10**7, max_side=4096)
+    np.testing.assert_array_equal(full, arr)  # no downscale below max_side: exact pixels
+
+
+def test_decode_photo_alpha_and_masks(decoder):
+    rgba = np.dstack([_smooth(40, 60), np.tile(np.arange(60, dtype=np.uint8) * 4, (40, 1))])
+    rgb, alpha = decode_photo(Photo("p.png", _png(rgba)), max_pixels=10**6, max_side=1000)
+    np.testing.assert_array_equal(rgb, rgba[..., :3])
+    np.testing.assert_array_equal(alpha, rgba[..., 3])
+    grey = np.tile(np.arange(60, dtype=np.uint8), (40, 1))
+    m, _ = decode_photo(Photo("m.png", _png(grey)), max_pixels=10**6, max_side=1000, mask=True)
+    np.testing.assert_array_equal(m, grey)
+    m2, _ = decode_photo(Photo("m.png", _png(rgba)), max_pixels=10**6, max_side=1000, mask=True)
+    np.testing.assert_array_equal(m2, rgba[..., 3])  # a mask with alpha: the alpha channel
+
+
+def test_errors_name_files_by_their_filenames_never_an_index_or_a_repr(decoder):
+    good = _png(_smooth(30, 40))
+    cases = [
+        (Photo("IMG_0042.jpg", good[:60]), "invalid_image"),
+        (Photo("notes.png", b"this is not a picture"), "invalid_image"),
+        (Photo("empty.png", b""), "invalid_image"),
+    ]
+    for photo, code in cases:
+        with pytest.raises(ApiError) as ei:
+            try:
+                probe_request([photo], None, None, max_pixels=10**6, max_request_pixels=10**7)
+                decode_photo(photo, max_pixels=10**6, max_side=100)
+            except ApiError as e:
+                assert e.code == code
+                raise
+        msg = ei.value.message
+        assert photo.name in msg and "0x" not in msg and "BytesIO" not in msg and "image 0" not in msg, msg
+    with pytest.raises(ApiError) as ei:
+        probe_request([Photo("huge.png", _png(np.zeros((100, 100, 3), np.uint8)))], None, None, max_pixels=5000, max_request_pixels=10**7)
+    assert ei.value.status == 413 and ei.value.code == "image_too_large" and "huge.png" in ei.value.message
+    photos = [Photo(f"p{i}.png", good) for i in range(3)]
+    with pytest.raises(ApiError) as ei:
+        probe_request(photos, None, None, max_pixels=10**6, max_request_pixels=2 * 30 * 40)
+    assert ei.value.status == 413 and ei.value.code == "request_too_large"
+    with pytest.raises(ApiError) as ei:
+        probe_request([Photo("face.png", good)], [Photo("face_mask.png", _png(np.zeros((10, 10), np.uint8)))], None,
+                      max_pixels=10**6, max_request_pixels=10**7)  # fmt: skip
+    assert ei.value.code == "mask_size_mismatch" and "face.png" in ei.value.message and "face_mask.png" in ei.value.message
+    assert safe_filename("../../etc/passwd", 0) == "passwd"
+    assert safe_filename("C:\\Users\\me\\IMG 1.JPG", 0) == "IMG 1.JPG"
+    assert safe_filename(None, 2) == "unnamed image 3" and safe_filename("", 0, "mask") == "unnamed mask 1"
+    assert safe_filename("a\x00b.png", 0) == "a?b.png"
+
+
+def test_exif_rotated_photo_is_probed_and_decoded_upright():
+    """With the shared decoder (``fastgha_core.images``: EXIF orientation applied, cameras describe
+    the upright image) the header probe and the decoder agree on the upright size."""
+    pytest.importorskip("fastgha_core.images", reason="needs the shared decoder fastgha_core/images.py")
+    from types import SimpleNamespace
+
+    stored = _smooth(30, 40)  # stored 40 wide, 30 high; orientation 6: shown 30 wide, 40 high
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    buf = io.BytesIO()
+    Image.fromarray(stored).save(buf, format="JPEG", quality=95, exif=exif.tobytes())
+    photo = Photo("portrait.jpg", buf.getvalue())
+    upright_cam = SimpleNamespace(width=30, height=40)
+    probe_request([photo], None, [upright_cam], max_pixels=10**6, max_request_pixels=10**7)
+    assert photo.size == (30, 40)
+    rgb, _ = decode_photo(photo, max_pixels=10**6, max_side=1000)
+    assert rgb.shape == (40, 30, 3)
+    with pytest.raises(ApiError) as ei:  # a camera of the stored (sideways) grid is refused, naming the file
+        probe_request([Photo("portrait.jpg", buf.getvalue())], None, [SimpleNamespace(width=40, height=30)],
+                      max_pixels=10**6, max_request_pixels=10**7)  # fmt: skip
+    assert ei.value.code == "camera_size_mismatch" and "portrait.jpg" in ei.value.message
+
+
+def test_job_progress_is_monotonic_over_its_stages():
+    import asyncio
+
+    async def run():
+        req = CreationRequest([Photo("a.png", b"x")], None, None)
+        stages = ["queued", "decoding", "tracking", "reconstructing", "refining", "saving"]
+        assert set(stages) <= set(STAGES)
+        job = Job("A" * 22, "h", "c", 1, req, stages)
+        seen = [job.progress]
+        for st in stages[1:]:
+            for f in (0.0, 0.5, 1.0):
+                job.update(st, f)
+                seen.append(job.progress)
+                assert job.status == "running" and job.snapshot()["stage"] == st
+        job.finish({"avatar_id": job.id}, None)
+        seen.append(job.progress)
+        assert seen == sorted(seen) and seen[0] == 0.0 and seen[-1] == 1.0 and len(set(seen)) > 8
+        assert job.snapshot()["status"] == "ready" and job.snapshot()["avatar"] == {"avatar_id": job.id}
+        job2 = Job("B" * 22, "h", "c", 1, req, stages)
+        job2.finish(None, ApiError(422, "no_face", "no face in me.jpg"))
+        snap = job2.snapshot()
+        assert snap["status"] == "failed" and snap["error"] == {"status": 422, "code": "no_face", "message": "no face in me.jpg"}
+
+    asyncio.run(run())
+
+
+# ---------------------------------------------------------------- end to end
+def _faces_installed() -> bool:
+    try:
+        from fastgha_core.tracking.faces import load_face_detector
+
+        load_face_detector()
+        return True
+    except ImportError:
+        return False
+
+
+needs_faces = pytest.mark.skipif(not _faces_installed(), reason="needs the 'faces' extra (dlib-bin, face-recognition-models)")
+
+
+def _portrait() -> bytes:
+    import matplotlib.cbook as cbook
+
+    return Path(cbook.get_sample_data("grace_hopper.jpg", asfileobj=False)).read_bytes()
+
+
+@pytest.fixture(scope="module")
+def samples(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("samples")
+    make_sample_dir(root)
+    return root / SAMPLE_NAME / "request"
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory) -> Path:
+    return make_model_dir(tmp_path_factory.mktemp("model"))
+
+
+@pytest.fixture(scope="module")
+def server(model_dir, tmp_path_factory):
+    """One creation at a time, one more waiting, one per API key."""
+    data = tmp_path_factory.mktemp("data")
+    srv = ServerProcess(model_dir, data, None, tmp_path_factory.mktemp("logs") / "server.log",
+                        FASTGHA_API_KEYS=",".join(KEYS), FASTGHA_MAX_CONCURRENT_RECONSTRUCTIONS="1",
+                        FASTGHA_MAX_QUEUED_JOBS="1", FASTGHA_MAX_JOBS_PER_CLIENT="1")  # fmt: skip
+    srv.data = data
+    yield srv
+    srv.stop()
+
+
+def _sample_parts(folder: Path):
+    imgs = sorted(folder.glob("[0-9][0-9].jpg"))
+    files = [("images", (p.name, p.read_bytes(), "image/jpeg")) for p in imgs]
+    return files, (folder / "cameras.json").read_text()
+
+
+def _post(srv, files, key, data=None, prefer_async=True) -> httpx.Response:
+    h = {"X-API-Key": key, **({"Prefer": "respond-async"} if prefer_async else {})}
+    return httpx.post(srv.base + "/v1/avatars", files=files, data=data or {}, headers=h, timeout=120)
+
+
+def _status(srv, job) -> dict:
+    r = httpx.get(f"{srv.base}/v1/avatars/{job['avatar_id']}/status", headers={"Authorization": f"Bearer {job['token']}"}, timeout=30)
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+def _wait(srv, job, pred, timeout=240.0) -> dict:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        st = _status(srv, job)
+        if pred(st):
+            return st
+        time.sleep(0.05)
+    raise AssertionError(f"job never reached the state: {st}")
+
+
+def _sse(srv, job, out: list) -> None:
+    url = f"{srv.base}/v1/avatars/{job['avatar_id']}/events"
+    with httpx.stream("GET", url, params={"token": job["token"]}, timeout=240) as r:
+        assert r.headers["content-type"].startswith("text/event-stream")
+        event = None
+        for line in r.iter_lines():
+            if line.startswith("event: "):
+                event = line[7:]
+            elif line.startswith("data: "):
+                out.append((event, json.loads(line[6:])))
+                if event in ("ready", "failed"):
+                    return
+
+
+def _metric(srv, state: str) -> float:
+    for line in httpx.get(srv.base + "/metrics").text.splitlines():
+        if line.startswith(f'fastgha_creation_jobs{{state="{state}"}}'):
+            return float(line.split()[-1])
+    raise AssertionError("no fastgha_creation_jobs metric")
+
+
+@needs_faces
+def test_job_queue_progress_events_early_stream_and_limits(server, samples):
+    from websockets.sync.client import connect
+
+    from server.protocol import unpack_frame
+
+    # a slow job first: eight photos without cameras, tracked one by one
+    slow = _post(server, [("images", (f"hopper{i}.jpg", _portrait(), "image/jpeg")) for i in range(8)], KEYS[0])
+    assert slow.status_code == 202, slow.text
+    sj = slow.json()
+    assert slow.headers["location"] == f"/v1/avatars/{sj['avatar_id']}/status" and sj["token"] and sj["status"] in ("queued", "running")
+    _wait(server, sj, lambda st: st["status"] == "running")
+    files, cams = _sample_parts(samples)
+    fast = _post(server, files, KEYS[1], {"cameras": cams})
+    assert fast.status_code == 202, fast.text
+    fj = fast.json()
+    assert fj["status"] == "queued" and fj["queue_position"] == 1 and fj["progress"] == 0.0
+    assert fj["stream_url"] == f"/v1/avatars/{fj['avatar_id']}/stream"
+
+    # the queue is full (one running, one waiting): 503 for anyone, 429 first for a client over its share
+    busy = _post(server, files, KEYS[2], {"cameras": cams})
+    assert busy.status_code == 503 and busy.json()["error"]["code"] == "queue_full", busy.text
+    assert int(busy.headers["retry-after"]) >= 1
+    mine = _post(server, files, KEYS[0], {"cameras": cams}, prefer_async=False)  # the synchronous form is refused alike
+    assert mine.status_code == 429 and mine.json()["error"]["code"] == "too_many_jobs" and int(mine.headers["retry-after"]) >= 1
+    with pytest.raises(ServerBusy) as ei:
+        FastGHAClient(server.base, api_key=KEYS[2]).create_avatar([samples / "00.jpg"], [json.loads(cams)[0]])
+    assert ei.value.status == 503 and ei.value.retry_after >= 1
+    assert _metric(server, "running") == 1 and _metric(server, "waiting") == 1
+    # the avatar is not there yet: its metadata says so, its status says where it is
+    h = {"Authorization": f"Bearer {fj['token']}"}
+    r = httpx.get(f"{server.base}/v1/avatars/{fj['avatar_id']}", headers=h)
+    assert r.status_code == 409 and r.json()["error"]["code"] == "avatar_not_ready"
+    assert httpx.get(f"{server.base}/v1/avatars/{fj['avatar_id']}/status", headers={"Authorization": "Bearer nope"}).status_code == 403
+
+    # server-sent events and a stream opened now, before the avatar is ready
+    events: list = []
+    sse = threading.Thread(target=_sse, args=(server, fj, events))
+    sse.start()
+    try:
+        with connect(f"{server.ws_base}/v1/avatars/{fj['avatar_id']}/stream?token={fj['token']}") as ws:
+            msgs = [json.loads(ws.recv(timeout=30))]
+            assert msgs[0]["type"] == "progress" and msgs[0]["status"] == "queued" and msgs[0]["queue_position"] == 1
+            while msgs[-1]["type"] == "progress":
+                msgs.append(json.loads(ws.recv(timeout=240)))
+            assert msgs[-1]["type"] == "ready", msgs[-1]
+            stages = [m["stage"] for m in msgs[:-1]]
+            assert stages[0] == "queued" and all(s in STAGES for s in stages)
+            prog = [m["progress"] for m in msgs[:-1]]
+            assert prog == sorted(prog)
+            sj_done = _status(server, sj)
+            ws.send(json.dumps({"seq": 1, "expression": {"jawOpen": 0.5}}))
+            while True:
+                msg = ws.recv(timeout=60)
+                if isinstance(msg, bytes):
+                    break
+            header, jpeg = unpack_frame(msg)
+            assert header["seq"] == 1 and jpeg[:2] == b"\xff\xd8"
+    finally:
+        sse.join(timeout=240)
+    assert sj_done is not None and sj_done["status"] in ("ready", "failed")  # the slow one ran first
+    assert events and events[-1][0] == "ready" and events[0][1]["status"] == "queued"
+    assert [e[1]["progress"] for e in events] == sorted(e[1]["progress"] for e in events)
+    done = _status(server, fj)
+    assert done["status"] == "ready" and done["progress"] == 1.0 and done["avatar"]["num_gaussians"] > 0
+    meta = httpx.get(f"{server.base}/v1/avatars/{fj['avatar_id']}", headers=h).json()
+    assert meta["num_gaussians"] == done["avatar"]["num_gaussians"] and meta["num_images"] == 4
+
+
+@needs_faces
+def test_delete_cancels_a_queued_job(server, samples):
+    slow = _post(server, [("images", (f"hopper{i}.jpg", _portrait(), "image/jpeg")) for i in range(8)], KEYS[0]).json()
+    _wait(server, slow, lambda st: st["status"] == "running")
+    files, cams = _sample_parts(samples)
+    q = _post(server, files, KEYS[1], {"cameras": cams}).json()
+    assert q["status"] == "queued"
+    r = httpx.delete(f"{server.base}/v1/avatars/{q['avatar_id']}", headers={"Authorization": f"Bearer {q['token']}"})
+    assert r.status_code == 204
+    st = _status(server, q)
+    assert st["status"] == "failed" and st["error"]["code"] == "avatar_deleted"
+    assert _status(server, slow)["status"] == "running"  # the running one goes on
+    _wait(server, slow, lambda s: s["status"] in ("ready", "failed"))
+    assert not list((server.data / "avatars").glob(f"{q['avatar_id']}*"))
+
+
+def test_failed_job_reports_the_error_naming_the_file(server, samples, tmp_path):
+    files, cams = _sample_parts(samples)
+    files[2] = ("images", ("IMG_0042.jpg", files[2][1][1][: len(files[2][1][1]) // 3], "image/jpeg"))  # truncated: fails decoding
+    r = _post(server, files, KEYS[2], {"cameras": cams})
+    assert r.status_code == 202, r.text  # its header is intact: the request queues, decoding fails
+    job = r.json()
+    st = _wait(server, job, lambda s: s["status"] in ("ready", "failed"))
+    assert st["status"] == "failed" and st["progress"] < 1.0, st
+    err = st["error"]
+    assert err["status"] == 400 and err["code"] == "invalid_image", err
+    assert "IMG_0042.jpg" in err["message"] and "0x" not in err["message"] and "image 2" not in err["message"], err
+    h = {"Authorization": f"Bearer {job['token']}"}
+    assert httpx.get(f"{server.base}/v1/avatars/{job['avatar_id']}", headers=h).status_code == 404
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    with connect(f"{server.ws_base}/v1/avatars/{job['avatar_id']}/stream?token={job['token']}") as ws:
+        last = json.loads(ws.recv(timeout=30))
+        assert last["type"] == "progress" and last["status"] == "failed" and last["error"]["code"] == "invalid_image"
+        with pytest.raises(ConnectionClosed) as ei:
+            ws.recv(timeout=30)
+    assert ei.value.rcvd.code == 4404 and ei.value.rcvd.reason == "creation_failed: invalid_image"
+    # the Python client sends paths under their own names and raises the job's error as a CreationError
+    broken = tmp_path / "IMG_0042.jpg"
+    broken.write_bytes(files[2][1][1])
+    paths = [samples / "00.jpg", samples / "01.jpg", broken, samples / "03.jpg"]
+    with pytest.raises(CreationError, match="IMG_0042.jpg") as ei:
+        FastGHAClient(server.base, api_key=KEYS[2]).create_avatar(paths, json.loads(cams))
+    assert ei.value.code == "invalid_image"
+    bad = [("images", ("IMG_0042.jpg", b"\x89PNG\r\n\x1a\n garbage", "image/png"))]
+    r = _post(server, bad, KEYS[2], {"cameras": json.dumps(json.loads(cams)[:1])})
+    assert r.status_code == 400 and "IMG_0042.jpg" in r.json()["error"]["message"] and "BytesIO" not in r.text
+
+
+def test_python_client_shows_progress_and_sync_form_still_answers_201(server, samples):
+    client = FastGHAClient(server.base, api_key=KEYS[1])
+    seen: list[dict] = []
+    av = client.create_avatar_from_dir(samples, progress=seen.append)
+    assert av.num_gaussians > 0 and av.token
+    assert seen and seen[-1]["status"] == "ready" and all(s["stage"] in STAGES for s in seen)
+    assert [s["progress"] for s in seen] == sorted(s["progress"] for s in seen)
+    client.delete(av)
+    files, cams = _sample_parts(samples)
+    r = _post(server, files, KEYS[1], {"cameras": cams}, prefer_async=False)
+    assert r.status_code == 201 and set(r.json()) >= {"avatar_id", "token", "num_gaussians", "reconstruction_ms", "expression_space"}
+
+
+def test_a_slow_upload_holds_its_place_and_a_vanished_one_gives_it_back(server, samples):
+    """Admission happens before the body is read; a client that disconnects frees its place."""
+    s = socket.create_connection(("127.0.0.1", server.port))
+    s.sendall(b"POST /v1/avatars HTTP/1.1\r\nHost: x\r\nX-API-Key: " + KEYS[2].encode()
+              + b"\r\nContent-Type: multipart/form-data; boundary=b\r\nContent-Length: 100000\r\n\r\n--b\r\n")  # fmt: skip
+    deadline = time.monotonic() + 30
+    while _metric(server, "waiting") < 1 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert _metric(server, "waiting") == 1
+    files, cams = _sample_parts(samples)
+    r = _post(server, files, KEYS[2], {"cameras": cams})
+    assert r.status_code == 429 and r.json()["error"]["code"] == "too_many_jobs"
+    s.close()
+    while _metric(server, "waiting") > 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert _metric(server, "waiting") == 0
+    assert _post(server, files, KEYS[2], {"cameras": cams}, prefer_async=False).status_code == 201
+    assert server.alive()
+
+
+def test_a_job_reported_ready_survives_kill_9(model_dir, samples, tmp_path):
+    import signal
+
+    from websockets.sync.client import connect
+
+    data = tmp_path / "data"
+    srv = ServerProcess(model_dir, data, None, tmp_path / "a.log", FASTGHA_API_KEYS=",".join(KEYS), FASTGHA_WARMUP="false")
+    try:
+        files, cams = _sample_parts(samples)
+        job = _post(srv, files, KEYS[0], {"cameras": cams}).json()
+        st = _wait(srv, job, lambda s: s["status"] in ("ready", "failed"))
+        assert st["status"] == "ready", st
+    finally:
+        srv.stop(signal.SIGKILL)  # the moment it said ready
+    srv = ServerProcess(model_dir, data, None, tmp_path / "b.log", FASTGHA_API_KEYS=",".join(KEYS), FASTGHA_WARMUP="false")
+    try:
+        after = _status(srv, job)  # no job in memory any more: the status comes from the stored avatar
+        assert after["status"] == "ready" and after["avatar"]["num_gaussians"] == st["avatar"]["num_gaussians"]
+        with connect(f"{srv.ws_base}/v1/avatars/{job['avatar_id']}/stream?token={job['token']}") as ws:
+            assert json.loads(ws.recv(timeout=60))["type"] == "ready"
+    finally:
+        srv.stop()
+
+
+# ---------------------------------------------------------------- memory (issue 18 item 1)
+def bomb_png(side: int = 4096, level: int = 200) -> bytes:
+    """A greyscale PNG of one grey level, ``side`` x ``side``: 22.5 KB at 4096 (deflate at its limit)."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    raw = (b"\x00" + bytes([level]) * side) * side  # filter byte 0 + one row
+    ihdr = struct.pack(">IIBBBBB", side, side, 8, 0, 0, 0, 0)  # 8-bit greyscale
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(raw, 9)) + chunk(b"IEND", b"")
+
+
+def _rss_peak_growth(pid: int, fn) -> float:
+    def field(name: str) -> int:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith(name + ":"):
+                return int(line.split()[1]) * 1024
+        raise KeyError(name)
+
+    before = field("VmRSS")
+    Path(f"/proc/{pid}/clear_refs").write_text("5")  # reset the peak (VmHWM) to the current RSS
+    fn()
+    return (field("VmHWM") - before) / 2**20
+
+
+@pytest.mark.skipif(not Path("/proc/self/clear_refs").exists(), reason="needs Linux /proc peak-RSS reset")
+def test_decompression_amplification_is_bounded(model_dir, tmp_path):
+    """Eight 22 KB PNGs decoding to 4096 x 4096 per request, three requests at once (default limits)."""
+    from fastgha_core.cameras import cameras_to_json, orbit_cameras
+
+    png = bomb_png()
+    assert len(png) < 25_000 and Image.open(io.BytesIO(png)).size == (4096, 4096)
+    files = [("images", (f"bomb{i}.png", png, "image/png")) for i in range(8)]
+    cams = json.dumps(cameras_to_json(orbit_cameras(8, width=4096, height=4096)))
+    srv = ServerProcess(model_dir, tmp_path / "data", None, tmp_path / "server.log", FASTGHA_API_KEYS=",".join(KEYS))
+    try:
+        codes: list[int] = []
+
+        def three():
+            with cf.ThreadPoolExecutor(3) as ex:
+                codes.extend(ex.map(lambda k: _post(srv, files, k, {"cameras": cams}, prefer_async=False).status_code, KEYS))
+
+        growth = _rss_peak_growth(srv.proc.pid, three)
+        assert codes == [201, 201, 201], codes
+        assert growth < 600, f"peak RSS grew by {growth:.0f} MB"  # was 4.5 GB before decoding moved into the queue
+    finally:
+        srv.stop()
+
+
+# ---------------------------------------------------------------- the extra-stage hook (test-time refinement plugs in here)
+def test_an_extra_stage_sees_the_prepared_inputs_reports_progress_and_replaces_the_avatar(model_dir, samples, tmp_path):
+    """``JobQueue(extra_stages=[("refining", fn)])`` in-process with a real model and store."""
+    import asyncio
+    import dataclasses
+
+    from fastgha_core import load_model
+    from fastgha_core.cameras import cameras_from_json
+    from fastgha_core.model.avatar import CanonicalAvatar
+    from server.context import ServerContext
+    from server.jobs import JobQueue
+    from server.settings import Settings
+    from server.store import AvatarStore
+
+    ctx = ServerContext(settings=Settings(data_dir=tmp_path, warmup=False))
+    ctx.model = load_model(str(model_dir), device="cpu")
+    ctx.store = AvatarStore(tmp_path, 10**9, 0, load_fn=CanonicalAvatar.load)
+    seen: dict = {}
+
+    def refine(state, fraction) -> None:
+        seen.update(images=tuple(state.images.shape), masks=tuple(state.masks.shape), views=len(state.cameras.K),
+                    size=(state.cameras.width, state.cameras.height), names=list(state.names), n=len(state.avatar.gaussians))  # fmt: skip
+        fraction(0.5)
+        keep = len(state.avatar.gaussians) // 2
+        state.avatar = dataclasses.replace(state.avatar, gaussians=state.avatar.gaussians[:keep])
+
+    imgs = sorted(samples.glob("[0-9][0-9].jpg"))
+    photos = [Photo(p.name, p.read_bytes()) for p in imgs]
+    masks = [Photo(f"{p.stem}_mask.png", (samples / f"{p.stem}_mask.png").read_bytes()) for p in imgs]
+    cams = cameras_from_json(json.loads((samples / "cameras.json").read_text()))
+    probe_request(photos, masks, cams, max_pixels=10**7, max_request_pixels=10**8)
+
+    async def run():
+        q = JobQueue(ctx, tracker=None, extra_stages=[("refining", refine)])
+        await q.start()
+        try:
+            job, token = q.submit(q.reserve("test", 1), CreationRequest(photos, masks, cams))
+            stages = []  # every update (watchers may see them coalesced)
+            update = job.update
+            job.update = lambda st, f: (update(st, f), stages.append((job.stage, job.progress)))
+            await q.wait(job)
+            return job, stages
+        finally:
+            await q.stop()
+
+    job, stages = asyncio.run(run())
+    assert job.status == "ready", job.error and job.error.message
+    s = ctx.model.config.input_size
+    assert seen["images"] == (4, 3, s, s) and seen["masks"] == (4, 1, s, s) and seen["views"] == 4 and seen["size"] == (s, s)
+    assert seen["names"] == [p.name for p in imgs]
+    assert job.stages == ["queued", "decoding", "reconstructing", "refining", "saving"]
+    assert "refining" in [st for st, _ in stages] and [p for _, p in stages] == sorted(p for _, p in stages)
+    meta = ctx.store.get_meta(job.id)
+    assert meta["num_gaussians"] == seen["n"] // 2 == job.result["num_gaussians"] and "refining_ms" in meta
+    assert len(ctx.store.get(job.id).avatar.gaussians) == seen["n"] // 2  # the stage's avatar is what was saved
