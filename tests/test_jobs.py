@@ -48,19 +48,7 @@ def _smooth(h: int, w: int) -> np.ndarray:
 
 
 # ---------------------------------------------------------------- units
-@pytest.fixture(params=["shared", "pillow"])
-def decoder(request, monkeypatch):
-    """Both decoders of ``decode_photo``: ``fastgha_core.images`` (where present) and the Pillow fallback."""
-    import server.jobs as jobs
-
-    if request.param == "pillow":
-        monkeypatch.setattr(jobs, "_shared", None)
-    elif jobs._shared is None:
-        pytest.skip("needs the shared decoder fastgha_core/images.py")
-    return request.param
-
-
-def test_decode_photo_downscales_while_decoding_like_a_full_decode_then_resize(decoder):
+def test_decode_photo_downscales_while_decoding_like_a_full_decode_then_resize():
     arr = _smooth(600, 800)
     for data in (_png(arr), _jpeg(arr)):
         rgb, alpha = decode_photo(Photo("a.img", data), max_pixels=10**7, max_side=200)
@@ -71,7 +59,7 @@ def test_decode_photo_downscales_while_decoding_like_a_full_decode_then_resize(d
     np.testing.assert_array_equal(full, arr)  # no downscale below max_side: exact pixels
 
 
-def test_decode_photo_alpha_and_masks(decoder):
+def test_decode_photo_alpha_and_masks():
     rgba = np.dstack([_smooth(40, 60), np.tile(np.arange(60, dtype=np.uint8) * 4, (40, 1))])
     rgb, alpha = decode_photo(Photo("p.png", _png(rgba)), max_pixels=10**6, max_side=1000)
     np.testing.assert_array_equal(rgb, rgba[..., :3])
@@ -83,7 +71,7 @@ def test_decode_photo_alpha_and_masks(decoder):
     np.testing.assert_array_equal(m2, rgba[..., 3])  # a mask with alpha: the alpha channel
 
 
-def test_errors_name_files_by_their_filenames_never_an_index_or_a_repr(decoder):
+def test_errors_name_files_by_their_filenames_never_an_index_or_a_repr():
     good = _png(_smooth(30, 40))
     cases = [
         (Photo("IMG_0042.jpg", good[:60]), "invalid_image"),
@@ -120,7 +108,6 @@ def test_errors_name_files_by_their_filenames_never_an_index_or_a_repr(decoder):
 def test_exif_rotated_photo_is_probed_and_decoded_upright():
     """With the shared decoder (``fastgha_core.images``: EXIF orientation applied, cameras describe
     the upright image) the header probe and the decoder agree on the upright size."""
-    pytest.importorskip("fastgha_core.images", reason="needs the shared decoder fastgha_core/images.py")
     from types import SimpleNamespace
 
     stored = _smooth(30, 40)  # stored 40 wide, 30 high; orientation 6: shown 30 wide, 40 high

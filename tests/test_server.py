@@ -179,7 +179,9 @@ def test_health_model_docs(server):
     health = httpx.get(server.base + "/healthz").json()
     assert health["status"] == "ok"
     # the module's server asked for a bf16, compiled MLP; compiling needs a C++ compiler, else it runs eagerly
-    assert health["mlp"] == {"precision": "bf16", "compiled": cpp_compiler() is not None}, health
+    mlp = health["mlp"]
+    assert (mlp["precision"], mlp["compiled"]) == ("bf16", cpp_compiler() is not None), health
+    assert mlp["choice"]["precision"] == "bf16" and mlp["choice"]["reason"] == "configured", health
     m = httpx.get(server.base + "/v1/model").json()
     assert m["expression_space"] == "ict53" and m["expression_dim"] == len(m["expression_names"]) == 53
     assert m["input_size"] == [64, 64] and m["output_size"] == [64, 64]
