@@ -81,6 +81,13 @@ class FitConfig:
     silhouette_rounds: int = 3  # outline points re-chosen this many times
     yaw_map: bool = True  # Face Mesh layout: tie points to vertices by the head's yaw (meshmap.build_yaw_table)
     yaw_map_rounds: int = 3  # re-chosen this many times as the yaw moves
+    # Face Mesh layout: beyond ~60 degrees the landmark fit saturates; a regression from the 2D layout
+    # to the yaw (yawprior.py, learned on synthetic renders) then pulls the yaw further out, for photos
+    # the fit finds turned >= yaw_prior_min_fit_deg that the regression finds turned further and >= yaw_prior_min_deg
+    yaw_prior: bool = True
+    yaw_prior_min_deg: float = 45.0
+    yaw_prior_min_fit_deg: float = 30.0
+    yaw_prior_sigma_deg: float = 1.0  # the prior's residual is (yaw - regressed yaw) / this
     tolerance: float = 1e-7  # stop when the relative cost decrease is below this
 
 
@@ -298,6 +305,7 @@ class _Problem:
         ew[[ICT53_NAMES.index(n) for n in WEAKLY_OBSERVED]] = cfg.weak_expression_weight
         self.ex_sqrt_w = np.sqrt(ew)  # [53]
         self.sil: list[dict | None] = [None] * self.V  # per view: outline terms (set_silhouettes)
+        self.yaw_target = np.full(self.V, np.nan)  # per view: regressed yaw (radians) pulled towards, NaN = none
         self.diag = diag
 
     def set_weights(self, weights: np.ndarray) -> None:
@@ -358,13 +366,20 @@ class _Problem:
         if self.free_ex:
             out.append((self.ex_sqrt_w[None] * E).reshape(-1))
         out.extend(self._sil_residuals(beta, E, Rs, ts))
+        out.append(self._yaw_residuals(Rs))
         return np.concatenate(out)
+
+    def _yaw_residuals(self, Rs) -> np.ndarray:
+        k = np.flatnonzero(np.isfinite(self.yaw_target))
+        y = np.array([math.atan2(Rs[v][0, 2], -Rs[v][2, 2]) for v in k])
+        return (y - self.yaw_target[k]) / math.radians(self.cfg.yaw_prior_sigma_deg)
 
     def jacobian(self, beta, E, Rs, ts) -> np.ndarray:
         n2 = 2 * self.N
         n_lm = self.V * n2
         n_sil = sum(len(s["mean"]) for s in self.sil if s is not None)
-        n_rows = n_lm + self.nid + self.V * self.nex + n_sil
+        yaw_views = np.flatnonzero(np.isfinite(self.yaw_target))
+        n_rows = n_lm + self.nid + self.V * self.nex + n_sil + len(yaw_views)
         n_cols = self.nid + self.V * self.nv
         J = np.zeros((n_rows, n_cols))
         r0 = n_lm + self.nid + self.V * self.nex
@@ -387,6 +402,11 @@ class _Problem:
             if self.free_id:
                 J[rows, : self.nid] = np.einsum("nk,ank->na", DR, s["idb"])
             r0 += m
+        for v in yaw_views:  # yaw = atan2(n0, -n2), n = R[:, 2]; R <- exp([d]x) R gives dn = d x n
+            n = Rs[v][:, 2]
+            g = np.array([-n[2], 0.0, n[0]]) / max(n[0] ** 2 + n[2] ** 2, 1e-12)  # d yaw / d n
+            J[r0, self.nid + v * self.nv : self.nid + v * self.nv + 3] = np.cross(n, g) / math.radians(self.cfg.yaw_prior_sigma_deg)
+            r0 += 1
         for v in range(self.V):
             X = self.ms[v].points(beta, E[v])
             _, P = _project(X, Rs[v], ts[v], self.K[v])
@@ -526,6 +546,31 @@ def _yaw_deg(R: np.ndarray) -> float:
     return math.degrees(math.atan2(R[0, 2], -R[2, 2]))
 
 
+def _regressed_yaw_targets(obs: np.ndarray, Rs: np.ndarray, cfg: FitConfig) -> np.ndarray:
+    """``[V]`` yaw (radians) the prior pulls each photo to (``yawprior.py``), NaN where it does not apply."""
+    from .meshmap import load_mediapipe_map
+    from .yawprior import load_regression, predict_yaw
+
+    out = np.full(obs.shape[0], np.nan)
+    coef = load_regression()
+    if coef is None:
+        return out
+    mp_index = load_mediapipe_map().mp_index
+    for v in range(obs.shape[0]):
+        yf = _yaw_deg(Rs[v])
+        if abs(yf) < cfg.yaw_prior_min_fit_deg:
+            continue
+        full = np.zeros((468, 2))
+        full[mp_index] = obs[v]
+        try:
+            yr = predict_yaw(full, coef)
+        except ValueError:
+            continue
+        if yr * yf > 0 and abs(yr) >= cfg.yaw_prior_min_deg and abs(yr) > abs(yf):
+            out[v] = math.radians(yr)
+    return out
+
+
 def visibility_weights(model: LandmarkModel, Rs: np.ndarray, ts: np.ndarray, occluded: float) -> np.ndarray:
     """``[V, N]`` weights: 1 for points whose (generic) normal faces the camera, down to ``occluded``
     for points on the far side of the head (their positions are guessed by the landmark detector),
@@ -639,6 +684,13 @@ def _fit_landmarks(
         for _ in range(cfg.yaw_map_rounds if table is not None else 0):
             use_yaw_map()
             beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
+        if cfg.yaw_prior and model.layout == "mediapipe" and N == 468:
+            prob.yaw_target = _regressed_yaw_targets(obs, Rs, cfg)
+            if np.isfinite(prob.yaw_target).any():
+                for _ in range(max(1, cfg.yaw_map_rounds if table is not None else 1)):
+                    if table is not None:
+                        use_yaw_map()
+                    beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
     outline = np.full(V, np.nan)
     if silhouettes is not None and any(t is not None for t in silhouettes):
         from ..data.headmodel import HeadModel
