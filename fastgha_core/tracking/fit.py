@@ -85,9 +85,9 @@ class FitConfig:
     # to the yaw (yawprior.py, learned on synthetic renders) then pulls the yaw further out, for photos
     # the fit finds turned >= yaw_prior_min_fit_deg that the regression finds turned further and >= yaw_prior_min_deg
     yaw_prior: bool = True
-    yaw_prior_min_deg: float = 45.0
+    yaw_prior_min_deg: float = 55.0  # where the fit starts to saturate on synthetic renders
     yaw_prior_min_fit_deg: float = 30.0
-    yaw_prior_sigma_deg: float = 1.0  # the prior's residual is (yaw - regressed yaw) / this
+    yaw_prior_sigma_deg: float = 0.2  # the prior's residual is (yaw - regressed yaw) / this (0.2: nearly a constraint)
     tolerance: float = 1e-7  # stop when the relative cost decrease is below this
 
 
@@ -667,14 +667,14 @@ def _fit_landmarks(
     prob = _Problem(model, obs, K, cfg, W, free_identity=identity is None, free_expression=True)
     table = _yaw_models(model) if cfg.yaw_map and model.layout == "mediapipe" else None
 
-    def use_yaw_map():
+    def use_yaw_map(p=prob):
         wv = W_user.copy()
         for v in range(V):
-            prob.ms[v], hit = _model_at_yaw(table, _yaw_deg(Rs[v]))
+            p.ms[v], hit = _model_at_yaw(table, _yaw_deg(Rs[v]))
             wv[v] *= hit
             if cfg.occluded_weight < 1.0:
-                wv[v] *= visibility_weights(prob.ms[v], Rs[v : v + 1], ts[v : v + 1], cfg.occluded_weight)[0]
-        prob.set_weights(wv)
+                wv[v] *= visibility_weights(p.ms[v], Rs[v : v + 1], ts[v : v + 1], cfg.occluded_weight)[0]
+        p.set_weights(wv)
 
     if table is not None and init is not None:  # warm start (video): the map of the previous pose, one solve
         use_yaw_map()
@@ -684,13 +684,17 @@ def _fit_landmarks(
         for _ in range(cfg.yaw_map_rounds if table is not None else 0):
             use_yaw_map()
             beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
-        if cfg.yaw_prior and model.layout == "mediapipe" and N == 468:
-            prob.yaw_target = _regressed_yaw_targets(obs, Rs, cfg)
-            if np.isfinite(prob.yaw_target).any():
-                for _ in range(max(1, cfg.yaw_map_rounds if table is not None else 1)):
-                    if table is not None:
-                        use_yaw_map()
-                    beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
+        targets = _regressed_yaw_targets(obs, Rs, cfg) if cfg.yaw_prior and model.layout == "mediapipe" and N == 468 else None
+        if targets is not None and np.isfinite(targets).any():
+            # re-pose only: identity and expressions stay (freeing them lets the shared identity move
+            # the other photos and the expressions absorb the prior's pull on the landmarks)
+            pose = _Problem(model, obs, K, cfg, W, free_identity=False, free_expression=False)
+            pose.ms, pose.scale, pose.yaw_target = prob.ms, prob.scale, targets
+            for _ in range(max(1, cfg.yaw_map_rounds if table is not None else 1)):
+                if table is not None:
+                    use_yaw_map(pose)
+                beta, E, Rs, ts, cost = _lm(pose, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
+            prob = pose
     outline = np.full(V, np.nan)
     if silhouettes is not None and any(t is not None for t in silhouettes):
         from ..data.headmodel import HeadModel
