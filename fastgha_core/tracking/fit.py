@@ -21,7 +21,10 @@ Face Mesh points on the far side of the head get ``occluded_weight`` (``visibili
 Stages: a rigid-only fit per photo (pose only) from five yaw guesses (-60 .. +60 degrees) keeps
 the best; the joint fit; for the Face Mesh layout, ``yaw_map_rounds`` rounds that re-tie each
 photo's points to the vertices the detector lands on at its current yaw (``meshmap``'s yaw
-table); optionally the outline of a person mask for side views (``silhouette.py``).
+table); for the Face Mesh layout without a warm start, a re-pose (identity and expressions fixed)
+of the photos turned beyond the fit's saturation towards the yaw regressed from the 2D layout
+(``yawprior.py``, ``FitConfig.yaw_prior``); optionally the outline of a person mask for side
+views (``silhouette.py``).
 
 Solver: Levenberg-Marquardt on the stacked residuals with the analytic Jacobian (dense normal
 equations; checked against finite differences in the tests). The box [0, 1] on ``e`` is kept by
