@@ -194,5 +194,8 @@ def test_yaw_prior_on_held_out_synthetic_renders():
         if abs(reg) >= cfg.yaw_prior_min_deg and abs(reg) > abs(without) and reg * without > 0:
             assert abs(with_prior - reg) <= 1.0, (az, reg, with_prior)
             applied += 1
+            # a photo the prior would push beyond yaw_prior_max_rms keeps its landmark-only pose
+            R1 = fit_landmarks(lm[None], K, FitConfig(yaw_prior_max_rms=1e-6), model).rotations[0]
+            np.testing.assert_allclose(R1, R0, atol=1e-9)
         assert abs(with_prior - truth) <= abs(without - truth) + 0.5, (az, truth, with_prior, without)
     assert applied >= 1  # the landmark fit alone saturates below the regression here

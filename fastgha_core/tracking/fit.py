@@ -91,6 +91,9 @@ class FitConfig:
     yaw_prior_min_deg: float = 55.0  # where the fit starts to saturate on synthetic renders
     yaw_prior_min_fit_deg: float = 30.0
     yaw_prior_sigma_deg: float = 0.2  # the prior's residual is (yaw - regressed yaw) / this (0.2: nearly a constraint)
+    # a photo whose landmark RMS exceeds this fraction of its face size under the prior keeps its
+    # landmark-only pose (the pipeline refuses photos beyond 6 %: the prior must not cause a refusal)
+    yaw_prior_max_rms: float = 0.05
     tolerance: float = 1e-7  # stop when the relative cost decrease is below this
 
 
@@ -692,11 +695,21 @@ def _fit_landmarks(
             # re-pose only: identity and expressions stay (freeing them lets the shared identity move
             # the other photos and the expressions absorb the prior's pull on the landmarks)
             pose = _Problem(model, obs, K, cfg, W, free_identity=False, free_expression=False)
-            pose.ms, pose.scale, pose.yaw_target = prob.ms, prob.scale, targets
+            pose.ms, pose.scale, pose.yaw_target = list(prob.ms), prob.scale, targets
+            R0, t0, ms0 = Rs.copy(), ts.copy(), list(prob.ms)
             for _ in range(max(1, cfg.yaw_map_rounds if table is not None else 1)):
                 if table is not None:
                     use_yaw_map(pose)
                 beta, E, Rs, ts, cost = _lm(pose, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
+            # with identity and expressions fixed the views are independent: one can be reverted alone
+            for v in np.flatnonzero(np.isfinite(targets)):
+                uv, _ = _project(pose.ms[v].points(beta, E[v]), Rs[v], ts[v], K[v])
+                rms_v = float(np.sqrt(((uv - obs[v]) ** 2).sum(1).mean()))
+                if rms_v > cfg.yaw_prior_max_rms * max(pose.diag[v], 1.0):
+                    logger.info("photo %d: the yaw prior leaves landmark RMS %.1f px; keeping the landmark-only pose", v, rms_v)
+                    Rs[v], ts[v], pose.ms[v], pose.yaw_target[v] = R0[v], t0[v], ms0[v], np.nan
+            r = pose.residuals(beta, E, Rs, ts)
+            cost = 0.5 * float(r @ r)
             prob = pose
     outline = np.full(V, np.nan)
     if silhouettes is not None and any(t is not None for t in silhouettes):
