@@ -1,10 +1,9 @@
 """Tracking on real and synthetic photos at wide head poses (issue: tracking that holds on real photos).
 
 - The real multi-view sets (non-commercial, outside the repository: ``../shared/realsets`` or
-  ``$FASTGHA_REALSETS``): every photo tracks; frontal photos within 15 degrees of yaw; turned
-  heads turn the right way and in the annotated order. (Yaw within 15 degrees of the annotation
-  is NOT reached beyond ~50 degrees: the Face Mesh compresses strongly turned heads, see
-  docs/tracking.md.)
+  ``$FASTGHA_REALSETS``): every photo tracks; frontal photos within 15 degrees of yaw; every
+  photo within 18 degrees and the median within 11 (the issue's 15 everywhere is NOT reached by 2
+  of 15 photos, see docs/tracking.md); turned heads turn the right way and in the annotated order.
 - Synthetic observations with known cameras up to 75 degrees of yaw and +-30 of pitch.
 - The 8 EXIF orientations of one portrait give the same pose as the upright photo.
 """
@@ -60,6 +59,10 @@ def test_every_real_photo_tracks_and_turns_the_right_way():
 
     rows = evaluate_realsets(ROOT, detector=MESH)
     assert len(rows) >= 10
+    errs = [r["yaw_error"] for r in rows if r["yaw_error"] is not None]
+    # the issue asks for 15 degrees everywhere; with the regressed-yaw prior (yawprior.py) measured:
+    # median 9.6, max 16.7 (without it 13.0 / 31.8): two photos still miss 15 (docs/tracking.md)
+    assert np.median(errs) <= 11.0 and max(errs) <= 18.0, errs
     for r in rows:
         ann = r["yaw_annotated"]
         if ann is None:
@@ -153,3 +156,46 @@ def test_detector_and_fitter_on_synthetic_renders_with_known_cameras():
         err_plain.append(abs(plain - truth))
     assert max(err_map) <= 6.0, err_map
     assert err_map[-1] < err_plain[-1], (err_map, err_plain)
+
+
+@needs_mediapipe
+def test_yaw_prior_on_held_out_synthetic_renders():
+    """A synthetic subject outside yawprior.TRAINING_BATCHES: frontal, the prior does not apply and the
+    fit is unchanged; turned 70 degrees each way (MediaPipe finds this head at -75 but not at +75),
+    the regression reads the yaw within 15 degrees (measured 66 / 69), the fit ends at the regressed
+    yaw where the prior applies, and never further from the truth."""
+    import math
+
+    from fastgha_core.cameras import Cameras
+    from fastgha_core.data.synthetic import SyntheticSubject
+    from fastgha_core.tracking.fit import FitConfig, LandmarkModel, fit_landmarks
+    from fastgha_core.tracking.yawprior import predict_yaw
+
+    model = LandmarkModel.from_head_model(num_identity=50, layout="mediapipe")
+    sub = SyntheticSubject(1_000_204)
+    frame = sub.frame(np.zeros(53, np.float32))
+    cfg = FitConfig()
+    applied = 0
+    for az in (0.0, 70.0, -70.0):
+        cam = Cameras.look_at([math.sin(math.radians(az)), 0.0, math.cos(math.radians(az))], fov_deg=25, width=512, height=512).flatten()
+        img = (sub.render(frame, cam)[0].image.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+        truth = head_angles_deg(cam.w2c[0, :3, :3].double().numpy())[0]
+        full = MESH.detect_all(img)[0][1]
+        lm = full[MESH.index]
+        K = cam.K[0].double().numpy()
+        R = fit_landmarks(lm[None], K, cfg, model).rotations[0]
+        R0 = fit_landmarks(lm[None], K, FitConfig(yaw_prior=False), model).rotations[0]
+        with_prior, without = head_angles_deg(R)[0], head_angles_deg(R0)[0]
+        if az == 0.0:
+            np.testing.assert_allclose(R, R0, atol=1e-9)
+            continue
+        reg = predict_yaw(full)
+        assert abs(reg - truth) <= 15.0, (az, truth, reg)
+        if abs(reg) >= cfg.yaw_prior_min_deg and abs(reg) > abs(without) and reg * without > 0:
+            assert abs(with_prior - reg) <= 1.0, (az, reg, with_prior)
+            applied += 1
+            # a photo the prior would push beyond yaw_prior_max_rms keeps its landmark-only pose
+            R1 = fit_landmarks(lm[None], K, FitConfig(yaw_prior_max_rms=1e-6), model).rotations[0]
+            np.testing.assert_allclose(R1, R0, atol=1e-9)
+        assert abs(with_prior - truth) <= abs(without - truth) + 0.5, (az, truth, with_prior, without)
+    assert applied >= 1  # the landmark fit alone saturates below the regression here

@@ -72,8 +72,8 @@ def evaluate(renders: int = 48, views: int = 4, noise_px: float = 1.5, seed: int
     """
     from ..data.headmodel import HeadModel
 
-    # the observations are the map's own vertices, so the detector model (the yaw-dependent map) is off
-    cfg = config or FitConfig(yaw_map=False)
+    # the observations are the map's own vertices, so the detector models (the yaw-dependent map, the yaw prior) are off
+    cfg = config or FitConfig(yaw_map=False, yaw_prior=False)
     head = HeadModel.load()
     truth_model = LandmarkModel.from_head_model(head, num_identity=head.num_identity, layout=layout)
     fit_model = LandmarkModel.from_head_model(head, num_identity=cfg.num_identity, layout=layout)

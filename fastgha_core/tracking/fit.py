@@ -21,7 +21,10 @@ Face Mesh points on the far side of the head get ``occluded_weight`` (``visibili
 Stages: a rigid-only fit per photo (pose only) from five yaw guesses (-60 .. +60 degrees) keeps
 the best; the joint fit; for the Face Mesh layout, ``yaw_map_rounds`` rounds that re-tie each
 photo's points to the vertices the detector lands on at its current yaw (``meshmap``'s yaw
-table); optionally the outline of a person mask for side views (``silhouette.py``).
+table); for the Face Mesh layout without a warm start, a re-pose (identity and expressions fixed)
+of the photos turned beyond the fit's saturation towards the yaw regressed from the 2D layout
+(``yawprior.py``, ``FitConfig.yaw_prior``); optionally the outline of a person mask for side
+views (``silhouette.py``).
 
 Solver: Levenberg-Marquardt on the stacked residuals with the analytic Jacobian (dense normal
 equations; checked against finite differences in the tests). The box [0, 1] on ``e`` is kept by
@@ -81,6 +84,16 @@ class FitConfig:
     silhouette_rounds: int = 3  # outline points re-chosen this many times
     yaw_map: bool = True  # Face Mesh layout: tie points to vertices by the head's yaw (meshmap.build_yaw_table)
     yaw_map_rounds: int = 3  # re-chosen this many times as the yaw moves
+    # Face Mesh layout: beyond ~60 degrees the landmark fit saturates; a regression from the 2D layout
+    # to the yaw (yawprior.py, learned on synthetic renders) then pulls the yaw further out, for photos
+    # the fit finds turned >= yaw_prior_min_fit_deg that the regression finds turned further and >= yaw_prior_min_deg
+    yaw_prior: bool = True
+    yaw_prior_min_deg: float = 55.0  # where the fit starts to saturate on synthetic renders
+    yaw_prior_min_fit_deg: float = 30.0
+    yaw_prior_sigma_deg: float = 0.2  # the prior's residual is (yaw - regressed yaw) / this (0.2: nearly a constraint)
+    # a photo whose landmark RMS exceeds this fraction of its face size under the prior keeps its
+    # landmark-only pose (the pipeline refuses photos beyond 6 %: the prior must not cause a refusal)
+    yaw_prior_max_rms: float = 0.05
     tolerance: float = 1e-7  # stop when the relative cost decrease is below this
 
 
@@ -298,6 +311,7 @@ class _Problem:
         ew[[ICT53_NAMES.index(n) for n in WEAKLY_OBSERVED]] = cfg.weak_expression_weight
         self.ex_sqrt_w = np.sqrt(ew)  # [53]
         self.sil: list[dict | None] = [None] * self.V  # per view: outline terms (set_silhouettes)
+        self.yaw_target = np.full(self.V, np.nan)  # per view: regressed yaw (radians) pulled towards, NaN = none
         self.diag = diag
 
     def set_weights(self, weights: np.ndarray) -> None:
@@ -358,13 +372,20 @@ class _Problem:
         if self.free_ex:
             out.append((self.ex_sqrt_w[None] * E).reshape(-1))
         out.extend(self._sil_residuals(beta, E, Rs, ts))
+        out.append(self._yaw_residuals(Rs))
         return np.concatenate(out)
+
+    def _yaw_residuals(self, Rs) -> np.ndarray:
+        k = np.flatnonzero(np.isfinite(self.yaw_target))
+        y = np.array([math.atan2(Rs[v][0, 2], -Rs[v][2, 2]) for v in k])
+        return (y - self.yaw_target[k]) / math.radians(self.cfg.yaw_prior_sigma_deg)
 
     def jacobian(self, beta, E, Rs, ts) -> np.ndarray:
         n2 = 2 * self.N
         n_lm = self.V * n2
         n_sil = sum(len(s["mean"]) for s in self.sil if s is not None)
-        n_rows = n_lm + self.nid + self.V * self.nex + n_sil
+        yaw_views = np.flatnonzero(np.isfinite(self.yaw_target))
+        n_rows = n_lm + self.nid + self.V * self.nex + n_sil + len(yaw_views)
         n_cols = self.nid + self.V * self.nv
         J = np.zeros((n_rows, n_cols))
         r0 = n_lm + self.nid + self.V * self.nex
@@ -387,6 +408,11 @@ class _Problem:
             if self.free_id:
                 J[rows, : self.nid] = np.einsum("nk,ank->na", DR, s["idb"])
             r0 += m
+        for v in yaw_views:  # yaw = atan2(n0, -n2), n = R[:, 2]; R <- exp([d]x) R gives dn = d x n
+            n = Rs[v][:, 2]
+            g = np.array([-n[2], 0.0, n[0]]) / max(n[0] ** 2 + n[2] ** 2, 1e-12)  # d yaw / d n
+            J[r0, self.nid + v * self.nv : self.nid + v * self.nv + 3] = np.cross(n, g) / math.radians(self.cfg.yaw_prior_sigma_deg)
+            r0 += 1
         for v in range(self.V):
             X = self.ms[v].points(beta, E[v])
             _, P = _project(X, Rs[v], ts[v], self.K[v])
@@ -526,6 +552,31 @@ def _yaw_deg(R: np.ndarray) -> float:
     return math.degrees(math.atan2(R[0, 2], -R[2, 2]))
 
 
+def _regressed_yaw_targets(obs: np.ndarray, Rs: np.ndarray, cfg: FitConfig) -> np.ndarray:
+    """``[V]`` yaw (radians) the prior pulls each photo to (``yawprior.py``), NaN where it does not apply."""
+    from .meshmap import load_mediapipe_map
+    from .yawprior import load_regression, predict_yaw
+
+    out = np.full(obs.shape[0], np.nan)
+    coef = load_regression()
+    if coef is None:
+        return out
+    mp_index = load_mediapipe_map().mp_index
+    for v in range(obs.shape[0]):
+        yf = _yaw_deg(Rs[v])
+        if abs(yf) < cfg.yaw_prior_min_fit_deg:
+            continue
+        full = np.zeros((468, 2))
+        full[mp_index] = obs[v]
+        try:
+            yr = predict_yaw(full, coef)
+        except ValueError:
+            continue
+        if yr * yf > 0 and abs(yr) >= cfg.yaw_prior_min_deg and abs(yr) > abs(yf):
+            out[v] = math.radians(yr)
+    return out
+
+
 def visibility_weights(model: LandmarkModel, Rs: np.ndarray, ts: np.ndarray, occluded: float) -> np.ndarray:
     """``[V, N]`` weights: 1 for points whose (generic) normal faces the camera, down to ``occluded``
     for points on the far side of the head (their positions are guessed by the landmark detector),
@@ -622,14 +673,14 @@ def _fit_landmarks(
     prob = _Problem(model, obs, K, cfg, W, free_identity=identity is None, free_expression=True)
     table = _yaw_models(model) if cfg.yaw_map and model.layout == "mediapipe" else None
 
-    def use_yaw_map():
+    def use_yaw_map(p=prob):
         wv = W_user.copy()
         for v in range(V):
-            prob.ms[v], hit = _model_at_yaw(table, _yaw_deg(Rs[v]))
+            p.ms[v], hit = _model_at_yaw(table, _yaw_deg(Rs[v]))
             wv[v] *= hit
             if cfg.occluded_weight < 1.0:
-                wv[v] *= visibility_weights(prob.ms[v], Rs[v : v + 1], ts[v : v + 1], cfg.occluded_weight)[0]
-        prob.set_weights(wv)
+                wv[v] *= visibility_weights(p.ms[v], Rs[v : v + 1], ts[v : v + 1], cfg.occluded_weight)[0]
+        p.set_weights(wv)
 
     if table is not None and init is not None:  # warm start (video): the map of the previous pose, one solve
         use_yaw_map()
@@ -639,6 +690,27 @@ def _fit_landmarks(
         for _ in range(cfg.yaw_map_rounds if table is not None else 0):
             use_yaw_map()
             beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
+        targets = _regressed_yaw_targets(obs, Rs, cfg) if cfg.yaw_prior and model.layout == "mediapipe" and N == 468 else None
+        if targets is not None and np.isfinite(targets).any():
+            # re-pose only: identity and expressions stay (freeing them lets the shared identity move
+            # the other photos and the expressions absorb the prior's pull on the landmarks)
+            pose = _Problem(model, obs, K, cfg, W, free_identity=False, free_expression=False)
+            pose.ms, pose.scale, pose.yaw_target = list(prob.ms), prob.scale, targets
+            R0, t0, ms0 = Rs.copy(), ts.copy(), list(prob.ms)
+            for _ in range(max(1, cfg.yaw_map_rounds if table is not None else 1)):
+                if table is not None:
+                    use_yaw_map(pose)
+                beta, E, Rs, ts, cost = _lm(pose, beta, E, Rs, ts, cfg.iterations, cfg.tolerance)
+            # with identity and expressions fixed the views are independent: one can be reverted alone
+            for v in np.flatnonzero(np.isfinite(targets)):
+                uv, _ = _project(pose.ms[v].points(beta, E[v]), Rs[v], ts[v], K[v])
+                rms_v = float(np.sqrt(((uv - obs[v]) ** 2).sum(1).mean()))
+                if rms_v > cfg.yaw_prior_max_rms * max(pose.diag[v], 1.0):
+                    logger.info("photo %d: the yaw prior leaves landmark RMS %.1f px; keeping the landmark-only pose", v, rms_v)
+                    Rs[v], ts[v], pose.ms[v], pose.yaw_target[v] = R0[v], t0[v], ms0[v], np.nan
+            r = pose.residuals(beta, E, Rs, ts)
+            cost = 0.5 * float(r @ r)
+            prob = pose
     outline = np.full(V, np.nan)
     if silhouettes is not None and any(t is not None for t in silhouettes):
         from ..data.headmodel import HeadModel
