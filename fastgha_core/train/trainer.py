@@ -88,11 +88,14 @@ class TrainConfig:
     synthetic_timesteps: int = 16  # timesteps per synthetic sequence
     synthetic_cameras: int = 16  # cameras per synthetic sequence
     vgg_weights: str | None = None  # torchvision VGG16 weights file for L_perc (None: L_perc off)
+    train_only: str = ""  # "deform": freeze the reconstruction network, train the deformation MLP only
     loss: LossConfig = field(default_factory=LossConfig)
 
     def __post_init__(self) -> None:
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"train config: lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
+        if self.train_only not in ("", "deform"):
+            raise ValueError(f"train config: train_only must be '' or 'deform', got {self.train_only!r}")
         if not 0.0 <= self.min_lr_ratio <= 1.0:
             raise ValueError(f"train config: min_lr_ratio must be in [0, 1], got {self.min_lr_ratio}")
 
@@ -373,6 +376,10 @@ class Trainer:
         self.model.train()
         core = self.model
         self.model_config = core.config
+        if config.train_only == "deform":  # the reconstruction stays as it is: no gradient reaches it
+            deform_ids = {id(p) for p in core.deform.parameters()}
+            for p in core.parameters():
+                p.requires_grad_(id(p) in deform_ids)
         deform_params = [p for p in core.deform.parameters() if p.requires_grad]
         deform_ids = {id(p) for p in deform_params}
         other = [p for p in core.parameters() if p.requires_grad and id(p) not in deform_ids]

@@ -1,0 +1,499 @@
+"""Expression prior from a linear head model, and the mouth interior (issue 16).
+
+The deformation MLP alone learns expressions slowly (a CPU budget of a few thousand steps moved the
+chin 16 mm for ``jawOpen`` = 1 where the head model moves it 42 mm). The prior gives every
+canonical Gaussian the blendshape displacement of its nearest point on a head surface fitted to the
+avatar; the MLP then predicts a residual on top.
+
+Pieces (all numpy/torch on CPU, no learning):
+
+- ``HeadBasis``: a linear head model in our axes (metres, +x subject's left, +y up, +z out of the
+  face): neutral ``[Nv, 3]``, identity modes ``[K, Nv, 3]``, expression blendshapes ``[E, Nv, 3]``,
+  the triangles Gaussians bind to and the vertex ids the fit uses. ``load_basis("ict53")`` reads the
+  shipped ICT-FaceKit model; ``load_basis("flame120", path)`` reads a FLAME model file given by the
+  user (FLAME's blendshapes cannot ship).
+- ``fit_head(points, basis)``: trimmed ICP of identity modes + similarity transform against the
+  canonical Gaussian centres (model vertex -> nearest Gaussian correspondences).
+- ``bind(points, fit, basis)``: each point's nearest triangle of the fitted surface (barycentric
+  coordinates of the clamped projection) and a fade weight ``1 - smoothstep((d - d0) / (d1 - d0))``
+  of its distance ``d``, so hair, ears and shoulders far from the surface do not follow the lips.
+- ``PriorBinding``: the per-Gaussian result ``vertex_ids [N, 3]``, ``bary [N, 3]``, ``weight [N]``
+  plus the fit (``transform [4, 4]`` = scale * rotation | offset, ``identity [K]``); saved in the
+  avatar file. ``displacement(z)`` -> ``[N, 3]`` (or ``[B, N, 3]``) per frame through a compact basis
+  over the vertices actually used (``PriorRuntime``).
+- ``mouth_interior(fit, basis)``: Gaussians on the teeth, gums/tongue and mouth-socket meshes of the
+  fitted head, coloured plausibly, bound to their own vertex (so they follow the jaw), with an
+  opacity gate ``mouth_gate(z)`` that is 0 while the lips are closed.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = [
+    "HeadBasis",
+    "HeadFit",
+    "PriorBinding",
+    "PriorRuntime",
+    "load_basis",
+    "fit_head",
+    "bind",
+    "mouth_interior",
+    "mouth_gate_vector",
+    "FLAME_ENV",
+]
+
+FLAME_ENV = "FASTGHA_FLAME_MODEL"
+
+# Mouth-opening blendshapes (ict53 names) and how much each opens the lips, for the interior's gate.
+_MOUTH_OPENING = {
+    "jawOpen": 1.0,
+    "mouthFunnel": 0.4,
+    "mouthLowerDown_L": 0.3,
+    "mouthLowerDown_R": 0.3,
+    "mouthUpperUp_L": 0.3,
+    "mouthUpperUp_R": 0.3,
+    "mouthStretch_L": 0.15,
+    "mouthStretch_R": 0.15,
+}
+GATE_START, GATE_FULL = 0.04, 0.25  # gate(z) = smoothstep((g.z - START) / (FULL - START))
+
+
+@dataclass(frozen=True, eq=False)
+class HeadBasis:
+    """A linear head model (numpy, float32, metres, our axes).
+
+    Attributes:
+        space: expression space of ``expression_basis`` (``"ict53"`` / ``"flame120"``).
+        neutral: ``[Nv, 3]``; identity_basis: ``[K, Nv, 3]``; expression_basis: ``[E, Nv, 3]``
+            (for ``flame120`` the 100 linear coefficients; jaw/eye rotations are left to the MLP).
+        bind_faces: ``[F, 3]`` triangles Gaussians bind to (visible surfaces).
+        fit_vertices: ``[M]`` vertex ids whose nearest Gaussians drive the fit (front of the face).
+        interior_vertices / interior_colors: ``[I]`` ids and ``[I, 3]`` sRGB of the mouth interior.
+        interior_spacing: typical distance between neighbouring interior vertices (metres).
+    """
+
+    space: str
+    neutral: np.ndarray
+    identity_basis: np.ndarray
+    expression_basis: np.ndarray
+    bind_faces: np.ndarray
+    fit_vertices: np.ndarray
+    interior_vertices: np.ndarray
+    interior_colors: np.ndarray
+    interior_spacing: float
+    gate: np.ndarray  # [E] weights of mouth-opening blendshapes
+
+    @property
+    def num_expression(self) -> int:
+        return int(self.expression_basis.shape[0])
+
+
+def load_basis(space: str, flame_model: str | Path | None = None) -> HeadBasis:
+    """The head basis of an expression space.
+
+    Args:
+        space: ``"ict53"`` (shipped ICT-FaceKit model) or ``"flame120"``.
+        flame_model: for ``flame120``, a FLAME model file (``.npz`` or an unpickled-able ``.pkl``
+            with ``v_template``, ``shapedirs``, ``f``); default: the ``FASTGHA_FLAME_MODEL`` variable.
+    Raises:
+        FileNotFoundError: ``flame120`` without a FLAME model file.
+        ValueError: an unknown space.
+    """
+    if space == "ict53":
+        return _ict_basis()
+    if space == "flame120":
+        path = flame_model or os.environ.get(FLAME_ENV)
+        if not path or not Path(path).is_file():
+            raise FileNotFoundError(
+                "the expression prior of flame120 models needs FLAME's blendshapes, which FastGHA cannot ship: "
+                f"set {FLAME_ENV} to a FLAME model file (.npz or .pkl with v_template, shapedirs, f), "
+                f"or turn the prior off (deform.prior = false); got {str(path) if path else 'no file'}"
+            )
+        return _flame_basis(str(Path(path).resolve()))
+    raise ValueError(f"no head basis for expression space {space!r}; expected 'ict53' or 'flame120'")
+
+
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+@functools.lru_cache(maxsize=1)
+def _ict_basis() -> HeadBasis:
+    from ..data.appearance import head_regions
+    from ..data.headmodel import HEAD_VERTEX_RANGE, HeadModel
+
+    m = HeadModel.load()
+    faces = m.visible_faces(eyelashes=True)
+    lm = m.neutral[m.landmarks68]
+    v = m.neutral
+    # Fit on the face skin below the hairline (synthetic hair and real hair both sit off the skull).
+    idx = np.arange(HEAD_VERTEX_RANGE[0], 9409)
+    brow_y = lm[17:27, 1].max()
+    front = idx[(v[idx, 1] < brow_y + 0.015) & (v[idx, 2] > lm[0, 2] - 0.01) & (v[idx, 1] > lm[8, 1] - 0.005)]
+    # Mouth interior: teeth, gums/tongue and the mouth socket, with the synthetic albedo's colours.
+    reg = head_regions(m)
+    teeth = np.flatnonzero(reg.teeth > 0)
+    gums = np.flatnonzero(reg.gums > 0)
+    sock = np.flatnonzero((reg.mouth_interior > 0) & (reg.gums <= 0))
+    # Subsample to a few thousand points (every k-th vertex in the archive order keeps them spread).
+    teeth, gums, sock = teeth[::2], gums[::2], sock[::2]
+    depth_in = np.clip((lm[48:68, 2].max() - v[:, 2]) / 0.045, 0, 1)
+    teeth_c = np.array([0.86, 0.83, 0.75])[None] * (1.0 - 0.7 * depth_in[teeth])[:, None]
+    gum_c = np.array([0.62, 0.28, 0.28])[None] * (1.0 - 0.6 * depth_in[gums])[:, None]
+    sock_c = np.array([0.26, 0.09, 0.09])[None] * (1.0 - 0.6 * depth_in[sock])[:, None]
+    ids = np.concatenate([teeth, gums, sock]).astype(np.int64)
+    cols = np.concatenate([teeth_c, gum_c, sock_c]).astype(np.float32)
+    gate = np.zeros(m.num_expression, np.float32)
+    for n, w in _MOUTH_OPENING.items():
+        gate[m.expression_names.index(n)] = w
+    return HeadBasis(
+        space="ict53",
+        neutral=m.neutral,
+        identity_basis=m.identity_basis[:40],
+        expression_basis=m.expression_basis,
+        bind_faces=faces,
+        fit_vertices=front.astype(np.int64),
+        interior_vertices=ids,
+        interior_colors=np.clip(cols, 0, 1),
+        interior_spacing=0.0022,
+        gate=gate,
+    )
+
+
+@functools.lru_cache(maxsize=2)
+def _flame_basis(path: str) -> HeadBasis:
+    if path.endswith(".npz"):
+        with np.load(path, allow_pickle=False) as d:
+            data = {k: d[k] for k in d.files}
+    else:
+        import pickle
+
+        with open(path, "rb") as fh:
+            data = pickle.load(fh, encoding="latin1")  # noqa: S301 - a file the user chose to trust
+    try:
+        vt = np.asarray(data["v_template"], np.float32)
+        sd = np.asarray(data["shapedirs"], np.float32)  # [Nv, 3, 300 + 100]
+        f = np.asarray(data["f"], np.int64)
+    except KeyError as e:
+        raise ValueError(f"FLAME model file {path}: missing {e.args[0]!r} (expected v_template, shapedirs, f)") from None
+    if sd.ndim != 3 or sd.shape[:2] != vt.shape or sd.shape[2] < 400:
+        raise ValueError(f"FLAME model file {path}: shapedirs must be [Nv, 3, 400], got {list(sd.shape)}")
+    # FLAME: metres, +y up, +z forward; centre it like the ICT model (midway chin-crown, back-nose).
+    c = np.array([0.0, 0.5 * (vt[:, 1].min() + vt[:, 1].max()), 0.5 * (vt[:, 2].min() + vt[:, 2].max())], np.float32)
+    ident = np.transpose(sd[:, :, :40], (2, 0, 1)).copy()
+    expr = np.transpose(sd[:, :, 300:400], (2, 0, 1)).copy()
+    expr = np.concatenate([expr, np.zeros((20, *vt.shape), np.float32)])  # jaw/eye rotations: MLP only
+    front = np.flatnonzero(vt[:, 2] > np.percentile(vt[:, 2], 60))
+    gate = np.zeros(120, np.float32)
+    return HeadBasis("flame120", vt - c, ident, expr, f.astype(np.int32), front, np.zeros(0, np.int64), np.zeros((0, 3), np.float32), 0.002, gate)
+
+
+# ---------------------------------------------------------------------------- fitting
+@dataclass
+class HeadFit:
+    """A fitted head: ``world = transform[:3, :3] @ (neutral + identity @ basis) + transform[:3, 3]``."""
+
+    identity: np.ndarray  # [K]
+    transform: np.ndarray  # [4, 4]: scale * rotation | offset
+    vertices: np.ndarray  # [Nv, 3] world
+    rms: float  # RMS distance (metres) of the kept correspondences in the last iteration
+
+
+def _kabsch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R and offset t minimising ``|R src + t - dst|``."""
+    cs, cd = src.mean(0), dst.mean(0)
+    h = (src - cs).T @ (dst - cd)
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return r, cd - r @ cs
+
+
+def fit_head(points: np.ndarray, basis: HeadBasis, iters: int = 5, keep: float = 0.7, ridge: float = 3.0) -> HeadFit:
+    """Fit identity modes and a similarity transform to a point cloud (trimmed ICP).
+
+    Args:
+        points: ``[P, 3]`` canonical Gaussian centres (metres, head roughly at the origin).
+        basis: the head basis.
+        iters: ICP iterations (each: correspondences, linear shape solve, rigid update).
+        keep: fraction of correspondences kept (the closest), so hair and stray Gaussians do not pull.
+        ridge: weight of the ``|identity|^2`` penalty (unit-variance modes).
+    Raises:
+        ValueError: fewer than 100 points.
+    """
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(points, np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) < 100:
+        raise ValueError(f"fit_head needs a point cloud [P >= 100, 3], got {list(p.shape)}")
+    if len(p) > 10000:  # a spread subset is as good for the fit and keeps it fast
+        p = p[np.linspace(0, len(p) - 1, 10000).astype(np.int64)]
+    tree = cKDTree(p)
+    ids = basis.fit_vertices
+    if len(ids) > 1500:
+        ids = ids[np.linspace(0, len(ids) - 1, 1500).astype(np.int64)]
+    n0 = basis.neutral[ids].astype(np.float64)  # [M, 3]
+    B = basis.identity_basis[:, ids].astype(np.float64)  # [K, M, 3]
+    K = B.shape[0]
+    R, t = np.eye(3), np.zeros(3)
+    s, off, a = 1.0, np.zeros(3), np.zeros(K)
+    rms = float("nan")
+    for it in range(iters):
+        local = n0 + np.tensordot(a, B, axes=1)  # model frame
+        world = s * local @ R.T + off
+        d, j = tree.query(world)
+        m = d <= np.quantile(d, keep)
+        rms = float(np.sqrt(np.mean(d[m] ** 2)))
+        q = (p[j[m]] - off) @ R / s  # correspondences in the model frame
+        # shape: q ~ n0 + B a + t  (t small translation in the model frame), ridge on a
+        A = np.concatenate([B[:, m].reshape(K, -1).T, np.tile(np.eye(3), (int(m.sum()), 1))], axis=1)  # [3M', K+3]
+        rhs = (q - n0[m]).reshape(-1)
+        reg = np.diag(np.concatenate([np.full(K, ridge * 1e-6), np.zeros(3)]))  # modes are ~mm per unit: 1e-6 m^2
+        sol = np.linalg.solve(A.T @ A + reg * len(rhs) / 3.0, A.T @ rhs)
+        a, tm = sol[:K], sol[K:]
+        local = n0[m] + np.tensordot(a, B[:, m], axes=1) + tm
+        # similarity: world points p[j] ~ s R local + off
+        src, dst = local, p[j[m]]
+        R, _ = _kabsch(src, dst)
+        cs, cd = src.mean(0), dst.mean(0)
+        s = float(np.sqrt(((dst - cd) ** 2).sum() / max(((src - cs) ** 2).sum(), 1e-12)))
+        s = float(np.clip(s, 0.8, 1.25))
+        off = cd - s * R @ cs + s * R @ tm  # world = s R (n0 + B a) + off  (tm folded into the offset)
+    T = np.eye(4)
+    T[:3, :3] = s * R
+    T[:3, 3] = off
+    allv = basis.neutral.astype(np.float64) + np.tensordot(a.astype(np.float32), basis.identity_basis, axes=1)
+    verts = allv @ T[:3, :3].T + T[:3, 3]
+    return HeadFit(identity=a.astype(np.float32), transform=T.astype(np.float32), vertices=verts.astype(np.float32), rms=rms)
+
+
+# ---------------------------------------------------------------------------- binding
+def _closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closest points of ``p [..., 3]`` on triangles ``(a, b, c) [..., 3]`` (Ericson, Real-Time
+    Collision Detection §5.1.5) -> ``(barycentric [..., 3], distance [...])``."""
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
+    bp = p - b
+    d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
+    cp = p - c
+    d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    eps = 1e-30
+    # interior
+    denom = va + vb + vc
+    v = vb / np.where(np.abs(denom) > eps, denom, eps)
+    w = vc / np.where(np.abs(denom) > eps, denom, eps)
+    bary = np.stack([1 - v - w, v, w], -1)
+    # regions, from the last assignment's lowest priority to the highest
+    def put(mask, val):
+        nonlocal bary
+        bary = np.where(mask[..., None], val, bary)
+
+    # edge BC
+    m = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
+    wbc = (d4 - d3) / np.maximum((d4 - d3) + (d5 - d6), eps)
+    put(m, np.stack([np.zeros_like(wbc), 1 - wbc, wbc], -1))
+    # edge AC
+    m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+    wac = d2 / np.maximum(d2 - d6, eps)
+    put(m, np.stack([1 - wac, np.zeros_like(wac), wac], -1))
+    # edge AB
+    m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+    vab = d1 / np.maximum(d1 - d3, eps)
+    put(m, np.stack([1 - vab, vab, np.zeros_like(vab)], -1))
+    one, zero = np.ones_like(d1), np.zeros_like(d1)
+    put((d6 >= 0) & (d5 <= d6), np.stack([zero, zero, one], -1))  # vertex C
+    put((d3 >= 0) & (d4 <= d3), np.stack([zero, one, zero], -1))  # vertex B
+    put((d1 <= 0) & (d2 <= 0), np.stack([one, zero, zero], -1))  # vertex A
+    q = bary[..., 0:1] * a + bary[..., 1:2] * b + bary[..., 2:3] * c
+    return bary, np.linalg.norm(p - q, axis=-1)
+
+
+@dataclass
+class PriorBinding:
+    """Per-Gaussian binding to the fitted head surface.
+
+    Attributes:
+        vertex_ids: ``[N, 3]`` int64 head-model vertex ids (the nearest triangle's corners).
+        bary: ``[N, 3]`` float32 barycentric coordinates of the nearest surface point.
+        weight: ``[N]`` float32 fade weight in [0, 1] (1 on the surface, 0 far away).
+        transform: ``[4, 4]`` float32, the fit's scale * rotation | offset.
+        identity: ``[K]`` float32 fitted identity weights.
+        space: expression space of the basis.
+    """
+
+    vertex_ids: Tensor
+    bary: Tensor
+    weight: Tensor
+    transform: Tensor
+    identity: Tensor
+    space: str
+
+    def __len__(self) -> int:
+        return int(self.vertex_ids.shape[0])
+
+    def index(self, idx) -> "PriorBinding":
+        return PriorBinding(self.vertex_ids[idx], self.bary[idx], self.weight[idx], self.transform, self.identity, self.space)
+
+    @staticmethod
+    def concat(a: "PriorBinding", b: "PriorBinding") -> "PriorBinding":
+        return PriorBinding(
+            torch.cat([a.vertex_ids, b.vertex_ids]), torch.cat([a.bary, b.bary]), torch.cat([a.weight, b.weight]), a.transform, a.identity, a.space
+        )
+
+    def tensors(self) -> dict[str, Tensor]:
+        """Tensors for the avatar file (``prior.*``)."""
+        return {
+            "prior.vertex_ids": self.vertex_ids.to(torch.int32).contiguous(),
+            "prior.bary": self.bary.float().contiguous(),
+            "prior.weight": self.weight.float().contiguous(),
+            "prior.transform": self.transform.float().contiguous(),
+            "prior.identity": self.identity.float().contiguous(),
+        }
+
+    @staticmethod
+    def from_tensors(t: dict[str, Tensor], space: str, n: int) -> "PriorBinding | None":
+        keys = ("prior.vertex_ids", "prior.bary", "prior.weight", "prior.transform", "prior.identity")
+        if not all(k in t for k in keys):
+            return None
+        b = PriorBinding(t[keys[0]].long(), t[keys[1]].float(), t[keys[2]].float(), t[keys[3]].float(), t[keys[4]].float(), space)
+        if b.vertex_ids.shape != (n, 3) or b.bary.shape != (n, 3) or b.weight.shape != (n,):
+            raise ValueError(f"avatar prior tensors must be [N={n}, 3], [N, 3], [N]; got {list(b.vertex_ids.shape)}, {list(b.bary.shape)}, {list(b.weight.shape)}")
+        return b
+
+    def to(self, device) -> "PriorBinding":
+        return PriorBinding(*(x.to(device) for x in (self.vertex_ids, self.bary, self.weight, self.transform, self.identity)), self.space)
+
+
+def bind(points: np.ndarray | Tensor, fit: HeadFit, basis: HeadBasis, fade: tuple[float, float] = (0.006, 0.025), k: int = 4) -> PriorBinding:
+    """Bind ``points [N, 3]`` to their nearest triangle of the fitted surface (see module doc).
+
+    ``fade = (d0, d1)`` metres: full weight up to ``d0`` from the surface, none beyond ``d1``.
+    The nearest triangle is searched among the ``k`` triangles with the nearest centroids.
+    """
+    from scipy.spatial import cKDTree
+
+    p = points.detach().cpu().float().numpy() if isinstance(points, Tensor) else np.asarray(points, np.float32)
+    f = basis.bind_faces
+    v = fit.vertices.astype(np.float32)
+    cen = v[f].mean(1)  # [F, 3]
+    k = min(k, len(f))
+    _, cand = cKDTree(cen).query(p, k=k, workers=-1)  # [N, k]
+    cand = cand.reshape(len(p), k)
+    tri = f[cand]  # [N, k, 3]
+    bary, dist = _closest_on_triangles(p[:, None, :], v[tri[..., 0]], v[tri[..., 1]], v[tri[..., 2]])
+    best = dist.argmin(1)
+    r = np.arange(len(p))
+    ids = tri[r, best]  # [N, 3]
+    bc = bary[r, best]
+    d = dist[r, best]
+    d0, d1 = fade
+    w = 1.0 - _smoothstep((d - d0) / max(d1 - d0, 1e-9))
+    return PriorBinding(
+        torch.from_numpy(ids.astype(np.int64)),
+        torch.from_numpy(bc.astype(np.float32)),
+        torch.from_numpy(w.astype(np.float32)),
+        torch.from_numpy(fit.transform.astype(np.float32)),
+        torch.from_numpy(fit.identity.astype(np.float32)),
+        basis.space,
+    )
+
+
+def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int) -> tuple["Gaussians", PriorBinding]:  # noqa: F821
+    """Gaussians of the mouth interior (teeth, gums/tongue, mouth socket) of the fitted head, each
+    bound to its own vertex with full weight. ``features`` are zeros ``[I, num_features]``."""
+    from ..gaussians import Gaussians
+
+    ids = basis.interior_vertices
+    n = len(ids)
+    s = float(np.cbrt(abs(np.linalg.det(fit.transform[:3, :3]))))
+    means = torch.from_numpy(fit.vertices[ids].astype(np.float32))
+    scale = torch.full((n, 3), basis.interior_spacing * s * 0.9)
+    g = Gaussians(
+        means=means,
+        quats=torch.tensor([1.0, 0.0, 0.0, 0.0]).expand(n, 4).contiguous(),
+        scales=scale,
+        opacities=torch.full((n,), 0.9),
+        colors=torch.from_numpy(basis.interior_colors.astype(np.float32)),
+        features=torch.zeros(n, num_features),
+    )
+    vid = torch.from_numpy(ids.astype(np.int64))[:, None].expand(n, 3).contiguous()
+    bary = torch.tensor([1.0, 0.0, 0.0]).expand(n, 3).contiguous()
+    b = PriorBinding(vid, bary, torch.ones(n), torch.from_numpy(fit.transform), torch.from_numpy(fit.identity), basis.space)
+    return g, b
+
+
+def mouth_gate_vector(basis: HeadBasis) -> Tensor:
+    """``[E]`` weights whose dot product with an expression measures how far the lips are open."""
+    return torch.from_numpy(basis.gate)
+
+
+def mouth_gate(z: Tensor, gate: Tensor) -> Tensor:
+    """Opacity factor of the mouth interior for ``z [E]`` or ``[B, E]`` -> ``[]`` / ``[B]`` in [0, 1]."""
+    x = ((z @ gate) - GATE_START) / (GATE_FULL - GATE_START)
+    x = x.clamp(0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+# ---------------------------------------------------------------------------- runtime
+@functools.lru_cache(maxsize=4)
+def _moving_cached(key: int, basis: HeadBasis) -> np.ndarray:
+    return np.abs(basis.expression_basis).max(axis=(0, 2)) > 1e-4  # moves more than 0.1 mm
+
+def _moving_vertices(basis: HeadBasis) -> np.ndarray:
+    """``[Nv]`` bool: vertices some blendshape moves by more than 0.1 mm."""
+    return _moving_cached(id(basis), basis)
+
+
+class PriorRuntime:
+    """Per-frame evaluation of a binding: a compact basis over the used vertices.
+
+    ``basis_u [E, U*3]`` holds the blendshapes of the U used vertices, rotated and scaled into the
+    avatar's frame; ``local [N*3]`` indexes them; ``coef [N, 3, 1]`` = barycentric * fade weight.
+    ``displacement(z [E])`` -> ``[N, 3]``; ``z [B, E]`` -> ``[B, N, 3]``.
+    """
+
+    def __init__(self, binding: PriorBinding, basis: HeadBasis, device=None):
+        dev = device or binding.vertex_ids.device
+        ids = binding.vertex_ids.cpu().numpy().copy()  # [N, 3]
+        moving = _moving_vertices(basis)
+        # Corners that never move, or Gaussians with no weight, read a zero row (slot 0).
+        dead = ~moving[ids] | (binding.weight.cpu().numpy() <= 0)[:, None]
+        ids[dead] = -1
+        uniq, local = np.unique(ids.reshape(-1), return_inverse=True)
+        if uniq[0] != -1:  # make sure slot 0 is the zero row
+            uniq = np.concatenate([[-1], uniq])
+            local = local + 1
+        M = binding.transform[:3, :3].double().cpu().numpy()  # scale * rotation
+        bu = basis.expression_basis[:, np.maximum(uniq, 0)].astype(np.float64) @ M.T  # [E, U, 3]
+        bu[:, 0] = 0.0
+        self.num_used = len(uniq)
+        self.basis_u = torch.from_numpy(bu.reshape(bu.shape[0], -1).astype(np.float32)).to(dev)  # [E, U*3]
+        self.local = torch.from_numpy(local.astype(np.int64)).to(dev)  # [N*3]
+        self.coef = (binding.bary * binding.weight[:, None]).float().to(dev)[..., None]  # [N, 3, 1]
+        self.n = len(binding)
+
+    def displacement(self, z: Tensor) -> Tensor:
+        z = z.to(self.basis_u.dtype)
+        if z.ndim == 1:
+            nz = torch.nonzero(z).flatten()
+            # a slider frame drives a few blendshapes: read only their rows of the basis
+            d = z[nz] @ self.basis_u[nz] if len(nz) * 4 < len(z) else z @ self.basis_u  # [U*3]
+        else:
+            d = z @ self.basis_u  # [B, U*3]
+        if z.ndim == 1:
+            du = d.view(-1, 3)  # [U, 3]
+            return (du.index_select(0, self.local).view(self.n, 3, 3) * self.coef).sum(1)
+        du = d.view(z.shape[0], -1, 3)
+        return (du[:, self.local].view(z.shape[0], self.n, 3, 3) * self.coef).sum(2)
