@@ -218,7 +218,19 @@ def _kabsch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return r, cd - r @ cs
 
 
-def fit_head(points: np.ndarray, basis: HeadBasis, iters: int = 5, keep: float = 0.7, ridge: float = 3.0) -> HeadFit:
+@functools.lru_cache(maxsize=2)
+def _normals_cached(key: int, basis: HeadBasis) -> np.ndarray:
+    from ..data.headmodel import vertex_normals
+
+    return vertex_normals(basis.neutral, basis.bind_faces).astype(np.float64)
+
+
+def _neutral_normals(basis: HeadBasis) -> np.ndarray:
+    """``[Nv, 3]`` unit vertex normals of the generic neutral surface."""
+    return _normals_cached(id(basis), basis)
+
+
+def fit_head(points: np.ndarray, basis: HeadBasis, iters: int = 10, keep: float = 0.8, ridge: float = 4.0) -> HeadFit:
     """Fit identity modes and a similarity transform to a point cloud (trimmed ICP).
 
     Args:
@@ -226,7 +238,7 @@ def fit_head(points: np.ndarray, basis: HeadBasis, iters: int = 5, keep: float =
         basis: the head basis.
         iters: ICP iterations (each: correspondences, linear shape solve, rigid update).
         keep: fraction of correspondences kept (the closest), so hair and stray Gaussians do not pull.
-        ridge: weight of the ``|identity|^2`` penalty (unit-variance modes).
+        ridge: weight of the ``|identity|^2`` penalty (unit-variance modes), in mm^2 of point noise.
     Raises:
         ValueError: fewer than 100 points.
     """
@@ -244,30 +256,39 @@ def fit_head(points: np.ndarray, basis: HeadBasis, iters: int = 5, keep: float =
     n0 = basis.neutral[ids].astype(np.float64)  # [M, 3]
     B = basis.identity_basis[:, ids].astype(np.float64)  # [K, M, 3]
     K = B.shape[0]
-    R, t = np.eye(3), np.zeros(3)
-    s, off, a = 1.0, np.zeros(3), np.zeros(K)
+    nz = _neutral_normals(basis)[ids]  # [M, 3]
+    R, off = np.eye(3), np.zeros(3)  # world = R local + off
+    sc, a, tm = 1.0, np.zeros(K), np.zeros(3)  # local = sc * n0 + B a + tm (model frame)
     rms = float("nan")
     for it in range(iters):
-        local = n0 + np.tensordot(a, B, axes=1)  # model frame
-        world = s * local @ R.T + off
+        local = sc * n0 + np.tensordot(a, B, axes=1) + tm
+        world = local @ R.T + off
         d, j = tree.query(world)
         m = d <= np.quantile(d, keep)
         rms = float(np.sqrt(np.mean(d[m] ** 2)))
-        q = (p[j[m]] - off) @ R / s  # correspondences in the model frame
-        # shape: q ~ n0 + B a + t  (t small translation in the model frame), ridge on a
-        A = np.concatenate([B[:, m].reshape(K, -1).T, np.tile(np.eye(3), (int(m.sum()), 1))], axis=1)  # [3M', K+3]
-        rhs = (q - n0[m]).reshape(-1)
-        reg = np.diag(np.concatenate([np.full(K, ridge * 1e-6), np.zeros(3)]))  # modes are ~mm per unit: 1e-6 m^2
-        sol = np.linalg.solve(A.T @ A + reg * len(rhs) / 3.0, A.T @ rhs)
-        a, tm = sol[:K], sol[K:]
-        local = n0[m] + np.tensordot(a, B[:, m], axes=1) + tm
-        # similarity: world points p[j] ~ s R local + off
-        src, dst = local, p[j[m]]
-        R, _ = _kabsch(src, dst)
-        cs, cd = src.mean(0), dst.mean(0)
-        s = float(np.sqrt(((dst - cd) ** 2).sum() / max(((src - cs) ** 2).sum(), 1e-12)))
-        s = float(np.clip(s, 0.8, 1.25))
-        off = cd - s * R @ cs + s * R @ tm  # world = s R (n0 + B a) + off  (tm folded into the offset)
+        q = (p[j[m]] - off) @ R  # correspondences in the model frame
+        # linear in (sc, a, tm): q ~ sc n0 + B a + tm, ridge on a (relative to sc)
+        mm = int(m.sum())
+        A = np.concatenate([n0[m].reshape(-1, 1), B[:, m].reshape(K, -1).T, np.tile(np.eye(3), (mm, 1))], axis=1)  # [3M', 1+K+3]
+        rhs = q.reshape(-1)
+        # point-to-plane rows (the model's normals; converge far faster than point-to-point alone,
+        # which slides along the surface) + point-to-point rows at a small weight (well-posed)
+        nrm = nz[m]  # [M', 3]
+        Ap = (A.reshape(mm, 3, -1) * nrm[:, :, None]).sum(1)  # [M', 1+K+3]
+        bp = (q * nrm).sum(1)
+        A = np.concatenate([Ap, 0.3 * A])
+        rhs = np.concatenate([bp, 0.3 * rhs])
+        # MAP with unit-variance modes and ~2 mm point noise: ridge = noise variance (m^2)
+        reg = np.diag(np.concatenate([[0.0], np.full(K, ridge * 1e-6), np.zeros(3)]))
+        sol = np.linalg.solve(A.T @ A + reg, A.T @ rhs)
+        sc = float(np.clip(sol[0], 0.8, 1.25))
+        a, tm = sol[1 : 1 + K], sol[1 + K :]
+        local = sc * n0[m] + np.tensordot(a, B[:, m], axes=1) + tm
+        R, off = _kabsch(local, p[j[m]])
+    # world = R (sc (n0 + B a / sc) + tm) + off
+    s = sc
+    a = a / sc
+    off = off + R @ tm
     T = np.eye(4)
     T[:3, :3] = s * R
     T[:3, 3] = off
