@@ -276,21 +276,24 @@ def _decode_inputs(blobs: list[bytes], mask_blobs: list[bytes] | None, cams: lis
 def _track_and_reconstruct(ctx: ServerContext, tracker: PhotoTracker, images: list, masks: list | None):
     """Photos without cameras: track them (crops, cameras, masks), then reconstruct; times both."""
     t0 = time.perf_counter()
-    crops, cams, crop_masks, _ = tracker.track(images, masks, int(ctx.model.config.input_size))
+    crops, cams, crop_masks, exprs = tracker.track(images, masks, int(ctx.model.config.input_size))
     track_ms = 1e3 * (time.perf_counter() - t0)
-    avatar, recon_ms = _reconstruct(ctx, crops, cams, crop_masks)
+    avatar, recon_ms = _reconstruct(ctx, crops, cams, crop_masks, exprs)
     return avatar, recon_ms, track_ms
 
 
-def _reconstruct(ctx: ServerContext, images, cams, masks):
+def _reconstruct(ctx: ServerContext, images, cams, masks, expressions=None):
     model = ctx.model
     t0 = time.perf_counter()
     try:
         x, c = model.prepare(images, cams, masks)
     except ValueError as e:
         raise ApiError(400, "invalid_input", str(e)) from None
+    if expressions is not None and tuple(expressions.shape) != (x.shape[0], model.config.expression_dim):
+        expressions = None  # tracked in another expression space: the photos' expressions are not undone
     with torch.inference_mode():
-        avatar = model.reconstruct(x.to(ctx.device), c.to(ctx.device))
+        # the tracked expressions let a model with the expression prior make a neutral canonical head
+        avatar = model.reconstruct(x.to(ctx.device), c.to(ctx.device), expressions=expressions)
     return avatar, 1e3 * (time.perf_counter() - t0)
 
 

@@ -9,8 +9,13 @@ import numpy as np
 import pytest
 import torch
 
+from pathlib import Path
+
 from fastgha_core.data.headmodel import HeadModel
 from fastgha_core.model.prior import PriorBinding, PriorRuntime, bind, fit_head, load_basis, mouth_gate, mouth_interior
+
+
+REPO_SAMPLES = Path(__file__).resolve().parents[1] / "fastgha_core" / "assets" / "samples"
 
 
 @pytest.fixture(scope="module")
@@ -248,3 +253,46 @@ def test_landmark_measures_and_responses_on_a_toy_face():
     assert displacement(_face(gap=10.0), _face()) == pytest.approx(6 * 5.0 / 68 / 100)
     with pytest.raises(ValueError, match=r"\[68, 2\]"):
         landmark_measures(np.zeros((5, 2)))
+
+
+def test_server_frames_open_the_mouth_of_the_shipped_model():
+    """The server's per-frame path (``server.frames.FrameRenderer``) on an avatar of the shipped model:
+    ``jawOpen`` = 1 changes the mouth region of the streamed JPEG, not the forehead."""
+    from PIL import Image
+
+    from fastgha_core.cameras import load_request_folder
+    from fastgha_core.model.fastgha import load_model
+    from server.frames import FrameRenderer
+
+    folder = REPO_SAMPLES / "synth_1000001" / "request"
+    if not folder.is_dir():
+        pytest.skip("needs the shipped sample synth_1000001/request")
+    model = load_model("tiny")
+    assert model.config.deform.prior, "the shipped tiny model should use the expression prior"
+    paths, cams = load_request_folder(folder)
+    imgs = [torch.from_numpy(np.asarray(Image.open(p).convert("RGB"))).permute(2, 0, 1) for p in paths]
+    x, c = model.prepare(imgs, cams)
+    avatar = model.reconstruct(x, c)
+    fr = FrameRenderer(model, "cpu")
+    cam = fr.default_camera.resize(256, 256)
+    frames = {}
+    hm = HeadModel.load()
+    for name in ("neutral", "jawOpen"):
+        z = model.expression_space.parse({} if name == "neutral" else {"jawOpen": 1.0})
+        jpeg = fr.render(avatar, z, cam, 95).jpeg
+        frames[name] = np.asarray(Image.open(io.BytesIO(jpeg)).convert("RGB")).astype(np.float32)
+    lm = avatar.prior.fitted_vertices(load_basis("ict53"))[hm.landmarks68].astype(np.float64)
+    w2c, K = cam.w2c.reshape(4, 4).double().numpy(), cam.K.reshape(3, 3).double().numpy()
+    uv = (lm @ w2c[:3, :3].T + w2c[:3, 3]) @ K.T
+    uv = uv[:, :2] / uv[:, 2:]
+
+    def region(ids, pad):
+        lo, hi = uv[ids].min(0), uv[ids].max(0)
+        ext = (hi - lo) * pad
+        (x0, y0), (x1, y1) = np.floor(lo - ext).astype(int), np.ceil(hi + ext).astype(int)
+        return (slice(max(y0, 0), y1), slice(max(x0, 0), x1))
+
+    diff = np.abs(frames["jawOpen"] - frames["neutral"]).mean(-1)
+    mouth = diff[region(list(range(48, 68)) + [8], 0.2)].mean()
+    brows = diff[region(list(range(17, 27)), 0.1)].mean()
+    assert mouth > 10.0 and brows < 2.0, (mouth, brows)

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -271,12 +272,15 @@ class FastGHA(nn.Module):
             ``(gaussians, binding, num_interior)``; the returned Gaussians keep ``g``'s autograd graph
             (means are shifted by a constant when neutralising).
         """
-        from .prior import PriorBinding, bind, fit_head, mouth_interior
+        from .prior import PriorBinding, bind, fit_head, generic_fit, mouth_interior
 
         basis = self.head_basis()
         means = g.means.detach().float().cpu()
         solid = g.opacities.detach().cpu() > 0.2
-        fit = fit_head((means[solid] if int(solid.sum()) >= 100 else means).numpy(), basis)
+        try:
+            fit = fit_head((means[solid] if int(solid.sum()) >= 100 else means).numpy(), basis)
+        except (ValueError, np.linalg.LinAlgError):  # too few Gaussians or a degenerate cloud: the generic head
+            fit = generic_fit(basis)
         binding = bind(means, fit, basis, tuple(self.config.deform.prior_fade))
         dev = g.means.device
         if view_expressions is not None:

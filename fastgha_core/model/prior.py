@@ -47,6 +47,7 @@ __all__ = [
     "bind",
     "mouth_interior",
     "mouth_gate_vector",
+    "generic_fit",
     "FLAME_ENV",
 ]
 
@@ -280,7 +281,7 @@ def fit_head(points: np.ndarray, basis: HeadBasis, iters: int = 10, keep: float 
         rhs = np.concatenate([bp, 0.3 * rhs])
         # MAP with unit-variance modes and ~2 mm point noise: ridge = noise variance (m^2)
         reg = np.diag(np.concatenate([[0.0], np.full(K, ridge * 1e-6), np.zeros(3)]))
-        sol = np.linalg.solve(A.T @ A + reg, A.T @ rhs)
+        sol = np.linalg.solve(A.T @ A + reg + 1e-12 * np.eye(len(reg)), A.T @ rhs)
         sc = float(np.clip(sol[0], 0.8, 1.25))
         a, tm = sol[1 : 1 + K], sol[1 + K :]
         local = sc * n0[m] + np.tensordot(a, B[:, m], axes=1) + tm
@@ -295,6 +296,12 @@ def fit_head(points: np.ndarray, basis: HeadBasis, iters: int = 10, keep: float 
     allv = basis.neutral.astype(np.float64) + np.tensordot(a.astype(np.float32), basis.identity_basis, axes=1)
     verts = allv @ T[:3, :3].T + T[:3, 3]
     return HeadFit(identity=a.astype(np.float32), transform=T.astype(np.float32), vertices=verts.astype(np.float32), rms=rms)
+
+
+def generic_fit(basis: HeadBasis) -> HeadFit:
+    """The generic neutral head at the origin (no identity, unit transform)."""
+    k = basis.identity_basis.shape[0]
+    return HeadFit(np.zeros(k, np.float32), np.eye(4, dtype=np.float32), basis.neutral.astype(np.float32), float("nan"))
 
 
 # ---------------------------------------------------------------------------- binding
@@ -392,6 +399,13 @@ class PriorBinding:
         if b.vertex_ids.shape != (n, 3) or b.bary.shape != (n, 3) or b.weight.shape != (n,):
             raise ValueError(f"avatar prior tensors must be [N={n}, 3], [N, 3], [N]; got {list(b.vertex_ids.shape)}, {list(b.bary.shape)}, {list(b.weight.shape)}")
         return b
+
+    def fitted_vertices(self, basis: HeadBasis) -> np.ndarray:
+        """``[Nv, 3]`` vertices of the fitted head surface in the avatar's frame (metres)."""
+        T = self.transform.double().cpu().numpy()
+        k = int(self.identity.shape[0])
+        v = basis.neutral.astype(np.float64) + np.tensordot(self.identity.double().cpu().numpy(), basis.identity_basis[:k], axes=1)
+        return (v @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
 
     def to(self, device) -> "PriorBinding":
         return PriorBinding(*(x.to(device) for x in (self.vertex_ids, self.bary, self.weight, self.transform, self.identity)), self.space)
