@@ -157,7 +157,18 @@ def test_animate_with_the_prior(model_and_avatar):
     opened = model.animate(avatar, z)
     chin = int(torch.argmin((avatar.gaussians.means[:n_rec] - torch.tensor(hm.neutral[hm.landmarks68[8]])).norm(dim=1)))
     assert float((opened.means[chin] - neutral.means[chin]).norm()) > 0.02
-    assert torch.all(opened.opacities[n_rec:] > 0)
+    grp = avatar.prior.groups()
+    mouth, lid_l = grp == 0, grp == 1
+    assert mouth.any() and lid_l.any()
+    assert torch.all(opened.opacities[mouth] > 0) and torch.all(opened.opacities[lid_l] == 0)  # jaw open: mouth, not lids
+    blink = torch.zeros(53)
+    blink[hm.expression_names.index("eyeBlink_L")] = 1.0
+    closed = model.animate(avatar, blink)
+    assert torch.all(closed.opacities[lid_l] > 0) and torch.all(closed.opacities[mouth] == 0)
+    hides = grp == int(avatar.prior.groups().max())  # reconstructed Gaussians on an eyeball fade as its lid closes
+    assert hides.any() and torch.all(neutral.opacities[hides] > 0)
+    either = model.animate(avatar, torch.tensor(np.where(np.isin(np.arange(53), [hm.expression_names.index("eyeBlink_L"), hm.expression_names.index("eyeBlink_R")]), 1.0, 0.0), dtype=torch.float32))
+    assert torch.all(either.opacities[hides] == 0)
     off = model.animate(avatar, z, prior=False)  # the ablation: MLP residual only (zero here)
     torch.testing.assert_close(off.means, avatar.gaussians.means)
     both = model.animate(avatar, torch.stack([torch.zeros(53), z]))

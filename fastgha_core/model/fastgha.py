@@ -70,20 +70,18 @@ def _apply_deformation(g: Gaussians, dxyz: Tensor, drgb: Tensor) -> Gaussians:
 
 def _combine(g: Gaussians, dxyz: Tensor, drgb: Tensor, prior_d: Tensor | None, n_int: int, gate: Tensor | None) -> Gaussians:
     """Deformed ``g`` from the MLP's ``dxyz``/``drgb [N_rec, 3]`` (first ``N - n_int`` Gaussians), the
-    prior's displacement ``[N, 3]`` (or None) and the mouth interior's opacity ``gate`` (scalar)."""
-    if prior_d is None and n_int == 0:
+    prior's displacement ``[N, 3]`` (or None) and per-Gaussian opacity factors ``gate [N]`` (or None)."""
+    if prior_d is None and n_int == 0 and gate is None:
         return _apply_deformation(g, dxyz, drgb)
     n_rec = len(g) - n_int
     if prior_d is None:
         prior_d = dxyz.new_zeros(len(g), 3)
+    op = g.opacities if gate is None else g.opacities * gate
     if n_int:
         means = g.means + torch.cat([prior_d[:n_rec] + dxyz, prior_d[n_rec:]])
         colors = torch.cat([(g.colors[:n_rec] + drgb).clamp(0.0, 1.0), g.colors[n_rec:]])
-        op = g.opacities
-        if gate is not None:
-            op = torch.cat([op[:n_rec], op[n_rec:] * gate])
         return g.replace(means=means, colors=colors, opacities=op)
-    return g.replace(means=g.means + prior_d + dxyz, colors=(g.colors + drgb).clamp(0.0, 1.0))
+    return g.replace(means=g.means + prior_d + dxyz, colors=(g.colors + drgb).clamp(0.0, 1.0), opacities=op)
 
 
 class FastGHA(nn.Module):
@@ -210,13 +208,15 @@ class FastGHA(nn.Module):
         maps = self.decoder(x)  # [B, V, 12+F, H, W]
         return self.head(maps, cameras, images)
 
-    def forward(self, images: Tensor, K: Tensor, w2c: Tensor, expression: Tensor) -> FastGHAOutput:
+    def forward(self, images: Tensor, K: Tensor, w2c: Tensor, expression: Tensor, input_expressions: Tensor | None = None) -> FastGHAOutput:
         """Training forward.
 
         Args:
             images: ``[B, V, 3, H, W]`` input views in [0, 1].
             K: ``[B, V, 3, 3]`` intrinsics of the input images; w2c: ``[B, V, 4, 4]``.
             expression: ``[B, E]`` target expression per sample.
+            input_expressions: ``[B, V, E]`` expressions of the input views (optional): with the
+                expression prior they are undone in the canonical head, as ``reconstruct`` does.
         """
         if images.ndim != 5:
             raise ValueError(f"images must have shape [B, V, 3, H, W], got {list(images.shape)}")
@@ -227,12 +227,17 @@ class FastGHA(nn.Module):
         cams = Cameras(K, w2c, images.shape[-1], images.shape[-2])
         canonical = self.forward_gaussians(images, cams)
         deformed = []
+        v = images.shape[1]
         for i, (g, z) in enumerate(zip(canonical, expression)):
             if self.config.deform.prior:
-                g, binding, n_int = self.build_prior(g)
+                if input_expressions is not None:
+                    vi = torch.arange(v, device=g.means.device).repeat_interleave(len(g) // v)  # view-major, unpruned
+                    g, binding, n_int = self.build_prior(g, vi, input_expressions[i])
+                else:
+                    g, binding, n_int = self.build_prior(g)
                 canonical[i] = g
                 rt = self._runtime(binding)
-                gate = self._gate(z) if n_int else None
+                gate = self._gate(z, rt)
                 n_rec = len(g) - n_int
                 dxyz, drgb = self.deform(g.features[:n_rec], g.means[:n_rec], z)
                 deformed.append(_combine(g, dxyz, drgb, rt.displacement(z), n_int, gate))
@@ -253,10 +258,12 @@ class FastGHA(nn.Module):
 
         return PriorRuntime(binding, self.head_basis(), device=binding.vertex_ids.device)
 
-    def _gate(self, z: Tensor) -> Tensor:
-        from .prior import mouth_gate
+    @staticmethod
+    def _gate(z: Tensor, rt) -> Tensor | None:
+        """Per-Gaussian opacity factors ``[N]`` (``[B, N]``) for ``z`` (None when nothing is gated)."""
+        from .prior import opacity_factors
 
-        return mouth_gate(z, torch.as_tensor(self.head_basis().gate, device=z.device, dtype=z.dtype))
+        return opacity_factors(z, rt.basis, rt.group_index) if rt.gated else None
 
     @torch.no_grad()
     def build_prior(self, g: Gaussians, view_index: Tensor | None = None, view_expressions: Tensor | None = None):
@@ -294,12 +301,23 @@ class FastGHA(nn.Module):
         binding = binding.to(dev)
         n_int = 0
         if self.config.deform.mouth_interior and len(basis.interior_vertices):
-            gi, bi = mouth_interior(fit, basis, g.features.shape[1])
+            gi, bi = mouth_interior(fit, basis, g.features.shape[1], avatar=g)
             gi = gi.to(dev, g.means.dtype)
             g = Gaussians.concat([g, gi])
             binding = PriorBinding.concat(binding, bi.to(dev))
             n_int = len(gi)
         return g, binding, n_int
+
+    @torch.inference_mode()
+    def static_gaussians(self, avatar: CanonicalAvatar) -> Gaussians:
+        """The canonical Gaussians without any deformation, gated Gaussians (mouth interior, closed
+        lids) as at the neutral expression: the "static head" baseline."""
+        g = avatar.gaussians.to(self.device)
+        if not (self.config.deform.prior and avatar.prior is not None):
+            return g
+        rt = self._runtime(avatar.prior.to(self.device))
+        gate = self._gate(torch.as_tensor(self.expression_space.neutral(), dtype=torch.float32, device=self.device), rt)
+        return g if gate is None else g.replace(opacities=g.opacities * gate)
 
     def attach_prior(self, avatar: CanonicalAvatar) -> CanonicalAvatar:
         """Give an avatar made without the prior (an older file) its binding and mouth interior, in place."""
@@ -496,8 +514,7 @@ class FastGHA(nn.Module):
                     rt = avatar.prior_runtime = self._runtime(avatar.prior.to(dev))
             if prior:
                 prior_d = rt.displacement(z)  # [N, 3] or [B, N, 3]
-            if n_int:
-                gate = self._gate(z)
+            gate = self._gate(z, rt)
         if z.ndim == 1:
             return _combine(g, dxyz, drgb, prior_d, n_int, gate)
         return [

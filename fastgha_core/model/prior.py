@@ -23,7 +23,8 @@ Pieces (all numpy/torch on CPU, no learning):
   over the vertices actually used (``PriorRuntime``).
 - ``mouth_interior(fit, basis)``: Gaussians on the teeth, gums/tongue and mouth-socket meshes of the
   fitted head, coloured plausibly, bound to their own vertex (so they follow the jaw), with an
-  opacity gate ``mouth_gate(z)`` that is 0 while the lips are closed.
+  opacity gate that is 0 while the lips are closed; and Gaussians on the upper eyelids, coloured
+  like the avatar's skin, that appear as a blink closes the lids (``gate_factors``).
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ __all__ = [
     "mouth_interior",
     "mouth_gate_vector",
     "generic_fit",
+    "gate_factors",
     "FLAME_ENV",
 ]
 
@@ -90,7 +92,17 @@ class HeadBasis:
     interior_vertices: np.ndarray
     interior_colors: np.ndarray
     interior_spacing: float
-    gate: np.ndarray  # [E] weights of mouth-opening blendshapes
+    gates: np.ndarray  # [G, E] blendshape weights per gate group (0: mouth opening; 1, 2: eyelids)
+    gate_ranges: np.ndarray  # [G, 2] (start, full): gate = smoothstep((gates @ z - start) / (full - start))
+    interior_group: np.ndarray  # [I] gate group of each interior point
+    interior_scale: np.ndarray  # [I] Gaussian scale (metres, before the fit's scale)
+    sample_color: np.ndarray  # [I] bool: colour taken from the avatar (nearest Gaussian above the point)
+    hide_group: np.ndarray  # [Nv] int8: reconstructed Gaussians bound here fade out with this gate (0: never)
+
+    @property
+    def gate(self) -> np.ndarray:
+        """``[E]`` weights of the mouth-opening blendshapes (gate group 0)."""
+        return self.gates[0]
 
     @property
     def num_expression(self) -> int:
@@ -153,9 +165,35 @@ def _ict_basis() -> HeadBasis:
     sock_c = np.array([0.26, 0.09, 0.09])[None] * (1.0 - 0.6 * depth_in[sock])[:, None]
     ids = np.concatenate([teeth, gums, sock]).astype(np.int64)
     cols = np.concatenate([teeth_c, gum_c, sock_c]).astype(np.float32)
-    gate = np.zeros(m.num_expression, np.float32)
+    gates = np.zeros((3, m.num_expression), np.float32)
     for n, w in _MOUTH_OPENING.items():
-        gate[m.expression_names.index(n)] = w
+        gates[0, m.expression_names.index(n)] = w
+    # Closed eyelids: the skin the blink blendshapes pull over the eye, as Gaussians that appear as
+    # the lids close (a few-view reconstruction has no skin under the open lids to move down).
+    groups = [np.zeros(len(ids), np.int64)]
+    scales = [np.full(len(ids), 0.0022 * 0.9)]
+    sample = [np.zeros(len(ids), bool)]
+    lid_ids = []
+    for gi, side in ((1, "L"), (2, "R")):
+        k = m.expression_names.index(f"eyeBlink_{side}")
+        gates[gi, k] = 1.0
+        mv = np.linalg.norm(m.expression_basis[k, :9409], axis=1)
+        lid = np.flatnonzero(mv > 0.0025)  # moves > 2.5 mm: the upper lid
+        lid_ids.append(lid)
+        groups.append(np.full(len(lid), gi))
+        scales.append(np.full(len(lid), 0.0022))
+        sample.append(np.ones(len(lid), bool))
+    # Reconstructed Gaussians on the eyeballs fade out as the lids close over them.
+    from ..data.headmodel import EYEBALL_VERTEX_RANGE
+
+    hide = np.zeros(m.num_vertices, np.int8)
+    eye = np.zeros(m.num_vertices, bool)
+    eye[EYEBALL_VERTEX_RANGE[0] : EYEBALL_VERTEX_RANGE[1]] = True
+    sides = [np.sign(v[lid, 0].mean()) for lid in lid_ids]
+    for gi, sg in zip((1, 2), sides):
+        hide[eye & (np.sign(v[:, 0]) == sg)] = gi
+    ids = np.concatenate([ids, *lid_ids]).astype(np.int64)
+    cols = np.concatenate([cols, np.zeros((sum(len(x) for x in lid_ids), 3), np.float32)])
     return HeadBasis(
         space="ict53",
         neutral=m.neutral,
@@ -166,7 +204,12 @@ def _ict_basis() -> HeadBasis:
         interior_vertices=ids,
         interior_colors=np.clip(cols, 0, 1),
         interior_spacing=0.0022,
-        gate=gate,
+        gates=gates,
+        gate_ranges=np.array([[GATE_START, GATE_FULL], [0.25, 0.75], [0.25, 0.75]], np.float32),
+        interior_group=np.concatenate(groups),
+        interior_scale=np.concatenate(scales).astype(np.float32),
+        sample_color=np.concatenate(sample),
+        hide_group=hide,
     )
 
 
@@ -194,8 +237,12 @@ def _flame_basis(path: str) -> HeadBasis:
     expr = np.transpose(sd[:, :, 300:400], (2, 0, 1)).copy()
     expr = np.concatenate([expr, np.zeros((20, *vt.shape), np.float32)])  # jaw/eye rotations: MLP only
     front = np.flatnonzero(vt[:, 2] > np.percentile(vt[:, 2], 60))
-    gate = np.zeros(120, np.float32)
-    return HeadBasis("flame120", vt - c, ident, expr, f.astype(np.int32), front, np.zeros(0, np.int64), np.zeros((0, 3), np.float32), 0.002, gate)
+    e0 = np.zeros(0, np.int64)
+    return HeadBasis(
+        "flame120", vt - c, ident, expr, f.astype(np.int32), front, e0, np.zeros((0, 3), np.float32), 0.002,
+        np.zeros((1, 120), np.float32), np.array([[GATE_START, GATE_FULL]], np.float32), e0, np.zeros(0, np.float32), np.zeros(0, bool),
+        np.zeros(len(vt), np.int8),
+    )
 
 
 # ---------------------------------------------------------------------------- fitting
@@ -367,17 +414,23 @@ class PriorBinding:
     transform: Tensor
     identity: Tensor
     space: str
+    group: Tensor | None = None  # [N] int64: gate group of interior Gaussians, -1 for the reconstructed ones
 
     def __len__(self) -> int:
         return int(self.vertex_ids.shape[0])
 
+    def groups(self) -> Tensor:
+        """``[N]`` gate group per Gaussian (-1: none)."""
+        return self.group if self.group is not None else torch.full((len(self),), -1, dtype=torch.int64, device=self.vertex_ids.device)
+
     def index(self, idx) -> "PriorBinding":
-        return PriorBinding(self.vertex_ids[idx], self.bary[idx], self.weight[idx], self.transform, self.identity, self.space)
+        return PriorBinding(self.vertex_ids[idx], self.bary[idx], self.weight[idx], self.transform, self.identity, self.space, self.groups()[idx])
 
     @staticmethod
     def concat(a: "PriorBinding", b: "PriorBinding") -> "PriorBinding":
         return PriorBinding(
-            torch.cat([a.vertex_ids, b.vertex_ids]), torch.cat([a.bary, b.bary]), torch.cat([a.weight, b.weight]), a.transform, a.identity, a.space
+            torch.cat([a.vertex_ids, b.vertex_ids]), torch.cat([a.bary, b.bary]), torch.cat([a.weight, b.weight]), a.transform, a.identity, a.space,
+            torch.cat([a.groups(), b.groups().to(a.vertex_ids.device)]),
         )
 
     def tensors(self) -> dict[str, Tensor]:
@@ -388,6 +441,7 @@ class PriorBinding:
             "prior.weight": self.weight.float().contiguous(),
             "prior.transform": self.transform.float().contiguous(),
             "prior.identity": self.identity.float().contiguous(),
+            "prior.group": self.groups().to(torch.int8).contiguous(),
         }
 
     @staticmethod
@@ -395,7 +449,10 @@ class PriorBinding:
         keys = ("prior.vertex_ids", "prior.bary", "prior.weight", "prior.transform", "prior.identity")
         if not all(k in t for k in keys):
             return None
-        b = PriorBinding(t[keys[0]].long(), t[keys[1]].float(), t[keys[2]].float(), t[keys[3]].float(), t[keys[4]].float(), space)
+        grp = t["prior.group"].long() if "prior.group" in t else None
+        b = PriorBinding(t[keys[0]].long(), t[keys[1]].float(), t[keys[2]].float(), t[keys[3]].float(), t[keys[4]].float(), space, grp)
+        if grp is not None and grp.shape != (n,):
+            raise ValueError(f"avatar prior group must be [N={n}], got {list(grp.shape)}")
         if b.vertex_ids.shape != (n, 3) or b.bary.shape != (n, 3) or b.weight.shape != (n,):
             raise ValueError(f"avatar prior tensors must be [N={n}, 3], [N, 3], [N]; got {list(b.vertex_ids.shape)}, {list(b.bary.shape)}, {list(b.weight.shape)}")
         return b
@@ -408,7 +465,10 @@ class PriorBinding:
         return (v @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
 
     def to(self, device) -> "PriorBinding":
-        return PriorBinding(*(x.to(device) for x in (self.vertex_ids, self.bary, self.weight, self.transform, self.identity)), self.space)
+        return PriorBinding(
+            *(x.to(device) for x in (self.vertex_ids, self.bary, self.weight, self.transform, self.identity)), self.space,
+            None if self.group is None else self.group.to(device),
+        )
 
 
 def bind(points: np.ndarray | Tensor, fit: HeadFit, basis: HeadBasis, fade: tuple[float, float] = (0.006, 0.025), k: int = 4) -> PriorBinding:
@@ -435,6 +495,9 @@ def bind(points: np.ndarray | Tensor, fit: HeadFit, basis: HeadBasis, fade: tupl
     d = dist[r, best]
     d0, d1 = fade
     w = 1.0 - _smoothstep((d - d0) / max(d1 - d0, 1e-9))
+    # gate group: -1, or G - 1 + k for Gaussians that fade out with gate k (eyes under closing lids)
+    hg = basis.hide_group[ids[:, 0]].astype(np.int64)
+    group = np.where((hg > 0) & (d < d1), basis.gates.shape[0] - 1 + hg, -1)
     return PriorBinding(
         torch.from_numpy(ids.astype(np.int64)),
         torch.from_numpy(bc.astype(np.float32)),
@@ -442,30 +505,53 @@ def bind(points: np.ndarray | Tensor, fit: HeadFit, basis: HeadBasis, fade: tupl
         torch.from_numpy(fit.transform.astype(np.float32)),
         torch.from_numpy(fit.identity.astype(np.float32)),
         basis.space,
+        torch.from_numpy(group),
     )
 
 
-def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int) -> tuple["Gaussians", PriorBinding]:  # noqa: F821
-    """Gaussians of the mouth interior (teeth, gums/tongue, mouth socket) of the fitted head, each
-    bound to its own vertex with full weight. ``features`` are zeros ``[I, num_features]``."""
+def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gaussians | None" = None) -> tuple["Gaussians", PriorBinding]:  # noqa: F821
+    """Gated Gaussians of the fitted head, each bound to its own vertex with full weight: the mouth
+    interior (teeth, gums/tongue, mouth socket; coloured like the synthetic albedo) and the closed
+    upper eyelids (coloured like the avatar's skin just above each point, from ``avatar``'s
+    Gaussians; skin grey without it). ``features`` are zeros ``[I, num_features]``; the binding's
+    ``group`` says which gate (``gate_factors``) hides each one."""
+    from scipy.spatial import cKDTree
+
     from ..gaussians import Gaussians
 
     ids = basis.interior_vertices
     n = len(ids)
-    s = float(np.cbrt(abs(np.linalg.det(fit.transform[:3, :3]))))
-    means = torch.from_numpy(fit.vertices[ids].astype(np.float32))
-    scale = torch.full((n, 3), basis.interior_spacing * s * 0.9)
+    M = fit.transform[:3, :3].astype(np.float64)
+    s = float(np.cbrt(abs(np.linalg.det(M))))
+    pos = fit.vertices[ids].astype(np.float32)
+    cols = basis.interior_colors.astype(np.float32).copy()
+    smp = basis.sample_color
+    if smp.any():
+        cols[smp] = np.array([0.62, 0.48, 0.42], np.float32)
+        if avatar is not None and len(avatar) > 0:
+            am = avatar.means.detach().float().cpu().numpy()
+            solid = avatar.opacities.detach().cpu().numpy() > 0.3
+            if solid.sum() >= 16:
+                up = M[:, 1] / max(np.linalg.norm(M[:, 1]), 1e-9)
+                fwd = M[:, 2] / max(np.linalg.norm(M[:, 2]), 1e-9)
+                q = pos[smp] + (0.009 * up + 0.002 * fwd).astype(np.float32)  # the lid crease / brow skin above
+                _, nn = cKDTree(am[solid]).query(q, k=8)
+                ac = avatar.colors.detach().float().cpu().numpy()[solid]
+                cols[smp] = np.median(ac[nn], axis=1)
     g = Gaussians(
-        means=means,
+        means=torch.from_numpy(pos),
         quats=torch.tensor([1.0, 0.0, 0.0, 0.0]).expand(n, 4).contiguous(),
-        scales=scale,
+        scales=torch.from_numpy((basis.interior_scale * s).astype(np.float32))[:, None].expand(n, 3).contiguous(),
         opacities=torch.full((n,), 0.9),
-        colors=torch.from_numpy(basis.interior_colors.astype(np.float32)),
+        colors=torch.from_numpy(np.clip(cols, 0, 1)),
         features=torch.zeros(n, num_features),
     )
     vid = torch.from_numpy(ids.astype(np.int64))[:, None].expand(n, 3).contiguous()
     bary = torch.tensor([1.0, 0.0, 0.0]).expand(n, 3).contiguous()
-    b = PriorBinding(vid, bary, torch.ones(n), torch.from_numpy(fit.transform), torch.from_numpy(fit.identity), basis.space)
+    b = PriorBinding(
+        vid, bary, torch.ones(n), torch.from_numpy(fit.transform), torch.from_numpy(fit.identity), basis.space,
+        torch.from_numpy(basis.interior_group.astype(np.int64)),
+    )
     return g, b
 
 
@@ -477,6 +563,24 @@ def mouth_gate_vector(basis: HeadBasis) -> Tensor:
 def mouth_gate(z: Tensor, gate: Tensor) -> Tensor:
     """Opacity factor of the mouth interior for ``z [E]`` or ``[B, E]`` -> ``[]`` / ``[B]`` in [0, 1]."""
     x = ((z @ gate) - GATE_START) / (GATE_FULL - GATE_START)
+    x = x.clamp(0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def opacity_factors(z: Tensor, basis: HeadBasis, index: Tensor) -> Tensor:
+    """Per-Gaussian opacity factors ``[N]`` (``[B, N]``) for ``z [E]`` (``[B, E]``); ``index [N]`` =
+    ``binding.groups() + 1``. Slot 0 = 1 (no gate), slots 1..G = the gates (interior Gaussians appear),
+    slots G+1.. = 1 - gate k (reconstructed Gaussians that hide, k = 1..)."""
+    f = gate_factors(z, torch.as_tensor(basis.gates, device=z.device, dtype=z.dtype), torch.as_tensor(basis.gate_ranges, device=z.device, dtype=z.dtype))
+    one = torch.ones_like(f[..., :1])
+    table = torch.cat([one, f, 1.0 - f[..., 1:]], dim=-1)  # [G + 1 + (G - 1)]
+    return table[..., index]
+
+
+def gate_factors(z: Tensor, gates: Tensor, ranges: Tensor) -> Tensor:
+    """Opacity factor per gate group: ``z [E]`` / ``[B, E]``, ``gates [G, E]``, ``ranges [G, 2]`` ->
+    ``[G]`` / ``[B, G]`` = smoothstep((gates @ z - start) / (full - start))."""
+    x = ((z @ gates.T) - ranges[:, 0]) / (ranges[:, 1] - ranges[:, 0])
     x = x.clamp(0.0, 1.0)
     return x * x * (3.0 - 2.0 * x)
 
@@ -518,6 +622,10 @@ class PriorRuntime:
         self.local = torch.from_numpy(local.astype(np.int64)).to(dev)  # [N*3]
         self.coef = (binding.bary * binding.weight[:, None]).float().to(dev)[..., None]  # [N, 3, 1]
         self.n = len(binding)
+        grp = binding.groups()
+        self.gated = bool((grp >= 0).any())
+        self.group_index = (grp + 1).to(dev)  # [N] into opacity_factors' table
+        self.basis = basis
 
     def displacement(self, z: Tensor) -> Tensor:
         z = z.to(self.basis_u.dtype)

@@ -212,7 +212,7 @@ def evaluate(
         for t in proto.target_timesteps:
             expr = source.expression(t).float().to(device)
             if cfg.ablation == "static":
-                gauss = avatar.gaussians
+                gauss = model.static_gaussians(avatar)
             else:
                 gauss = model.animate(avatar, expr, prior=cfg.ablation != "no-prior")
             tpairs = [(t, c) for c in proto.target_cameras]

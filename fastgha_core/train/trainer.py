@@ -473,7 +473,9 @@ class Trainer:
         """Forward, render and the §3.3 loss of one collated batch (already on the device)."""
         t0 = time.perf_counter()
         with torch.autocast(device_type="cuda", dtype=torch.bfloat16, enabled=self.use_bf16):
-            out = self.ddp(batch.input_images, batch.input_K, batch.input_w2c, batch.expression)
+            prior = bool(getattr(self.model_config.deform, "prior", False))
+            extra = {"input_expressions": batch.input_expressions} if prior and getattr(batch, "input_expressions", None) is not None else {}
+            out = self.ddp(batch.input_images, batch.input_K, batch.input_w2c, batch.expression, **extra)
         t1 = time.perf_counter()
         size = int(batch.target_images.shape[-1])
         rgb, alpha, depth = render_batch(out.gaussians, batch.target_K, batch.target_w2c, size, self.config.render_backend)
