@@ -9,6 +9,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--json", default=None, help="write the report JSON here (default: OUT/eval.json)")
     parser.add_argument("--out", default="eval_out", help="folder for eval.md, comparison.png (and eval.json)")
     parser.add_argument("--ablation", default="none", choices=["none", "static", "no-features", "no-prior"], help="static: canonical head, no deformation; no-features: deformation with zeroed per-Gaussian features; no-prior: the MLP residual without the expression prior's displacement")
+    parser.add_argument("--grid-subject", type=int, default=0, help="with --responses: which subject (index) the picture grid shows")
     parser.add_argument("--responses", action="store_true", help="instead: the expression-response evaluation (single expressions at weight 1, frontal and 30° yaw, dlib landmarks ours vs truth, mouth/eye PSNR); writes OUT/responses.{json,md,png}")
     parser.add_argument("--num-inputs", type=int, default=4, help="input images per subject (paper: 4)")
     parser.add_argument("--expressions", type=int, default=4, help="novel expressions per subject")
@@ -76,7 +77,7 @@ def _run_responses(args, model) -> int:
     except ImportError:
         raise CLIError("--responses needs dlib's 68 landmarks: install the 'faces' extra") from None
     res = args.resolution or 256
-    cfg = ResponseConfig(resolution=res, num_inputs=args.num_inputs, use_prior=args.ablation != "no-prior", backend=args.backend)
+    cfg = ResponseConfig(resolution=res, num_inputs=args.num_inputs, use_prior=args.ablation != "no-prior", backend=args.backend, grid_subject=args.grid_subject)
     sources = build_eval_sources(args.data, args.subjects, resolution=int(model.config.input_size), num_cameras=16)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
