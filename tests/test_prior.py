@@ -281,7 +281,7 @@ def test_server_frames_open_the_mouth_of_the_shipped_model():
     model = load_model("tiny")
     assert model.config.deform.prior, "the shipped tiny model should use the expression prior"
     paths, cams = load_request_folder(folder)
-    imgs = [torch.from_numpy(np.asarray(Image.open(p).convert("RGB"))).permute(2, 0, 1) for p in paths]
+    imgs = [torch.from_numpy(np.array(Image.open(p).convert("RGB"))).permute(2, 0, 1) for p in paths]
     x, c = model.prepare(imgs, cams)
     avatar = model.reconstruct(x, c)
     fr = FrameRenderer(model, "cpu")
@@ -306,4 +306,4 @@ def test_server_frames_open_the_mouth_of_the_shipped_model():
     diff = np.abs(frames["jawOpen"] - frames["neutral"]).mean(-1)
     mouth = diff[region(list(range(48, 68)) + [8], 0.2)].mean()
     brows = diff[region(list(range(17, 27)), 0.1)].mean()
-    assert mouth > 10.0 and brows < 2.0, (mouth, brows)
+    assert mouth > 10.0 and mouth > 4.0 * brows, (mouth, brows)  # the jaw region moves, the brows hardly
