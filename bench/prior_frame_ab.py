@@ -6,7 +6,9 @@ Gaussians with their opacity gate); B = the same weights on the old path (prior 
 without the binding and the interior). Both avatars come from the same 4 input views of the shipped
 sample ``synth_1000001``. Each round renders one frame with A then one with B (or B then A on odd
 rounds) through ``server.frames.FrameRenderer.render`` (deform, rasterize, JPEG) with changing
-expressions; reported: median ms per frame, frames per second and the ratio B/A of medians.
+expressions (uniform in [0, 0.6] per blendshape, so the mouth and lids are often partly open);
+reported: median ms per frame, frames per second, the ratio B/A of medians, and the deform and
+raster medians of each.
 
     python bench/prior_frame_ab.py --rounds 40 --json out/prior_ab.json
 """
@@ -56,18 +58,27 @@ def main(argv=None) -> int:
     out = {"model": args.model, "gaussians_a": len(av_a), "gaussians_b": len(av_b), "threads": torch.get_num_threads(), "sizes": {}}
     for size in [int(s) for s in args.sizes.split(",")]:
         cam = ra.default_camera.resize(size, size)
-        ta, tb = [], []
+        ta, tb, da, db, xa, xb = [], [], [], [], [], []
         for r in range(args.rounds + 3):
             z = torch.rand(53, generator=g) * 0.6
-            order = [(ra, av_a, ta), (rb, av_b, tb)] if r % 2 == 0 else [(rb, av_b, tb), (ra, av_a, ta)]
-            for rend, av, acc in order:
+            order = [(ra, av_a, ta, da, xa), (rb, av_b, tb, db, xb)] if r % 2 == 0 else [(rb, av_b, tb, db, xb), (ra, av_a, ta, da, xa)]
+            for rend, av, acc, dacc, xacc in order:
                 t0 = time.perf_counter()
-                rend.render(av, z, cam, 85)
+                fr = rend.render(av, z, cam, 85)
                 if r >= 3:  # warm-up rounds not counted
                     acc.append(1e3 * (time.perf_counter() - t0))
+                    dacc.append(fr.deform_ms)
+                    xacc.append(fr.raster_ms)
         ma, mb = statistics.median(ta), statistics.median(tb)
-        out["sizes"][size] = {"prior_ms": ma, "old_ms": mb, "prior_fps": 1e3 / ma, "old_fps": 1e3 / mb, "fps_ratio_prior_over_old": mb / ma}
-        print(f"{size}²: prior {ma:.1f} ms ({1e3 / ma:.1f} fps), old path {mb:.1f} ms ({1e3 / mb:.1f} fps), fps ratio {mb / ma:.3f}")
+        out["sizes"][size] = {
+            "prior_ms": ma, "old_ms": mb, "prior_fps": 1e3 / ma, "old_fps": 1e3 / mb, "fps_ratio_prior_over_old": mb / ma,
+            "deform_ms_prior": statistics.median(da), "deform_ms_old": statistics.median(db),
+            "raster_ms_prior": statistics.median(xa), "raster_ms_old": statistics.median(xb),
+        }
+        print(
+            f"{size}²: prior {ma:.1f} ms ({1e3 / ma:.1f} fps), old path {mb:.1f} ms ({1e3 / mb:.1f} fps), fps ratio {mb / ma:.3f}; "
+            f"deform {statistics.median(da):.1f} vs {statistics.median(db):.1f} ms, raster {statistics.median(xa):.1f} vs {statistics.median(xb):.1f} ms"
+        )
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(out, indent=2))

@@ -150,8 +150,10 @@ def test_animate_with_the_prior(model_and_avatar):
         model.deform.out.weight.zero_()
         model.deform.out.bias.zero_()
     neutral = model.animate(avatar, torch.zeros(53))
-    torch.testing.assert_close(neutral.means, avatar.gaussians.means)  # identity at zero expression
-    assert torch.all(neutral.opacities[n_rec:] == 0)  # closed lips hide the interior
+    assert len(neutral) == n_rec  # closed lips and open eyes: every gated Gaussian is hidden, and left out
+    torch.testing.assert_close(neutral.means, avatar.gaussians.means[:n_rec])  # identity at zero expression
+    full = model.static_gaussians(avatar)
+    assert len(full) == len(avatar.gaussians) and torch.all(full.opacities[n_rec:] == 0)
     z = torch.zeros(53)
     z[hm.expression_names.index("jawOpen")] = 1.0
     opened = model.animate(avatar, z)
@@ -160,17 +162,21 @@ def test_animate_with_the_prior(model_and_avatar):
     grp = avatar.prior.groups()
     mouth, lid_l = grp == 0, grp == 1
     assert mouth.any() and lid_l.any()
-    assert torch.all(opened.opacities[mouth] > 0) and torch.all(opened.opacities[lid_l] == 0)  # jaw open: mouth, not lids
+    n_mouth = int(mouth.sum())
+    assert len(opened) == n_rec + n_mouth and torch.all(opened.opacities[n_rec:] > 0)  # jaw open: mouth, not lids
     blink = torch.zeros(53)
     blink[hm.expression_names.index("eyeBlink_L")] = 1.0
     closed = model.animate(avatar, blink)
-    assert torch.all(closed.opacities[lid_l] > 0) and torch.all(closed.opacities[mouth] == 0)
+    assert len(closed) == n_rec + n_mouth + int(lid_l.sum())
+    assert torch.all(closed.opacities[lid_l[: len(closed)]] > 0) and torch.all(closed.opacities[mouth[: len(closed)]] == 0)
     hides = grp == int(avatar.prior.groups().max())  # reconstructed Gaussians on an eyeball fade as its lid closes
-    assert hides.any() and torch.all(neutral.opacities[hides] > 0)
-    either = model.animate(avatar, torch.tensor(np.where(np.isin(np.arange(53), [hm.expression_names.index("eyeBlink_L"), hm.expression_names.index("eyeBlink_R")]), 1.0, 0.0), dtype=torch.float32))
-    assert torch.all(either.opacities[hides] == 0)
+    assert hides.any() and torch.all(neutral.opacities[hides[:n_rec]] > 0)
+    both_eyes = torch.zeros(53)
+    both_eyes[[hm.expression_names.index("eyeBlink_L"), hm.expression_names.index("eyeBlink_R")]] = 1.0
+    either = model.animate(avatar, both_eyes)
+    assert len(either) == len(avatar.gaussians) and torch.all(either.opacities[hides] == 0)
     off = model.animate(avatar, z, prior=False)  # the ablation: MLP residual only (zero here)
-    torch.testing.assert_close(off.means, avatar.gaussians.means)
+    torch.testing.assert_close(off.means, avatar.gaussians.means[: len(off)])
     both = model.animate(avatar, torch.stack([torch.zeros(53), z]))
     torch.testing.assert_close(both[1].means, opened.means)
 

@@ -68,11 +68,21 @@ def _apply_deformation(g: Gaussians, dxyz: Tensor, drgb: Tensor) -> Gaussians:
     return g.replace(means=g.means + dxyz, colors=(g.colors + drgb).clamp(0.0, 1.0))
 
 
-def _combine(g: Gaussians, dxyz: Tensor, drgb: Tensor, prior_d: Tensor | None, n_int: int, gate: Tensor | None) -> Gaussians:
+def _combine(g: Gaussians, dxyz: Tensor, drgb: Tensor, prior_d: Tensor | None, n_int: int, gate: Tensor | None, trim: bool = False) -> Gaussians:
     """Deformed ``g`` from the MLP's ``dxyz``/``drgb [N_rec, 3]`` (first ``N - n_int`` Gaussians), the
-    prior's displacement ``[N, 3]`` (or None) and per-Gaussian opacity factors ``gate [N]`` (or None)."""
+    prior's displacement ``[N, 3]`` (or None) and per-Gaussian opacity factors ``gate [N]`` (or None).
+
+    ``trim``: drop the trailing interior Gaussians whose gate is 0 (the interior is ordered mouth,
+    left lid, right lid, so a neutral frame renders no more Gaussians than an avatar without them)."""
     if prior_d is None and n_int == 0 and gate is None:
         return _apply_deformation(g, dxyz, drgb)
+    if trim and n_int and gate is not None:
+        n_rec = len(g) - n_int
+        nz = torch.nonzero(gate[n_rec:] > 0)
+        end = n_rec + (int(nz[-1]) + 1 if len(nz) else 0)
+        if end < len(g):
+            g, gate, n_int = g[:end], gate[:end], end - n_rec
+            prior_d = None if prior_d is None else prior_d[:end]
     n_rec = len(g) - n_int
     if prior_d is None:
         prior_d = dxyz.new_zeros(len(g), 3)
@@ -481,6 +491,9 @@ class FastGHA(nn.Module):
         CPU/CUDA bf16 autocast (outputs are float32). With the expression prior (``config.deform.prior``)
         the avatar's head-surface displacement is added to the MLP's residual (an avatar without a
         binding gets one first, see ``attach_prior``); ``prior=False`` leaves it out (an ablation).
+        Trailing mouth-interior / eyelid Gaussians that the expression keeps hidden are left out of
+        the result, so it may hold fewer Gaussians than the avatar (never fewer than
+        ``avatar.num_reconstructed``).
         """
         if avatar.expression_space != self.config.expression_space:
             raise ValueError(
@@ -516,9 +529,9 @@ class FastGHA(nn.Module):
                 prior_d = rt.displacement(z)  # [N, 3] or [B, N, 3]
             gate = self._gate(z, rt)
         if z.ndim == 1:
-            return _combine(g, dxyz, drgb, prior_d, n_int, gate)
+            return _combine(g, dxyz, drgb, prior_d, n_int, gate, trim=True)
         return [
-            _combine(g, dxyz[i], drgb[i], None if prior_d is None else prior_d[i], n_int, None if gate is None else gate[i])
+            _combine(g, dxyz[i], drgb[i], None if prior_d is None else prior_d[i], n_int, None if gate is None else gate[i], trim=True)
             for i in range(z.shape[0])
         ]
 
