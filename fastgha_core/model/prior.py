@@ -595,31 +595,45 @@ def _moving_vertices(basis: HeadBasis) -> np.ndarray:
     return _moving_cached(id(basis), basis)
 
 
-class PriorRuntime:
-    """Per-frame evaluation of a binding: a compact basis over the used vertices.
+_SHARED: dict = {}
 
-    ``basis_u [E, U*3]`` holds the blendshapes of the U used vertices, rotated and scaled into the
-    avatar's frame; ``local [N*3]`` indexes them; ``coef [N, 3, 1]`` = barycentric * fade weight.
-    ``displacement(z [E])`` -> ``[N, 3]``; ``z [B, E]`` -> ``[B, N, 3]``.
+
+def _shared_basis(basis: HeadBasis, device) -> tuple[Tensor, np.ndarray]:
+    """The blendshapes of every vertex that moves, ``[E, (1 + Vm) * 3]`` on ``device`` (row 0 = the
+    zero slot), and the vertex -> slot map ``[Nv]``; built once per basis and device, shared by
+    every avatar (the per-avatar fit's scale and rotation are applied after the gather)."""
+    key = (id(basis), str(device))
+    if key not in _SHARED:
+        moving = _moving_vertices(basis)
+        slot = np.zeros(len(moving), np.int64)
+        slot[moving] = np.arange(1, int(moving.sum()) + 1)
+        bu = np.concatenate([np.zeros((basis.num_expression, 1, 3), np.float32), basis.expression_basis[:, moving]], axis=1)
+        with torch.inference_mode(False):  # a normal tensor even when first built inside inference mode
+            t = torch.from_numpy(bu.reshape(bu.shape[0], -1)).to(device)
+        _SHARED[key] = (t, slot, basis)  # holding basis keeps its id unique
+    t, slot, _ = _SHARED[key]
+    return t, slot
+
+
+class PriorRuntime:
+    """Per-frame evaluation of a binding.
+
+    ``basis_u [E, U*3]`` holds the blendshapes of every moving vertex of the head model (shared by all
+    avatars); ``local [N*3]`` indexes them (slot 0 = a zero row for corners that never move and
+    Gaussians with no weight); ``coef [N, 3, 1]`` = barycentric * fade weight; ``M [3, 3]`` = the
+    fit's scale * rotation, applied after the gather. ``displacement(z [E])`` -> ``[N, 3]``;
+    ``z [B, E]`` -> ``[B, N, 3]``.
     """
 
     def __init__(self, binding: PriorBinding, basis: HeadBasis, device=None):
         dev = device or binding.vertex_ids.device
-        ids = binding.vertex_ids.cpu().numpy().copy()  # [N, 3]
-        moving = _moving_vertices(basis)
-        # Corners that never move, or Gaussians with no weight, read a zero row (slot 0).
-        dead = ~moving[ids] | (binding.weight.cpu().numpy() <= 0)[:, None]
-        ids[dead] = -1
-        uniq, local = np.unique(ids.reshape(-1), return_inverse=True)
-        if uniq[0] != -1:  # make sure slot 0 is the zero row
-            uniq = np.concatenate([[-1], uniq])
-            local = local + 1
-        M = binding.transform[:3, :3].double().cpu().numpy()  # scale * rotation
-        bu = basis.expression_basis[:, np.maximum(uniq, 0)].astype(np.float64) @ M.T  # [E, U, 3]
-        bu[:, 0] = 0.0
-        self.num_used = len(uniq)
-        self.basis_u = torch.from_numpy(bu.reshape(bu.shape[0], -1).astype(np.float32)).to(dev)  # [E, U*3]
-        self.local = torch.from_numpy(local.astype(np.int64)).to(dev)  # [N*3]
+        self.basis_u, slot = _shared_basis(basis, dev)
+        ids = binding.vertex_ids.cpu().numpy()  # [N, 3]
+        local = slot[ids]
+        local[(binding.weight.cpu().numpy() <= 0)] = 0
+        self.num_used = int(len(np.unique(local)))
+        self.local = torch.from_numpy(local.reshape(-1).astype(np.int64)).to(dev)  # [N*3]
+        self.M = binding.transform[:3, :3].float().to(dev)  # [3, 3]
         self.coef = (binding.bary * binding.weight[:, None]).float().to(dev)[..., None]  # [N, 3, 1]
         self.n = len(binding)
         grp = binding.groups()
@@ -633,10 +647,9 @@ class PriorRuntime:
             nz = torch.nonzero(z).flatten()
             # a slider frame drives a few blendshapes: read only their rows of the basis
             d = z[nz] @ self.basis_u[nz] if len(nz) * 4 < len(z) else z @ self.basis_u  # [U*3]
-        else:
-            d = z @ self.basis_u  # [B, U*3]
-        if z.ndim == 1:
             du = d.view(-1, 3)  # [U, 3]
-            return (du.index_select(0, self.local).view(self.n, 3, 3) * self.coef).sum(1)
+            out = (du.index_select(0, self.local).view(self.n, 3, 3) * self.coef).sum(1)  # [N, 3], model frame
+            return out @ self.M.T
+        d = z @ self.basis_u  # [B, U*3]
         du = d.view(z.shape[0], -1, 3)
-        return (du[:, self.local].view(z.shape[0], self.n, 3, 3) * self.coef).sum(2)
+        return (du[:, self.local].view(z.shape[0], self.n, 3, 3) * self.coef).sum(2) @ self.M.T
