@@ -125,6 +125,12 @@ class DeformConfig:
     pe_freqs: int = 6  # sinusoidal frequencies 2^k * pi, k < pe_freqs, per coordinate
     pe_scale: float = 4.0  # xyz (metres) is multiplied by this before the encoding (head ~ [-0.6, 0.6])
     negative_slope: float = 0.01  # LeakyReLU slope
+    # Expression prior (issue 16, model/prior.py): each canonical Gaussian takes the blendshape
+    # displacement of its nearest point on a head surface fitted to the avatar; the MLP is a residual.
+    prior: bool = False  # paper: the paper's pure MLP; tiny: on
+    prior_fade: tuple[float, float] = (0.006, 0.025)  # metres from the surface: full weight, no weight
+    mouth_interior: bool = True  # with the prior: teeth/gums/mouth-socket Gaussians in every avatar
+    flame_model: str | None = None  # flame120 models: FLAME model file (else $FASTGHA_FLAME_MODEL)
 
 
 @dataclass
@@ -237,7 +243,7 @@ def _tiny() -> FastGHAConfig:
         # (foreground_opacity). Without them, 1000 steps still painted one average skin colour, the
         # head being carried by background-pixel Gaussians; with them, step 60 beat step 1000.
         gaussians=GaussianHeadConfig(feature_dim=32, prune_opacity=0.005, rgb_residual=True, foreground_opacity=True),
-        deform=DeformConfig(hidden_size=48, num_layers=4, pe_freqs=4),  # ~8 ms/frame fp32 at 65k Gaussians on 2 cores
+        deform=DeformConfig(hidden_size=48, num_layers=4, pe_freqs=4, prior=True),  # ~8 ms/frame fp32 at 65k Gaussians on 2 cores
     )
 
 

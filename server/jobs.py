@@ -608,9 +608,10 @@ class JobQueue:
         log.debug("decoded %d file(s) for %s in %.0f ms", n_files, job.id, timings["decoding_ms"])
         # ---- tracking (photos without cameras)
         tracking_ms = None
+        expressions = None  # the photos' own expressions, when tracked: undone for a neutral canonical head
         if req.cameras is None:
             progress("tracking", 0.0)
-            crops, cam_batch, crop_masks, _ = self.tracker.track(images, mlist, size, names=names)
+            crops, cam_batch, crop_masks, expressions = self.tracker.track(images, mlist, size, names=names)
             tracking_ms = 1e3 * (time.perf_counter() - t1)
             images, mlist = crops, crop_masks
             cams = cam_batch
@@ -623,8 +624,11 @@ class JobQueue:
         except ValueError as e:
             raise ApiError(400, "invalid_input", str(e)) from None
         del images
+        if expressions is not None and tuple(expressions.shape) != (x.shape[0], model.config.expression_dim):
+            expressions = None  # tracked in another expression space than the model's: nothing to undo
         with torch.inference_mode():
-            avatar = model.reconstruct(x.to(ctx.device), c.to(ctx.device))
+            # with the expression prior, the tracked expressions make the canonical head neutral
+            avatar = model.reconstruct(x.to(ctx.device), c.to(ctx.device), expressions=expressions)
         recon_ms = 1e3 * (time.perf_counter() - t2)
         progress("reconstructing", 1.0)
         state = CreationState(model=model, device=ctx.device, names=names, images=x, cameras=c, avatar=avatar)

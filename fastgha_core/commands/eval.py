@@ -8,7 +8,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--subjects", type=int, default=None, help="evaluate the first N subjects (synthetic default: 4)")
     parser.add_argument("--json", default=None, help="write the report JSON here (default: OUT/eval.json)")
     parser.add_argument("--out", default="eval_out", help="folder for eval.md, comparison.png (and eval.json)")
-    parser.add_argument("--ablation", default="none", choices=["none", "static", "no-features"], help="static: canonical head, no deformation; no-features: deformation with zeroed per-Gaussian features")
+    parser.add_argument("--ablation", default="none", choices=["none", "static", "no-features", "no-prior"], help="static: canonical head, no deformation; no-features: deformation with zeroed per-Gaussian features; no-prior: the MLP residual without the expression prior's displacement")
+    parser.add_argument("--grid-subject", type=int, default=0, help="with --responses: which subject (index) the picture grid shows")
+    parser.add_argument("--responses", action="store_true", help="instead: the expression-response evaluation (single expressions at weight 1, frontal and 30° yaw, dlib landmarks ours vs truth, mouth/eye PSNR); writes OUT/responses.{json,md,png}")
     parser.add_argument("--num-inputs", type=int, default=4, help="input images per subject (paper: 4)")
     parser.add_argument("--expressions", type=int, default=4, help="novel expressions per subject")
     parser.add_argument("--views", type=int, default=4, help="novel views per expression")
@@ -32,6 +34,8 @@ def run(args) -> int:
     if bool(args.vgg_weights) != bool(args.lpips_weights):
         raise CLIError("LPIPS needs both --vgg-weights and --lpips-weights (got only one)")
     model = load_model(args.model, device=args.device)
+    if args.responses:
+        return _run_responses(args, model)
     lpips = None
     if args.vgg_weights:
         from ..train.lpips import load_lpips
@@ -55,4 +59,33 @@ def run(args) -> int:
     md = write_report(report, args.json, args.out)
     print(md)
     print(f"wrote {args.json or args.out + '/eval.json'}, {args.out}/eval.md, {args.out}/comparison.png")
+    return 0
+
+
+def _run_responses(args, model) -> int:
+    import json
+    from pathlib import Path
+
+    from ..cli import CLIError
+    from ..train.builders import build_eval_sources
+    from ..train.responses import ResponseConfig, evaluate_responses, responses_markdown
+
+    if args.ablation not in ("none", "no-prior"):
+        raise CLIError(f"--responses supports --ablation none or no-prior, got {args.ablation}")
+    try:
+        import dlib  # type: ignore  # noqa: F401
+    except ImportError:
+        raise CLIError("--responses needs dlib's 68 landmarks: install the 'faces' extra") from None
+    res = args.resolution or 256
+    cfg = ResponseConfig(resolution=res, num_inputs=args.num_inputs, use_prior=args.ablation != "no-prior", backend=args.backend, grid_subject=args.grid_subject)
+    sources = build_eval_sources(args.data, args.subjects, resolution=int(model.config.input_size), num_cameras=16)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    report = evaluate_responses(model, sources, cfg, out_dir=out)
+    report["model"], report["data"], report["ablation"] = str(args.model), str(args.data), args.ablation
+    (Path(args.json) if args.json else out / "responses.json").write_text(json.dumps(report, indent=2))
+    md = responses_markdown(report)
+    (out / "responses.md").write_text(md)
+    print(md)
+    print(f"wrote {args.json or str(out / 'responses.json')}, {out}/responses.md, {out}/responses.png")
     return 0

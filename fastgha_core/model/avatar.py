@@ -5,6 +5,12 @@ MLP's expression-independent first-layer terms (``deform_cache``) are a per-mode
 never saved, and ``FastGHA.animate`` recomputes them on first use after loading or when another
 model animates the avatar. Set ``avatar.deform_cache = None`` after changing the weights of the
 model that filled it (e.g. between training steps).
+
+With the expression prior (``DeformConfig.prior``, issue 16) the avatar also carries ``prior``: each
+Gaussian's binding to a head surface fitted to it (nearest triangle's vertex ids, barycentric
+coordinates, fade weight, the fit's transform and identity; ``model/prior.py``), saved as extra
+``prior.*`` tensors of the avatar file, and ``num_interior`` mouth-interior Gaussians (teeth, gums,
+mouth socket) at the end of ``gaussians``: part of the file, the PLY export and every render.
 """
 
 from __future__ import annotations
@@ -15,6 +21,7 @@ from pathlib import Path
 from torch import Tensor
 
 from ..gaussians import Gaussians
+from .prior import PriorBinding
 
 __all__ = ["CanonicalAvatar"]
 
@@ -29,17 +36,33 @@ class CanonicalAvatar:
         expression_space: the model's expression space (``"ict53"`` / ``"flame120"``).
         deform_cache: ``[N, H]`` first-layer partial of the deformation MLP (not saved).
         deform_cache_owner: ``id`` of the deformation MLP that filled the cache.
+        prior: ``PriorBinding`` of every Gaussian (``None`` without the expression prior).
+        num_interior: mouth-interior Gaussians at the end of ``gaussians`` (no MLP residual; their
+            opacity follows how far the lips are open).
+        prior_runtime: the binding's per-frame compact basis (a cache, not saved).
     """
 
     gaussians: Gaussians
     model_name: str
     expression_space: str
+    prior: PriorBinding | None = None
+    num_interior: int = 0
     deform_cache: Tensor | None = field(default=None, repr=False, compare=False)
     deform_cache_owner: int | None = field(default=None, repr=False, compare=False)
+    prior_runtime: object | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.gaussians.features is None:
             raise ValueError("CanonicalAvatar needs Gaussians with per-Gaussian features, got features=None")
+        if self.prior is not None and len(self.prior) != len(self.gaussians):
+            raise ValueError(f"CanonicalAvatar: prior binds {len(self.prior)} Gaussians, the avatar has {len(self.gaussians)}")
+        if not 0 <= self.num_interior <= len(self.gaussians):
+            raise ValueError(f"CanonicalAvatar: num_interior must lie in [0, {len(self.gaussians)}], got {self.num_interior}")
+
+    @property
+    def num_reconstructed(self) -> int:
+        """Gaussians made by the network (the first ones; the mouth interior follows)."""
+        return len(self.gaussians) - self.num_interior
 
     def __len__(self) -> int:
         return len(self.gaussians)
@@ -50,22 +73,31 @@ class CanonicalAvatar:
         return self.gaussians.nbytes()
 
     def metadata(self) -> dict[str, str]:
-        return {"model_name": self.model_name, "expression_space": self.expression_space}
+        meta = {"model_name": self.model_name, "expression_space": self.expression_space}
+        if self.num_interior:
+            meta["num_interior"] = str(self.num_interior)
+        return meta
 
     def save(self, path: str | Path) -> None:
         from ..io import save_avatar_file
 
-        save_avatar_file(path, self.gaussians.detach().to("cpu"), self.metadata())
+        extra = self.prior.to("cpu").tensors() if self.prior is not None else None
+        save_avatar_file(path, self.gaussians.detach().to("cpu"), self.metadata(), extra)
 
     @classmethod
     def load(cls, path: str | Path) -> "CanonicalAvatar":
         from ..io import load_avatar_file
 
-        g, meta, _extra = load_avatar_file(path)
+        g, meta, extra = load_avatar_file(path)
         missing = [k for k in ("model_name", "expression_space") if k not in meta]
         if missing:
             raise ValueError(f"avatar file {str(path)!r} lacks metadata {missing}; was it written by CanonicalAvatar.save?")
-        return cls(g, meta["model_name"], meta["expression_space"])
+        try:
+            prior = PriorBinding.from_tensors(extra, meta["expression_space"], len(g))
+            n_int = int(meta.get("num_interior", "0"))
+        except ValueError as e:
+            raise ValueError(f"avatar file {str(path)!r}: {e}") from None
+        return cls(g, meta["model_name"], meta["expression_space"], prior, n_int)
 
     def to_ply(self, path: str | Path) -> None:
         """Export the canonical Gaussians as a standard 3DGS PLY (features are not part of that layout)."""
@@ -74,4 +106,5 @@ class CanonicalAvatar:
         save_ply(path, self.gaussians.detach().to("cpu"))
 
     def to(self, device) -> "CanonicalAvatar":
-        return CanonicalAvatar(self.gaussians.to(device), self.model_name, self.expression_space)
+        prior = self.prior.to(device) if self.prior is not None else None
+        return CanonicalAvatar(self.gaussians.to(device), self.model_name, self.expression_space, prior, self.num_interior)

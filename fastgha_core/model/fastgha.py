@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -65,6 +66,32 @@ class FastGHAOutput:
 def _apply_deformation(g: Gaussians, dxyz: Tensor, drgb: Tensor) -> Gaussians:
     """Canonical ``g`` with offsets ``dxyz``/``drgb [N, 3]`` applied (colours stay in [0, 1])."""
     return g.replace(means=g.means + dxyz, colors=(g.colors + drgb).clamp(0.0, 1.0))
+
+
+def _combine(g: Gaussians, dxyz: Tensor, drgb: Tensor, prior_d: Tensor | None, n_int: int, gate: Tensor | None, trim: bool = False) -> Gaussians:
+    """Deformed ``g`` from the MLP's ``dxyz``/``drgb [N_rec, 3]`` (first ``N - n_int`` Gaussians), the
+    prior's displacement ``[N, 3]`` (or None) and per-Gaussian opacity factors ``gate [N]`` (or None).
+
+    ``trim``: drop the trailing interior Gaussians whose gate is 0 (the interior is ordered mouth,
+    left lid, right lid, so a neutral frame renders no more Gaussians than an avatar without them)."""
+    if prior_d is None and n_int == 0 and gate is None:
+        return _apply_deformation(g, dxyz, drgb)
+    if trim and n_int and gate is not None:
+        n_rec = len(g) - n_int
+        nz = torch.nonzero(gate[n_rec:] > 0)
+        end = n_rec + (int(nz[-1]) + 1 if len(nz) else 0)
+        if end < len(g):
+            g, gate, n_int = g[:end], gate[:end], end - n_rec
+            prior_d = None if prior_d is None else prior_d[:end]
+    n_rec = len(g) - n_int
+    if prior_d is None:
+        prior_d = dxyz.new_zeros(len(g), 3)
+    op = g.opacities if gate is None else g.opacities * gate
+    if n_int:
+        means = g.means + torch.cat([prior_d[:n_rec] + dxyz, prior_d[n_rec:]])
+        colors = torch.cat([(g.colors[:n_rec] + drgb).clamp(0.0, 1.0), g.colors[n_rec:]])
+        return g.replace(means=means, colors=colors, opacities=op)
+    return g.replace(means=g.means + prior_d + dxyz, colors=(g.colors + drgb).clamp(0.0, 1.0), opacities=op)
 
 
 class FastGHA(nn.Module):
@@ -191,13 +218,15 @@ class FastGHA(nn.Module):
         maps = self.decoder(x)  # [B, V, 12+F, H, W]
         return self.head(maps, cameras, images)
 
-    def forward(self, images: Tensor, K: Tensor, w2c: Tensor, expression: Tensor) -> FastGHAOutput:
+    def forward(self, images: Tensor, K: Tensor, w2c: Tensor, expression: Tensor, input_expressions: Tensor | None = None) -> FastGHAOutput:
         """Training forward.
 
         Args:
             images: ``[B, V, 3, H, W]`` input views in [0, 1].
             K: ``[B, V, 3, 3]`` intrinsics of the input images; w2c: ``[B, V, 4, 4]``.
             expression: ``[B, E]`` target expression per sample.
+            input_expressions: ``[B, V, E]`` expressions of the input views (optional): with the
+                expression prior they are undone in the canonical head, as ``reconstruct`` does.
         """
         if images.ndim != 5:
             raise ValueError(f"images must have shape [B, V, 3, H, W], got {list(images.shape)}")
@@ -208,10 +237,105 @@ class FastGHA(nn.Module):
         cams = Cameras(K, w2c, images.shape[-1], images.shape[-2])
         canonical = self.forward_gaussians(images, cams)
         deformed = []
-        for g, z in zip(canonical, expression):
-            dxyz, drgb = self.deform(g.features, g.means, z)
-            deformed.append(_apply_deformation(g, dxyz, drgb))
+        v = images.shape[1]
+        for i, (g, z) in enumerate(zip(canonical, expression)):
+            if self.config.deform.prior:
+                if input_expressions is not None:
+                    vi = torch.arange(v, device=g.means.device).repeat_interleave(len(g) // v)  # view-major, unpruned
+                    g, binding, n_int = self.build_prior(g, vi, input_expressions[i])
+                else:
+                    g, binding, n_int = self.build_prior(g)
+                canonical[i] = g
+                rt = self._runtime(binding)
+                gate = self._gate(z, rt)
+                n_rec = len(g) - n_int
+                dxyz, drgb = self.deform(g.features[:n_rec], g.means[:n_rec], z)
+                deformed.append(_combine(g, dxyz, drgb, rt.displacement(z), n_int, gate))
+            else:
+                dxyz, drgb = self.deform(g.features, g.means, z)
+                deformed.append(_apply_deformation(g, dxyz, drgb))
         return FastGHAOutput(gaussians=deformed, canonical=canonical)
+
+    # ------------------------------------------------------------ expression prior (issue 16)
+    def head_basis(self):
+        """The ``model.prior.HeadBasis`` of this model's expression space (FLAME needs a user file)."""
+        from .prior import load_basis
+
+        return load_basis(self.config.expression_space, self.config.deform.flame_model)
+
+    def _runtime(self, binding):
+        from .prior import PriorRuntime
+
+        return PriorRuntime(binding, self.head_basis(), device=binding.vertex_ids.device)
+
+    @staticmethod
+    def _gate(z: Tensor, rt) -> Tensor | None:
+        """Per-Gaussian opacity factors ``[N]`` (``[B, N]``) for ``z`` (None when nothing is gated)."""
+        from .prior import opacity_factors
+
+        return opacity_factors(z, rt.basis, rt.group_index) if rt.gated else None
+
+    @torch.no_grad()
+    def build_prior(self, g: Gaussians, view_index: Tensor | None = None, view_expressions: Tensor | None = None):
+        """Fit the head surface to canonical ``g``, bind every Gaussian, optionally undo the input
+        photos' expressions, and append the mouth interior.
+
+        Args:
+            g: canonical Gaussians (N).
+            view_index: ``[N]`` input view each Gaussian came from (with ``view_expressions``).
+            view_expressions: ``[V, E]`` expression of each input photo (known or tracked): its prior
+                displacement is subtracted from the Gaussians of that view (a neutral canonical head).
+        Returns:
+            ``(gaussians, binding, num_interior)``; the returned Gaussians keep ``g``'s autograd graph
+            (means are shifted by a constant when neutralising).
+        """
+        from .prior import PriorBinding, bind, fit_head, generic_fit, mouth_interior
+
+        basis = self.head_basis()
+        means = g.means.detach().float().cpu()
+        solid = g.opacities.detach().cpu() > 0.2
+        try:
+            fit = fit_head((means[solid] if int(solid.sum()) >= 100 else means).numpy(), basis)
+        except (ValueError, np.linalg.LinAlgError):  # too few Gaussians or a degenerate cloud: the generic head
+            fit = generic_fit(basis)
+        binding = bind(means, fit, basis, tuple(self.config.deform.prior_fade))
+        dev = g.means.device
+        if view_expressions is not None:
+            if view_index is None or view_index.shape != (len(g),):
+                raise ValueError(f"build_prior: view_index must have shape [{len(g)}] with view_expressions")
+            rt = self._runtime(binding)
+            ve = torch.as_tensor(view_expressions, dtype=torch.float32).cpu()
+            d = rt.displacement(ve)  # [V, N, 3]
+            shift = d[view_index.cpu().long(), torch.arange(len(g))]  # [N, 3]
+            g = g.replace(means=g.means - shift.to(dev, g.means.dtype))
+        binding = binding.to(dev)
+        n_int = 0
+        if self.config.deform.mouth_interior and len(basis.interior_vertices):
+            gi, bi = mouth_interior(fit, basis, g.features.shape[1], avatar=g)
+            gi = gi.to(dev, g.means.dtype)
+            g = Gaussians.concat([g, gi])
+            binding = PriorBinding.concat(binding, bi.to(dev))
+            n_int = len(gi)
+        return g, binding, n_int
+
+    @torch.inference_mode()
+    def static_gaussians(self, avatar: CanonicalAvatar) -> Gaussians:
+        """The canonical Gaussians without any deformation, gated Gaussians (mouth interior, closed
+        lids) as at the neutral expression: the "static head" baseline."""
+        g = avatar.gaussians.to(self.device)
+        if not (self.config.deform.prior and avatar.prior is not None):
+            return g
+        rt = self._runtime(avatar.prior.to(self.device))
+        gate = self._gate(torch.as_tensor(self.expression_space.neutral(), dtype=torch.float32, device=self.device), rt)
+        return g if gate is None else g.replace(opacities=g.opacities * gate)
+
+    def attach_prior(self, avatar: CanonicalAvatar) -> CanonicalAvatar:
+        """Give an avatar made without the prior (an older file) its binding and mouth interior, in place."""
+        if avatar.prior is None and self.config.deform.prior:
+            g, binding, n_int = self.build_prior(avatar.gaussians[: avatar.num_reconstructed])
+            avatar.gaussians, avatar.prior, avatar.num_interior = g, binding, n_int
+            avatar.deform_cache = avatar.prior_runtime = None
+        return avatar
 
     def prepare(
         self,
@@ -273,12 +397,15 @@ class FastGHA(nn.Module):
         return torch.stack(out_i), Cameras.stack(out_c)
 
     @torch.no_grad()
-    def reconstruct(self, images: Tensor, cameras: Cameras) -> CanonicalAvatar:
+    def reconstruct(self, images: Tensor, cameras: Cameras, expressions: Tensor | None = None) -> CanonicalAvatar:
         """Canonical avatar from ``images [V, 3, S, S]`` in [0, 1] and ``cameras [V]`` of size ``S x S``.
 
         ``S`` is ``config.input_size`` and ``1 <= V <= config.max_views``. Other sizes raise a
         ``ValueError``: use ``prepare()`` to crop and resize. Gaussians with opacity below
-        ``config.gaussians.prune_opacity`` are dropped.
+        ``config.gaussians.prune_opacity`` are dropped. With the expression prior
+        (``config.deform.prior``), ``expressions [V, E]`` (each photo's known or tracked expression,
+        optional) are undone so the canonical head is neutral, and the avatar gets its head-surface
+        binding and mouth interior.
         """
         s, vmax = self.config.input_size, self.config.max_views
         hint = "use model.prepare(images, cameras) to crop/resize them"
@@ -300,19 +427,28 @@ class FastGHA(nn.Module):
                 f"reconstruct: cameras must have batch shape [{v}] and size {s}x{s}, got "
                 f"{list(cameras.batch_shape)} and {cameras.width}x{cameras.height}; {hint}"
             )
+        if expressions is not None:
+            expressions = torch.as_tensor(expressions, dtype=torch.float32)
+            if tuple(expressions.shape) != (v, self.config.expression_dim):
+                raise ValueError(f"reconstruct: expressions must have shape [{v}, {self.config.expression_dim}], got {list(expressions.shape)}")
         dev = self.device
         g = self.forward_gaussians(images.to(dev, torch.float32)[None], cameras.to(dev, torch.float32)[None])[0]
+        view_index = torch.arange(v, device=dev).repeat_interleave(len(g) // v)  # Gaussians are V*S*S, view-major
         thr = self.config.gaussians.prune_opacity
         if thr > 0:
-            g = g.prune(thr)
-        avatar = CanonicalAvatar(g, self.config.name, self.config.expression_space)
+            keep = g.opacities >= thr
+            g, view_index = g[keep], view_index[keep]
+        prior, n_int = None, 0
+        if self.config.deform.prior:
+            g, prior, n_int = self.build_prior(g, view_index if expressions is not None else None, expressions)
+        avatar = CanonicalAvatar(g, self.config.name, self.config.expression_space, prior, n_int)
         self._deform_partial(avatar)
         return avatar
 
     # ------------------------------------------------------------ animation
     def _deform_partial(self, avatar: CanonicalAvatar) -> Tensor:
         """The avatar's cached first-layer partial ``[N, H]``, computed on first use for this model."""
-        g = avatar.gaussians
+        g = avatar.gaussians[: avatar.num_reconstructed]  # the mouth interior has no MLP residual
         cache = avatar.deform_cache
         if (
             cache is None
@@ -348,11 +484,16 @@ class FastGHA(nn.Module):
         return time.perf_counter() - t0
 
     @torch.inference_mode()  # one grad mode for every caller: a compiled MLP then never recompiles
-    def animate(self, avatar: CanonicalAvatar, expression: Any, bf16: bool = False) -> Gaussians | list[Gaussians]:
+    def animate(self, avatar: CanonicalAvatar, expression: Any, bf16: bool = False, prior: bool = True) -> Gaussians | list[Gaussians]:
         """Deform the avatar to ``expression [E]`` (-> ``Gaussians``) or ``[B, E]`` (-> ``list[Gaussians]``).
 
         Uses the split first layer (cached on the avatar). ``bf16=True`` runs the per-frame layers under
-        CPU/CUDA bf16 autocast (outputs are float32).
+        CPU/CUDA bf16 autocast (outputs are float32). With the expression prior (``config.deform.prior``)
+        the avatar's head-surface displacement is added to the MLP's residual (an avatar without a
+        binding gets one first, see ``attach_prior``); ``prior=False`` leaves it out (an ablation).
+        Trailing mouth-interior / eyelid Gaussians that the expression keeps hidden are left out of
+        the result, so it may hold fewer Gaussians than the avatar (never fewer than
+        ``avatar.num_reconstructed``).
         """
         if avatar.expression_space != self.config.expression_space:
             raise ValueError(
@@ -368,15 +509,31 @@ class FastGHA(nn.Module):
         e = self.config.expression_dim
         if z.ndim not in (1, 2) or z.shape[-1] != e:
             raise ValueError(f"expression must have shape [{e}] or [B, {e}] for space {self.config.expression_space!r}, got {list(z.shape)}")
+        if self.config.deform.prior and avatar.prior is None:
+            with torch.inference_mode(False):
+                self.attach_prior(avatar)
         partial = self._deform_partial(avatar)
         ctx = torch.autocast(device_type=dev.type, dtype=torch.bfloat16) if bf16 else nullcontext()
         with ctx:
             dxyz, drgb = self.deform.forward_split(partial, z)
         dxyz, drgb = dxyz.float(), drgb.float()
         g = avatar.gaussians.to(dev)
+        n_int = avatar.num_interior
+        prior_d = gate = None
+        if self.config.deform.prior and avatar.prior is not None:
+            rt = avatar.prior_runtime
+            if rt is None or rt.n != len(g) or rt.basis_u.device != dev:
+                with torch.inference_mode(False):
+                    rt = avatar.prior_runtime = self._runtime(avatar.prior.to(dev))
+            if prior:
+                prior_d = rt.displacement(z)  # [N, 3] or [B, N, 3]
+            gate = self._gate(z, rt)
         if z.ndim == 1:
-            return _apply_deformation(g, dxyz, drgb)
-        return [_apply_deformation(g, a, c) for a, c in zip(dxyz, drgb)]
+            return _combine(g, dxyz, drgb, prior_d, n_int, gate, trim=True)
+        return [
+            _combine(g, dxyz[i], drgb[i], None if prior_d is None else prior_d[i], n_int, None if gate is None else gate[i], trim=True)
+            for i in range(z.shape[0])
+        ]
 
 
 def load_model(

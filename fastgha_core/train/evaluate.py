@@ -27,6 +27,8 @@ Ablations (``EvalConfig.ablation``):
   "w/o per-Gaussian features" ablation: it measures how much the trained deformation relies on the
   features (a large drop means animation uses them), and it is expected to be worse than a model
   retrained without features.
+- ``no-prior``: for a model with the expression prior, the deformation MLP's residual alone (the
+  prior's head-surface displacement left out; the same avatar otherwise).
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ __all__ = ["EvalConfig", "ABLATIONS", "METRICS", "select_protocol", "evaluate", 
 
 log = logging.getLogger(__name__)
 
-ABLATIONS = ("none", "static", "no-features")
+ABLATIONS = ("none", "static", "no-features", "no-prior")
 METRICS = ("psnr", "ssim", "lpips", "csim", "akd")
 
 
@@ -196,20 +198,23 @@ def evaluate(
         images = torch.stack([v.image for v in views]).float()  # [V, 3, H, W]
         masks = torch.stack([v.mask for v in views]).float()  # [V, 1, H, W]
         in_imgs, in_cams = model.prepare(images, _cameras_at(source, pairs), masks=masks)
-        avatar = model.reconstruct(in_imgs.to(device), in_cams.to(device))
+        # the inputs' known expressions (synthetic / tracked): a model with the expression prior undoes them
+        in_expr = torch.stack([source.expression(t).float() for t, _ in pairs])
+        in_expr = in_expr if in_expr.shape[-1] == model.config.expression_dim else None
+        avatar = model.reconstruct(in_imgs.to(device), in_cams.to(device), expressions=in_expr)
         if cfg.ablation == "no-features":
             from ..model.avatar import CanonicalAvatar
 
             g = avatar.gaussians
-            avatar = CanonicalAvatar(g.replace(features=torch.zeros_like(g.features)), avatar.model_name, avatar.expression_space)
+            avatar = CanonicalAvatar(g.replace(features=torch.zeros_like(g.features)), avatar.model_name, avatar.expression_space, avatar.prior, avatar.num_interior)
         rows: list[dict[str, Any]] = []
         shown = False
         for t in proto.target_timesteps:
             expr = source.expression(t).float().to(device)
             if cfg.ablation == "static":
-                gauss = avatar.gaussians
+                gauss = model.static_gaussians(avatar)
             else:
-                gauss = model.animate(avatar, expr)
+                gauss = model.animate(avatar, expr, prior=cfg.ablation != "no-prior")
             tpairs = [(t, c) for c in proto.target_cameras]
             gt = torch.stack([source.view(t, c).image for c in proto.target_cameras]).float()  # [S, 3, H, W]
             gt, cams = fit_square(gt, _cameras_at(source, tpairs), size)

@@ -88,11 +88,14 @@ class TrainConfig:
     synthetic_timesteps: int = 16  # timesteps per synthetic sequence
     synthetic_cameras: int = 16  # cameras per synthetic sequence
     vgg_weights: str | None = None  # torchvision VGG16 weights file for L_perc (None: L_perc off)
+    train_only: str = ""  # "deform": freeze the reconstruction network, train the deformation MLP only
     loss: LossConfig = field(default_factory=LossConfig)
 
     def __post_init__(self) -> None:
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"train config: lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
+        if self.train_only not in ("", "deform"):
+            raise ValueError(f"train config: train_only must be '' or 'deform', got {self.train_only!r}")
         if not 0.0 <= self.min_lr_ratio <= 1.0:
             raise ValueError(f"train config: min_lr_ratio must be in [0, 1], got {self.min_lr_ratio}")
 
@@ -373,6 +376,10 @@ class Trainer:
         self.model.train()
         core = self.model
         self.model_config = core.config
+        if config.train_only == "deform":  # the reconstruction stays as it is: no gradient reaches it
+            deform_ids = {id(p) for p in core.deform.parameters()}
+            for p in core.parameters():
+                p.requires_grad_(id(p) in deform_ids)
         deform_params = [p for p in core.deform.parameters() if p.requires_grad]
         deform_ids = {id(p) for p in deform_params}
         other = [p for p in core.parameters() if p.requires_grad and id(p) not in deform_ids]
@@ -466,7 +473,9 @@ class Trainer:
         """Forward, render and the §3.3 loss of one collated batch (already on the device)."""
         t0 = time.perf_counter()
         with torch.autocast(device_type="cuda", dtype=torch.bfloat16, enabled=self.use_bf16):
-            out = self.ddp(batch.input_images, batch.input_K, batch.input_w2c, batch.expression)
+            prior = bool(getattr(self.model_config.deform, "prior", False))
+            extra = {"input_expressions": batch.input_expressions} if prior and getattr(batch, "input_expressions", None) is not None else {}
+            out = self.ddp(batch.input_images, batch.input_K, batch.input_w2c, batch.expression, **extra)
         t1 = time.perf_counter()
         size = int(batch.target_images.shape[-1])
         rgb, alpha, depth = render_batch(out.gaussians, batch.target_K, batch.target_w2c, size, self.config.render_backend)

@@ -1,0 +1,149 @@
+"""Expression responses of avatars built from the real photo sets (issue 16), frontal 512² renders.
+
+For every set in ``../shared/realsets/`` (or ``$FASTGHA_REALSETS``): track the photos
+(``fastgha_core.tracking.track_photos``: crops, cameras, masks, each photo's expression), reconstruct
+an avatar (the tracked expressions are undone when the model has the expression prior), render it
+from the server's default frontal camera at 512² with the neutral expression, ``jawOpen`` = 1,
+``eyeBlink_L`` = ``eyeBlink_R`` = 1 and ``mouthSmile_L`` = ``mouthSmile_R`` = 1, and measure dlib's
+68 landmarks (the ``faces`` extra) as in ``fastgha_core/train/responses.py``:
+
+- ``jawOpen``: inner-lip gap change in interocular distances (target >= 0.25);
+- ``eyeBlink``: eye aspect ratio over the neutral's (target <= 0.6);
+- ``mouthSmile``: mouth width over the neutral's (target >= 1.10).
+
+There is no ground truth for these people. The sets are non-commercial material: this script never
+writes pictures of them unless ``--pictures DIR`` is given (for a local look; never commit them).
+Photos the tracker cannot use (it names them: profiles, today) are left out of their set and
+listed under ``dropped``; a set where none tracks is reported with the error. Exits 0 when the folder is absent.
+
+    python bench/realset_responses.py --model tiny --json out/realsets.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+EXPRESSIONS = {
+    "neutral": {},
+    "jawOpen": {"jawOpen": 1.0},
+    "eyeBlink": {"eyeBlink_L": 1.0, "eyeBlink_R": 1.0},
+    "mouthSmile": {"mouthSmile_L": 1.0, "mouthSmile_R": 1.0},
+}
+TARGETS = {"jawOpen": ("lip_gap_change", ">=", 0.25), "eyeBlink": ("ear_ratio", "<=", 0.6), "mouthSmile": ("width_ratio", ">=", 1.10)}
+
+
+def realsets_root() -> Path:
+    env = os.environ.get("FASTGHA_REALSETS")
+    return Path(env) if env else (REPO / ".." / "shared" / "realsets").resolve()
+
+
+def run_set(model, folder: Path, size: int, det, pictures: Path | None, drop_untracked: bool = True) -> dict:
+    import torch
+    from PIL import Image  # call site: the files helper's fastgha_core.images decoder replaces this at merge
+
+    from fastgha_core.constants import BACKGROUND_RGB
+    from fastgha_core.render import render
+    from fastgha_core.tracking import track_photos
+    from fastgha_core.train.responses import _u8, landmark_measures
+    from server.frames import FrameRenderer
+
+    paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+    images = [np.asarray(Image.open(p).convert("RGB")) for p in paths]
+    dropped = []
+    while True:  # photos the tracker cannot use (it names them) are left out, and reported
+        try:
+            tr = track_photos(images, names=[p.name for p in paths])
+            break
+        except ValueError as e:
+            bad = [i for i, p in enumerate(paths) if p.name in str(e)]
+            if not drop_untracked or not bad or len(paths) <= 1:
+                raise
+            dropped.append(f"{paths[bad[0]].name}: {e}")
+            del paths[bad[0]], images[bad[0]]
+    crops = torch.from_numpy(tr.crops).permute(0, 3, 1, 2).float() / 255.0
+    masks = torch.from_numpy(tr.masks)[:, None]
+    x, c = model.prepare(crops, tr.cameras, masks)
+    expr = torch.from_numpy(tr.expressions) if tr.expressions.shape[1] == model.config.expression_dim else None
+    with torch.inference_mode():
+        avatar = model.reconstruct(x, c, expressions=expr)
+    cam = FrameRenderer(model, "cpu").default_camera.resize(size, size)
+    out: dict = {"photos": [p.name for p in paths], "dropped": dropped, "gaussians": len(avatar), "measures": {}, "detected": {}}
+    space = model.expression_space
+    fallback = None  # the neutral render's face box, for frames where dlib finds no face
+    for name, w in EXPRESSIONS.items():
+        with torch.inference_mode():
+            g = model.animate(avatar, space.parse(w))
+            img = render(g, cam, background=BACKGROUND_RGB).rgb[0].float().clamp(0, 1)
+        u8 = _u8(img)
+        if pictures is not None:
+            pictures.mkdir(parents=True, exist_ok=True)
+            Image.fromarray(u8).save(pictures / f"{folder.name}_{name}.png")
+        box = det.box(u8)
+        out["detected"][name] = box is not None
+        lm, _ = det.landmarks(u8, fallback)
+        if name == "neutral":
+            fallback = box
+        out["measures"][name] = landmark_measures(lm) if lm is not None else None
+    m = out["measures"]
+    res = {}
+    if m["neutral"] is not None:
+        n = m["neutral"]
+        if m["jawOpen"]:
+            res["lip_gap_change"] = m["jawOpen"]["lip_gap"] - n["lip_gap"]
+        if m["eyeBlink"]:
+            res["ear_ratio"] = m["eyeBlink"]["ear"] / max(n["ear"], 1e-6)
+        if m["mouthSmile"]:
+            res["width_ratio"] = m["mouthSmile"]["mouth_width"] / max(n["mouth_width"], 1e-6)
+    out["responses"] = res
+    out["targets_met"] = {
+        e: (None if key not in res else (res[key] >= thr if op == ">=" else res[key] <= thr)) for e, (key, op, thr) in TARGETS.items()
+    }
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--model", default="tiny")
+    ap.add_argument("--size", type=int, default=512, help="render side (default 512)")
+    ap.add_argument("--json", default=None, help="write the results here")
+    ap.add_argument("--pictures", default=None, help="write the renders here (local look only; never commit pictures of these people)")
+    ap.add_argument("--sets", default=None, help="comma-separated set names (default: all)")
+    ap.add_argument("--keep-untracked", action="store_true", help="fail a set when one photo does not track (default: leave that photo out and report it)")
+    args = ap.parse_args(argv)
+    root = realsets_root()
+    if not root.is_dir():
+        print(f"no real photo sets at {root}: skipped")
+        return 0
+    sys.path.insert(0, str(REPO))
+    from fastgha_core.model.fastgha import load_model
+    from fastgha_core.train.responses import LandmarkDetector
+
+    model = load_model(args.model)
+    det = LandmarkDetector()
+    sets = sorted(p for p in root.iterdir() if p.is_dir())
+    if args.sets:
+        want = set(args.sets.split(","))
+        sets = [s for s in sets if s.name in want]
+    report = {"model": args.model, "size": args.size, "prior": bool(model.config.deform.prior), "sets": {}}
+    for s in sets:
+        try:
+            report["sets"][s.name] = run_set(model, s, args.size, det, Path(args.pictures) if args.pictures else None, not args.keep_untracked)
+        except Exception as e:  # tracking failures name the photo; report and go on
+            report["sets"][s.name] = {"error": f"{type(e).__name__}: {e}"}
+        r = report["sets"][s.name]
+        print(s.name, json.dumps(r.get("responses", r.get("error"))), json.dumps(r.get("targets_met", {})), "dropped:", r.get("dropped"))
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(report, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

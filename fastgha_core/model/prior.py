@@ -1,0 +1,655 @@
+"""Expression prior from a linear head model, and the mouth interior (issue 16).
+
+The deformation MLP alone learns expressions slowly (a CPU budget of a few thousand steps moved the
+chin 16 mm for ``jawOpen`` = 1 where the head model moves it 42 mm). The prior gives every
+canonical Gaussian the blendshape displacement of its nearest point on a head surface fitted to the
+avatar; the MLP then predicts a residual on top.
+
+Pieces (all numpy/torch on CPU, no learning):
+
+- ``HeadBasis``: a linear head model in our axes (metres, +x subject's left, +y up, +z out of the
+  face): neutral ``[Nv, 3]``, identity modes ``[K, Nv, 3]``, expression blendshapes ``[E, Nv, 3]``,
+  the triangles Gaussians bind to and the vertex ids the fit uses. ``load_basis("ict53")`` reads the
+  shipped ICT-FaceKit model; ``load_basis("flame120", path)`` reads a FLAME model file given by the
+  user (FLAME's blendshapes cannot ship).
+- ``fit_head(points, basis)``: trimmed ICP of identity modes + similarity transform against the
+  canonical Gaussian centres (model vertex -> nearest Gaussian correspondences).
+- ``bind(points, fit, basis)``: each point's nearest triangle of the fitted surface (barycentric
+  coordinates of the clamped projection) and a fade weight ``1 - smoothstep((d - d0) / (d1 - d0))``
+  of its distance ``d``, so hair, ears and shoulders far from the surface do not follow the lips.
+- ``PriorBinding``: the per-Gaussian result ``vertex_ids [N, 3]``, ``bary [N, 3]``, ``weight [N]``
+  plus the fit (``transform [4, 4]`` = scale * rotation | offset, ``identity [K]``); saved in the
+  avatar file. ``displacement(z)`` -> ``[N, 3]`` (or ``[B, N, 3]``) per frame through a compact basis
+  over the vertices actually used (``PriorRuntime``).
+- ``mouth_interior(fit, basis)``: Gaussians on the teeth, gums/tongue and mouth-socket meshes of the
+  fitted head, coloured plausibly, bound to their own vertex (so they follow the jaw), with an
+  opacity gate that is 0 while the lips are closed; and Gaussians on the upper eyelids, coloured
+  like the avatar's skin, that appear as a blink closes the lids (``gate_factors``).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+__all__ = [
+    "HeadBasis",
+    "HeadFit",
+    "PriorBinding",
+    "PriorRuntime",
+    "load_basis",
+    "fit_head",
+    "bind",
+    "mouth_interior",
+    "mouth_gate_vector",
+    "generic_fit",
+    "gate_factors",
+    "FLAME_ENV",
+]
+
+FLAME_ENV = "FASTGHA_FLAME_MODEL"
+
+# Mouth-opening blendshapes (ict53 names) and how much each opens the lips, for the interior's gate.
+_MOUTH_OPENING = {
+    "jawOpen": 1.0,
+    "mouthFunnel": 0.4,
+    "mouthLowerDown_L": 0.3,
+    "mouthLowerDown_R": 0.3,
+    "mouthUpperUp_L": 0.3,
+    "mouthUpperUp_R": 0.3,
+    "mouthStretch_L": 0.15,
+    "mouthStretch_R": 0.15,
+}
+GATE_START, GATE_FULL = 0.04, 0.25  # gate(z) = smoothstep((g.z - START) / (FULL - START))
+
+
+@dataclass(frozen=True, eq=False)
+class HeadBasis:
+    """A linear head model (numpy, float32, metres, our axes).
+
+    Attributes:
+        space: expression space of ``expression_basis`` (``"ict53"`` / ``"flame120"``).
+        neutral: ``[Nv, 3]``; identity_basis: ``[K, Nv, 3]``; expression_basis: ``[E, Nv, 3]``
+            (for ``flame120`` the 100 linear coefficients; jaw/eye rotations are left to the MLP).
+        bind_faces: ``[F, 3]`` triangles Gaussians bind to (visible surfaces).
+        fit_vertices: ``[M]`` vertex ids whose nearest Gaussians drive the fit (front of the face).
+        interior_vertices / interior_colors: ``[I]`` ids and ``[I, 3]`` sRGB of the mouth interior.
+        interior_spacing: typical distance between neighbouring interior vertices (metres).
+    """
+
+    space: str
+    neutral: np.ndarray
+    identity_basis: np.ndarray
+    expression_basis: np.ndarray
+    bind_faces: np.ndarray
+    fit_vertices: np.ndarray
+    interior_vertices: np.ndarray
+    interior_colors: np.ndarray
+    interior_spacing: float
+    gates: np.ndarray  # [G, E] blendshape weights per gate group (0: mouth opening; 1, 2: eyelids)
+    gate_ranges: np.ndarray  # [G, 2] (start, full): gate = smoothstep((gates @ z - start) / (full - start))
+    interior_group: np.ndarray  # [I] gate group of each interior point
+    interior_scale: np.ndarray  # [I] Gaussian scale (metres, before the fit's scale)
+    sample_color: np.ndarray  # [I] bool: colour taken from the avatar (nearest Gaussian above the point)
+    hide_group: np.ndarray  # [Nv] int8: reconstructed Gaussians bound here fade out with this gate (0: never)
+
+    @property
+    def gate(self) -> np.ndarray:
+        """``[E]`` weights of the mouth-opening blendshapes (gate group 0)."""
+        return self.gates[0]
+
+    @property
+    def num_expression(self) -> int:
+        return int(self.expression_basis.shape[0])
+
+
+def load_basis(space: str, flame_model: str | Path | None = None) -> HeadBasis:
+    """The head basis of an expression space.
+
+    Args:
+        space: ``"ict53"`` (shipped ICT-FaceKit model) or ``"flame120"``.
+        flame_model: for ``flame120``, a FLAME model file (``.npz`` or an unpickled-able ``.pkl``
+            with ``v_template``, ``shapedirs``, ``f``); default: the ``FASTGHA_FLAME_MODEL`` variable.
+    Raises:
+        FileNotFoundError: ``flame120`` without a FLAME model file.
+        ValueError: an unknown space.
+    """
+    if space == "ict53":
+        return _ict_basis()
+    if space == "flame120":
+        path = flame_model or os.environ.get(FLAME_ENV)
+        if not path or not Path(path).is_file():
+            raise FileNotFoundError(
+                "the expression prior of flame120 models needs FLAME's blendshapes, which FastGHA cannot ship: "
+                f"set {FLAME_ENV} to a FLAME model file (.npz or .pkl with v_template, shapedirs, f), "
+                f"or turn the prior off (deform.prior = false); got {str(path) if path else 'no file'}"
+            )
+        return _flame_basis(str(Path(path).resolve()))
+    raise ValueError(f"no head basis for expression space {space!r}; expected 'ict53' or 'flame120'")
+
+
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+@functools.lru_cache(maxsize=1)
+def _ict_basis() -> HeadBasis:
+    from ..data.appearance import head_regions
+    from ..data.headmodel import HEAD_VERTEX_RANGE, HeadModel
+
+    m = HeadModel.load()
+    faces = m.visible_faces(eyelashes=True)
+    lm = m.neutral[m.landmarks68]
+    v = m.neutral
+    # Fit on the face skin below the hairline (synthetic hair and real hair both sit off the skull).
+    idx = np.arange(HEAD_VERTEX_RANGE[0], 9409)
+    brow_y = lm[17:27, 1].max()
+    front = idx[(v[idx, 1] < brow_y + 0.015) & (v[idx, 2] > lm[0, 2] - 0.01) & (v[idx, 1] > lm[8, 1] - 0.005)]
+    # Mouth interior: teeth, gums/tongue and the mouth socket, with the synthetic albedo's colours.
+    reg = head_regions(m)
+    teeth = np.flatnonzero(reg.teeth > 0)
+    gums = np.flatnonzero(reg.gums > 0)
+    sock = np.flatnonzero((reg.mouth_interior > 0) & (reg.gums <= 0))
+    # Subsample to a few thousand points (every k-th vertex in the archive order keeps them spread).
+    teeth, gums, sock = teeth[::2], gums[::2], sock[::2]
+    depth_in = np.clip((lm[48:68, 2].max() - v[:, 2]) / 0.045, 0, 1)
+    teeth_c = np.array([0.86, 0.83, 0.75])[None] * (1.0 - 0.7 * depth_in[teeth])[:, None]
+    gum_c = np.array([0.62, 0.28, 0.28])[None] * (1.0 - 0.6 * depth_in[gums])[:, None]
+    sock_c = np.array([0.26, 0.09, 0.09])[None] * (1.0 - 0.6 * depth_in[sock])[:, None]
+    ids = np.concatenate([teeth, gums, sock]).astype(np.int64)
+    cols = np.concatenate([teeth_c, gum_c, sock_c]).astype(np.float32)
+    gates = np.zeros((3, m.num_expression), np.float32)
+    for n, w in _MOUTH_OPENING.items():
+        gates[0, m.expression_names.index(n)] = w
+    # Closed eyelids: the skin the blink blendshapes pull over the eye, as Gaussians that appear as
+    # the lids close (a few-view reconstruction has no skin under the open lids to move down).
+    groups = [np.zeros(len(ids), np.int64)]
+    scales = [np.full(len(ids), 0.0022 * 0.9)]
+    sample = [np.zeros(len(ids), bool)]
+    lid_ids = []
+    for gi, side in ((1, "L"), (2, "R")):
+        k = m.expression_names.index(f"eyeBlink_{side}")
+        gates[gi, k] = 1.0
+        mv = np.linalg.norm(m.expression_basis[k, :9409], axis=1)
+        lid = np.flatnonzero(mv > 0.0025)  # moves > 2.5 mm: the upper lid
+        lid_ids.append(lid)
+        groups.append(np.full(len(lid), gi))
+        scales.append(np.full(len(lid), 0.0022))
+        sample.append(np.ones(len(lid), bool))
+    # Reconstructed Gaussians on the eyeballs fade out as the lids close over them.
+    from ..data.headmodel import EYEBALL_VERTEX_RANGE
+
+    hide = np.zeros(m.num_vertices, np.int8)
+    eye = np.zeros(m.num_vertices, bool)
+    eye[EYEBALL_VERTEX_RANGE[0] : EYEBALL_VERTEX_RANGE[1]] = True
+    sides = [np.sign(v[lid, 0].mean()) for lid in lid_ids]
+    for gi, sg in zip((1, 2), sides):
+        hide[eye & (np.sign(v[:, 0]) == sg)] = gi
+    ids = np.concatenate([ids, *lid_ids]).astype(np.int64)
+    cols = np.concatenate([cols, np.zeros((sum(len(x) for x in lid_ids), 3), np.float32)])
+    return HeadBasis(
+        space="ict53",
+        neutral=m.neutral,
+        identity_basis=m.identity_basis[:40],
+        expression_basis=m.expression_basis,
+        bind_faces=faces,
+        fit_vertices=front.astype(np.int64),
+        interior_vertices=ids,
+        interior_colors=np.clip(cols, 0, 1),
+        interior_spacing=0.0022,
+        gates=gates,
+        gate_ranges=np.array([[GATE_START, GATE_FULL], [0.25, 0.75], [0.25, 0.75]], np.float32),
+        interior_group=np.concatenate(groups),
+        interior_scale=np.concatenate(scales).astype(np.float32),
+        sample_color=np.concatenate(sample),
+        hide_group=hide,
+    )
+
+
+@functools.lru_cache(maxsize=2)
+def _flame_basis(path: str) -> HeadBasis:
+    if path.endswith(".npz"):
+        with np.load(path, allow_pickle=False) as d:
+            data = {k: d[k] for k in d.files}
+    else:
+        import pickle
+
+        with open(path, "rb") as fh:
+            data = pickle.load(fh, encoding="latin1")  # noqa: S301 - a file the user chose to trust
+    try:
+        vt = np.asarray(data["v_template"], np.float32)
+        sd = np.asarray(data["shapedirs"], np.float32)  # [Nv, 3, 300 + 100]
+        f = np.asarray(data["f"], np.int64)
+    except KeyError as e:
+        raise ValueError(f"FLAME model file {path}: missing {e.args[0]!r} (expected v_template, shapedirs, f)") from None
+    if sd.ndim != 3 or sd.shape[:2] != vt.shape or sd.shape[2] < 400:
+        raise ValueError(f"FLAME model file {path}: shapedirs must be [Nv, 3, 400], got {list(sd.shape)}")
+    # FLAME: metres, +y up, +z forward; centre it like the ICT model (midway chin-crown, back-nose).
+    c = np.array([0.0, 0.5 * (vt[:, 1].min() + vt[:, 1].max()), 0.5 * (vt[:, 2].min() + vt[:, 2].max())], np.float32)
+    ident = np.transpose(sd[:, :, :40], (2, 0, 1)).copy()
+    expr = np.transpose(sd[:, :, 300:400], (2, 0, 1)).copy()
+    expr = np.concatenate([expr, np.zeros((20, *vt.shape), np.float32)])  # jaw/eye rotations: MLP only
+    front = np.flatnonzero(vt[:, 2] > np.percentile(vt[:, 2], 60))
+    e0 = np.zeros(0, np.int64)
+    return HeadBasis(
+        "flame120", vt - c, ident, expr, f.astype(np.int32), front, e0, np.zeros((0, 3), np.float32), 0.002,
+        np.zeros((1, 120), np.float32), np.array([[GATE_START, GATE_FULL]], np.float32), e0, np.zeros(0, np.float32), np.zeros(0, bool),
+        np.zeros(len(vt), np.int8),
+    )
+
+
+# ---------------------------------------------------------------------------- fitting
+@dataclass
+class HeadFit:
+    """A fitted head: ``world = transform[:3, :3] @ (neutral + identity @ basis) + transform[:3, 3]``."""
+
+    identity: np.ndarray  # [K]
+    transform: np.ndarray  # [4, 4]: scale * rotation | offset
+    vertices: np.ndarray  # [Nv, 3] world
+    rms: float  # RMS distance (metres) of the kept correspondences in the last iteration
+
+
+def _kabsch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R and offset t minimising ``|R src + t - dst|``."""
+    cs, cd = src.mean(0), dst.mean(0)
+    h = (src - cs).T @ (dst - cd)
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return r, cd - r @ cs
+
+
+@functools.lru_cache(maxsize=2)
+def _normals_cached(key: int, basis: HeadBasis) -> np.ndarray:
+    from ..data.headmodel import vertex_normals
+
+    return vertex_normals(basis.neutral, basis.bind_faces).astype(np.float64)
+
+
+def _neutral_normals(basis: HeadBasis) -> np.ndarray:
+    """``[Nv, 3]`` unit vertex normals of the generic neutral surface."""
+    return _normals_cached(id(basis), basis)
+
+
+def fit_head(points: np.ndarray, basis: HeadBasis, iters: int = 10, keep: float = 0.8, ridge: float = 4.0) -> HeadFit:
+    """Fit identity modes and a similarity transform to a point cloud (trimmed ICP).
+
+    Args:
+        points: ``[P, 3]`` canonical Gaussian centres (metres, head roughly at the origin).
+        basis: the head basis.
+        iters: ICP iterations (each: correspondences, linear shape solve, rigid update).
+        keep: fraction of correspondences kept (the closest), so hair and stray Gaussians do not pull.
+        ridge: weight of the ``|identity|^2`` penalty (unit-variance modes), in mm^2 of point noise.
+    Raises:
+        ValueError: fewer than 100 points.
+    """
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(points, np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) < 100:
+        raise ValueError(f"fit_head needs a point cloud [P >= 100, 3], got {list(p.shape)}")
+    if len(p) > 10000:  # a spread subset is as good for the fit and keeps it fast
+        p = p[np.linspace(0, len(p) - 1, 10000).astype(np.int64)]
+    tree = cKDTree(p)
+    ids = basis.fit_vertices
+    if len(ids) > 1500:
+        ids = ids[np.linspace(0, len(ids) - 1, 1500).astype(np.int64)]
+    n0 = basis.neutral[ids].astype(np.float64)  # [M, 3]
+    B = basis.identity_basis[:, ids].astype(np.float64)  # [K, M, 3]
+    K = B.shape[0]
+    nz = _neutral_normals(basis)[ids]  # [M, 3]
+    R, off = np.eye(3), np.zeros(3)  # world = R local + off
+    sc, a, tm = 1.0, np.zeros(K), np.zeros(3)  # local = sc * n0 + B a + tm (model frame)
+    rms = float("nan")
+    for it in range(iters):
+        local = sc * n0 + np.tensordot(a, B, axes=1) + tm
+        world = local @ R.T + off
+        d, j = tree.query(world)
+        m = d <= np.quantile(d, keep)
+        rms = float(np.sqrt(np.mean(d[m] ** 2)))
+        q = (p[j[m]] - off) @ R  # correspondences in the model frame
+        # linear in (sc, a, tm): q ~ sc n0 + B a + tm, ridge on a (relative to sc)
+        mm = int(m.sum())
+        A = np.concatenate([n0[m].reshape(-1, 1), B[:, m].reshape(K, -1).T, np.tile(np.eye(3), (mm, 1))], axis=1)  # [3M', 1+K+3]
+        rhs = q.reshape(-1)
+        # point-to-plane rows (the model's normals; converge far faster than point-to-point alone,
+        # which slides along the surface) + point-to-point rows at a small weight (well-posed)
+        nrm = nz[m]  # [M', 3]
+        Ap = (A.reshape(mm, 3, -1) * nrm[:, :, None]).sum(1)  # [M', 1+K+3]
+        bp = (q * nrm).sum(1)
+        A = np.concatenate([Ap, 0.3 * A])
+        rhs = np.concatenate([bp, 0.3 * rhs])
+        # MAP with unit-variance modes and ~2 mm point noise: ridge = noise variance (m^2)
+        reg = np.diag(np.concatenate([[0.0], np.full(K, ridge * 1e-6), np.zeros(3)]))
+        sol = np.linalg.solve(A.T @ A + reg + 1e-12 * np.eye(len(reg)), A.T @ rhs)
+        sc = float(np.clip(sol[0], 0.8, 1.25))
+        a, tm = sol[1 : 1 + K], sol[1 + K :]
+        local = sc * n0[m] + np.tensordot(a, B[:, m], axes=1) + tm
+        R, off = _kabsch(local, p[j[m]])
+    # world = R (sc (n0 + B a / sc) + tm) + off
+    s = sc
+    a = a / sc
+    off = off + R @ tm
+    T = np.eye(4)
+    T[:3, :3] = s * R
+    T[:3, 3] = off
+    allv = basis.neutral.astype(np.float64) + np.tensordot(a.astype(np.float32), basis.identity_basis, axes=1)
+    verts = allv @ T[:3, :3].T + T[:3, 3]
+    return HeadFit(identity=a.astype(np.float32), transform=T.astype(np.float32), vertices=verts.astype(np.float32), rms=rms)
+
+
+def generic_fit(basis: HeadBasis) -> HeadFit:
+    """The generic neutral head at the origin (no identity, unit transform)."""
+    k = basis.identity_basis.shape[0]
+    return HeadFit(np.zeros(k, np.float32), np.eye(4, dtype=np.float32), basis.neutral.astype(np.float32), float("nan"))
+
+
+# ---------------------------------------------------------------------------- binding
+def _closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closest points of ``p [..., 3]`` on triangles ``(a, b, c) [..., 3]`` (Ericson, Real-Time
+    Collision Detection §5.1.5) -> ``(barycentric [..., 3], distance [...])``."""
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
+    bp = p - b
+    d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
+    cp = p - c
+    d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    eps = 1e-30
+    # interior
+    denom = va + vb + vc
+    v = vb / np.where(np.abs(denom) > eps, denom, eps)
+    w = vc / np.where(np.abs(denom) > eps, denom, eps)
+    bary = np.stack([1 - v - w, v, w], -1)
+    # regions, from the last assignment's lowest priority to the highest
+    def put(mask, val):
+        nonlocal bary
+        bary = np.where(mask[..., None], val, bary)
+
+    # edge BC
+    m = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
+    wbc = (d4 - d3) / np.maximum((d4 - d3) + (d5 - d6), eps)
+    put(m, np.stack([np.zeros_like(wbc), 1 - wbc, wbc], -1))
+    # edge AC
+    m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+    wac = d2 / np.maximum(d2 - d6, eps)
+    put(m, np.stack([1 - wac, np.zeros_like(wac), wac], -1))
+    # edge AB
+    m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+    vab = d1 / np.maximum(d1 - d3, eps)
+    put(m, np.stack([1 - vab, vab, np.zeros_like(vab)], -1))
+    one, zero = np.ones_like(d1), np.zeros_like(d1)
+    put((d6 >= 0) & (d5 <= d6), np.stack([zero, zero, one], -1))  # vertex C
+    put((d3 >= 0) & (d4 <= d3), np.stack([zero, one, zero], -1))  # vertex B
+    put((d1 <= 0) & (d2 <= 0), np.stack([one, zero, zero], -1))  # vertex A
+    q = bary[..., 0:1] * a + bary[..., 1:2] * b + bary[..., 2:3] * c
+    return bary, np.linalg.norm(p - q, axis=-1)
+
+
+@dataclass
+class PriorBinding:
+    """Per-Gaussian binding to the fitted head surface.
+
+    Attributes:
+        vertex_ids: ``[N, 3]`` int64 head-model vertex ids (the nearest triangle's corners).
+        bary: ``[N, 3]`` float32 barycentric coordinates of the nearest surface point.
+        weight: ``[N]`` float32 fade weight in [0, 1] (1 on the surface, 0 far away).
+        transform: ``[4, 4]`` float32, the fit's scale * rotation | offset.
+        identity: ``[K]`` float32 fitted identity weights.
+        space: expression space of the basis.
+    """
+
+    vertex_ids: Tensor
+    bary: Tensor
+    weight: Tensor
+    transform: Tensor
+    identity: Tensor
+    space: str
+    group: Tensor | None = None  # [N] int64: gate group of interior Gaussians, -1 for the reconstructed ones
+
+    def __len__(self) -> int:
+        return int(self.vertex_ids.shape[0])
+
+    def groups(self) -> Tensor:
+        """``[N]`` gate group per Gaussian (-1: none)."""
+        return self.group if self.group is not None else torch.full((len(self),), -1, dtype=torch.int64, device=self.vertex_ids.device)
+
+    def index(self, idx) -> "PriorBinding":
+        return PriorBinding(self.vertex_ids[idx], self.bary[idx], self.weight[idx], self.transform, self.identity, self.space, self.groups()[idx])
+
+    @staticmethod
+    def concat(a: "PriorBinding", b: "PriorBinding") -> "PriorBinding":
+        return PriorBinding(
+            torch.cat([a.vertex_ids, b.vertex_ids]), torch.cat([a.bary, b.bary]), torch.cat([a.weight, b.weight]), a.transform, a.identity, a.space,
+            torch.cat([a.groups(), b.groups().to(a.vertex_ids.device)]),
+        )
+
+    def tensors(self) -> dict[str, Tensor]:
+        """Tensors for the avatar file (``prior.*``)."""
+        return {
+            "prior.vertex_ids": self.vertex_ids.to(torch.int32).contiguous(),
+            "prior.bary": self.bary.float().contiguous(),
+            "prior.weight": self.weight.float().contiguous(),
+            "prior.transform": self.transform.float().contiguous(),
+            "prior.identity": self.identity.float().contiguous(),
+            "prior.group": self.groups().to(torch.int8).contiguous(),
+        }
+
+    @staticmethod
+    def from_tensors(t: dict[str, Tensor], space: str, n: int) -> "PriorBinding | None":
+        keys = ("prior.vertex_ids", "prior.bary", "prior.weight", "prior.transform", "prior.identity")
+        if not all(k in t for k in keys):
+            return None
+        grp = t["prior.group"].long() if "prior.group" in t else None
+        b = PriorBinding(t[keys[0]].long(), t[keys[1]].float(), t[keys[2]].float(), t[keys[3]].float(), t[keys[4]].float(), space, grp)
+        if grp is not None and grp.shape != (n,):
+            raise ValueError(f"avatar prior group must be [N={n}], got {list(grp.shape)}")
+        if b.vertex_ids.shape != (n, 3) or b.bary.shape != (n, 3) or b.weight.shape != (n,):
+            raise ValueError(f"avatar prior tensors must be [N={n}, 3], [N, 3], [N]; got {list(b.vertex_ids.shape)}, {list(b.bary.shape)}, {list(b.weight.shape)}")
+        return b
+
+    def fitted_vertices(self, basis: HeadBasis) -> np.ndarray:
+        """``[Nv, 3]`` vertices of the fitted head surface in the avatar's frame (metres)."""
+        T = self.transform.double().cpu().numpy()
+        k = int(self.identity.shape[0])
+        v = basis.neutral.astype(np.float64) + np.tensordot(self.identity.double().cpu().numpy(), basis.identity_basis[:k], axes=1)
+        return (v @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+
+    def to(self, device) -> "PriorBinding":
+        return PriorBinding(
+            *(x.to(device) for x in (self.vertex_ids, self.bary, self.weight, self.transform, self.identity)), self.space,
+            None if self.group is None else self.group.to(device),
+        )
+
+
+def bind(points: np.ndarray | Tensor, fit: HeadFit, basis: HeadBasis, fade: tuple[float, float] = (0.006, 0.025), k: int = 4) -> PriorBinding:
+    """Bind ``points [N, 3]`` to their nearest triangle of the fitted surface (see module doc).
+
+    ``fade = (d0, d1)`` metres: full weight up to ``d0`` from the surface, none beyond ``d1``.
+    The nearest triangle is searched among the ``k`` triangles with the nearest centroids.
+    """
+    from scipy.spatial import cKDTree
+
+    p = points.detach().cpu().float().numpy() if isinstance(points, Tensor) else np.asarray(points, np.float32)
+    f = basis.bind_faces
+    v = fit.vertices.astype(np.float32)
+    cen = v[f].mean(1)  # [F, 3]
+    k = min(k, len(f))
+    _, cand = cKDTree(cen).query(p, k=k, workers=-1)  # [N, k]
+    cand = cand.reshape(len(p), k)
+    tri = f[cand]  # [N, k, 3]
+    bary, dist = _closest_on_triangles(p[:, None, :], v[tri[..., 0]], v[tri[..., 1]], v[tri[..., 2]])
+    best = dist.argmin(1)
+    r = np.arange(len(p))
+    ids = tri[r, best]  # [N, 3]
+    bc = bary[r, best]
+    d = dist[r, best]
+    d0, d1 = fade
+    w = 1.0 - _smoothstep((d - d0) / max(d1 - d0, 1e-9))
+    # gate group: -1, or G - 1 + k for Gaussians that fade out with gate k (eyes under closing lids)
+    hg = basis.hide_group[ids[:, 0]].astype(np.int64)
+    group = np.where((hg > 0) & (d < d1), basis.gates.shape[0] - 1 + hg, -1)
+    return PriorBinding(
+        torch.from_numpy(ids.astype(np.int64)),
+        torch.from_numpy(bc.astype(np.float32)),
+        torch.from_numpy(w.astype(np.float32)),
+        torch.from_numpy(fit.transform.astype(np.float32)),
+        torch.from_numpy(fit.identity.astype(np.float32)),
+        basis.space,
+        torch.from_numpy(group),
+    )
+
+
+def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gaussians | None" = None) -> tuple["Gaussians", PriorBinding]:  # noqa: F821
+    """Gated Gaussians of the fitted head, each bound to its own vertex with full weight: the mouth
+    interior (teeth, gums/tongue, mouth socket; coloured like the synthetic albedo) and the closed
+    upper eyelids (coloured like the avatar's skin just above each point, from ``avatar``'s
+    Gaussians; skin grey without it). ``features`` are zeros ``[I, num_features]``; the binding's
+    ``group`` says which gate (``gate_factors``) hides each one."""
+    from scipy.spatial import cKDTree
+
+    from ..gaussians import Gaussians
+
+    ids = basis.interior_vertices
+    n = len(ids)
+    M = fit.transform[:3, :3].astype(np.float64)
+    s = float(np.cbrt(abs(np.linalg.det(M))))
+    pos = fit.vertices[ids].astype(np.float32)
+    cols = basis.interior_colors.astype(np.float32).copy()
+    smp = basis.sample_color
+    if smp.any():
+        cols[smp] = np.array([0.62, 0.48, 0.42], np.float32)
+        if avatar is not None and len(avatar) > 0:
+            am = avatar.means.detach().float().cpu().numpy()
+            solid = avatar.opacities.detach().cpu().numpy() > 0.3
+            if solid.sum() >= 16:
+                up = M[:, 1] / max(np.linalg.norm(M[:, 1]), 1e-9)
+                fwd = M[:, 2] / max(np.linalg.norm(M[:, 2]), 1e-9)
+                q = pos[smp] + (0.009 * up + 0.002 * fwd).astype(np.float32)  # the lid crease / brow skin above
+                _, nn = cKDTree(am[solid]).query(q, k=8)
+                ac = avatar.colors.detach().float().cpu().numpy()[solid]
+                cols[smp] = np.median(ac[nn], axis=1)
+    g = Gaussians(
+        means=torch.from_numpy(pos),
+        quats=torch.tensor([1.0, 0.0, 0.0, 0.0]).expand(n, 4).contiguous(),
+        scales=torch.from_numpy((basis.interior_scale * s).astype(np.float32))[:, None].expand(n, 3).contiguous(),
+        opacities=torch.full((n,), 0.9),
+        colors=torch.from_numpy(np.clip(cols, 0, 1)),
+        features=torch.zeros(n, num_features),
+    )
+    vid = torch.from_numpy(ids.astype(np.int64))[:, None].expand(n, 3).contiguous()
+    bary = torch.tensor([1.0, 0.0, 0.0]).expand(n, 3).contiguous()
+    b = PriorBinding(
+        vid, bary, torch.ones(n), torch.from_numpy(fit.transform), torch.from_numpy(fit.identity), basis.space,
+        torch.from_numpy(basis.interior_group.astype(np.int64)),
+    )
+    return g, b
+
+
+def mouth_gate_vector(basis: HeadBasis) -> Tensor:
+    """``[E]`` weights whose dot product with an expression measures how far the lips are open."""
+    return torch.from_numpy(basis.gate)
+
+
+def mouth_gate(z: Tensor, gate: Tensor) -> Tensor:
+    """Opacity factor of the mouth interior for ``z [E]`` or ``[B, E]`` -> ``[]`` / ``[B]`` in [0, 1]."""
+    x = ((z @ gate) - GATE_START) / (GATE_FULL - GATE_START)
+    x = x.clamp(0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def opacity_factors(z: Tensor, basis: HeadBasis, index: Tensor) -> Tensor:
+    """Per-Gaussian opacity factors ``[N]`` (``[B, N]``) for ``z [E]`` (``[B, E]``); ``index [N]`` =
+    ``binding.groups() + 1``. Slot 0 = 1 (no gate), slots 1..G = the gates (interior Gaussians appear),
+    slots G+1.. = 1 - gate k (reconstructed Gaussians that hide, k = 1..)."""
+    f = gate_factors(z, torch.as_tensor(basis.gates, device=z.device, dtype=z.dtype), torch.as_tensor(basis.gate_ranges, device=z.device, dtype=z.dtype))
+    one = torch.ones_like(f[..., :1])
+    table = torch.cat([one, f, 1.0 - f[..., 1:]], dim=-1)  # [G + 1 + (G - 1)]
+    return table[..., index]
+
+
+def gate_factors(z: Tensor, gates: Tensor, ranges: Tensor) -> Tensor:
+    """Opacity factor per gate group: ``z [E]`` / ``[B, E]``, ``gates [G, E]``, ``ranges [G, 2]`` ->
+    ``[G]`` / ``[B, G]`` = smoothstep((gates @ z - start) / (full - start))."""
+    x = ((z @ gates.T) - ranges[:, 0]) / (ranges[:, 1] - ranges[:, 0])
+    x = x.clamp(0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+# ---------------------------------------------------------------------------- runtime
+@functools.lru_cache(maxsize=4)
+def _moving_cached(key: int, basis: HeadBasis) -> np.ndarray:
+    return np.abs(basis.expression_basis).max(axis=(0, 2)) > 1e-4  # moves more than 0.1 mm
+
+def _moving_vertices(basis: HeadBasis) -> np.ndarray:
+    """``[Nv]`` bool: vertices some blendshape moves by more than 0.1 mm."""
+    return _moving_cached(id(basis), basis)
+
+
+_SHARED: dict = {}
+
+
+def _shared_basis(basis: HeadBasis, device) -> tuple[Tensor, np.ndarray]:
+    """The blendshapes of every vertex that moves, ``[E, (1 + Vm) * 3]`` on ``device`` (row 0 = the
+    zero slot), and the vertex -> slot map ``[Nv]``; built once per basis and device, shared by
+    every avatar (the per-avatar fit's scale and rotation are applied after the gather)."""
+    key = (id(basis), str(device))
+    if key not in _SHARED:
+        moving = _moving_vertices(basis)
+        slot = np.zeros(len(moving), np.int64)
+        slot[moving] = np.arange(1, int(moving.sum()) + 1)
+        bu = np.concatenate([np.zeros((basis.num_expression, 1, 3), np.float32), basis.expression_basis[:, moving]], axis=1)
+        with torch.inference_mode(False):  # a normal tensor even when first built inside inference mode
+            t = torch.from_numpy(bu.reshape(bu.shape[0], -1)).to(device)
+        _SHARED[key] = (t, slot, basis)  # holding basis keeps its id unique
+    t, slot, _ = _SHARED[key]
+    return t, slot
+
+
+class PriorRuntime:
+    """Per-frame evaluation of a binding.
+
+    ``basis_u [E, U*3]`` holds the blendshapes of every moving vertex of the head model (shared by all
+    avatars); ``local [N*3]`` indexes them (slot 0 = a zero row for corners that never move and
+    Gaussians with no weight); ``coef [N, 3, 1]`` = barycentric * fade weight; ``M [3, 3]`` = the
+    fit's scale * rotation, applied after the gather. ``displacement(z [E])`` -> ``[N, 3]``;
+    ``z [B, E]`` -> ``[B, N, 3]``.
+    """
+
+    def __init__(self, binding: PriorBinding, basis: HeadBasis, device=None):
+        dev = device or binding.vertex_ids.device
+        self.basis_u, slot = _shared_basis(basis, dev)
+        ids = binding.vertex_ids.cpu().numpy()  # [N, 3]
+        local = slot[ids]
+        local[(binding.weight.cpu().numpy() <= 0)] = 0
+        self.num_used = int(len(np.unique(local)))
+        self.local = torch.from_numpy(local.reshape(-1).astype(np.int64)).to(dev)  # [N*3]
+        self.M = binding.transform[:3, :3].float().to(dev)  # [3, 3]
+        self.coef = (binding.bary * binding.weight[:, None]).float().to(dev)[..., None]  # [N, 3, 1]
+        self.n = len(binding)
+        grp = binding.groups()
+        self.gated = bool((grp >= 0).any())
+        self.group_index = (grp + 1).to(dev)  # [N] into opacity_factors' table
+        self.basis = basis
+
+    def displacement(self, z: Tensor) -> Tensor:
+        z = z.to(self.basis_u.dtype)
+        if z.ndim == 1:
+            nz = torch.nonzero(z).flatten()
+            # a slider frame drives a few blendshapes: read only their rows of the basis
+            d = z[nz] @ self.basis_u[nz] if len(nz) * 4 < len(z) else z @ self.basis_u  # [U*3]
+            du = d.view(-1, 3)  # [U, 3]
+            out = (du.index_select(0, self.local).view(self.n, 3, 3) * self.coef).sum(1)  # [N, 3], model frame
+            return out @ self.M.T
+        d = z @ self.basis_u  # [B, U*3]
+        du = d.view(z.shape[0], -1, 3)
+        return (du[:, self.local].view(z.shape[0], self.n, 3, 3) * self.coef).sum(2) @ self.M.T

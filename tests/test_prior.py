@@ -1,0 +1,315 @@
+"""Expression prior, mouth interior and the expression-response metric (issue 16)."""
+
+from __future__ import annotations
+
+import io
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from pathlib import Path
+
+from fastgha_core.data.headmodel import HeadModel
+from fastgha_core.model.prior import PriorBinding, PriorRuntime, bind, fit_head, load_basis, mouth_gate, mouth_interior
+
+
+REPO_SAMPLES = Path(__file__).resolve().parents[1] / "fastgha_core" / "assets" / "samples"
+
+
+@pytest.fixture(scope="module")
+def basis():
+    return load_basis("ict53")
+
+
+@pytest.fixture(scope="module")
+def head_points():
+    """Vertices of a non-generic identity, slightly moved: the fit has something to find."""
+    hm = HeadModel.load()
+    rng = np.random.default_rng(3)
+    ident = np.zeros(hm.num_identity, np.float32)
+    ident[:10] = rng.standard_normal(10) * 0.8
+    v = hm.vertices(ident)[:11248]  # skin only
+    return (v + np.array([0.002, -0.003, 0.002], np.float32)).astype(np.float32), ident
+
+
+@pytest.fixture(scope="module")
+def fit(head_points, basis):
+    return fit_head(head_points[0], basis)
+
+
+def test_fit_recovers_the_surface(head_points, fit, basis):
+    pts, _ = head_points
+    generic = np.linalg.norm(HeadModel.load().neutral[basis.fit_vertices] - pts[basis.fit_vertices], axis=1)
+    err = np.linalg.norm(fit.vertices[basis.fit_vertices] - pts[basis.fit_vertices], axis=1)
+    assert np.median(err) < 0.003 and np.median(err) < 0.5 * np.median(generic), (np.median(err), np.median(generic))
+    assert fit.rms < 0.002 and fit.transform[0, 0] == pytest.approx(1.0, abs=0.03)
+
+
+def test_prior_is_zero_at_the_neutral_expression(fit, basis, head_points):
+    b = bind(head_points[0][::7], fit, basis)
+    rt = PriorRuntime(b, basis)
+    assert torch.equal(rt.displacement(torch.zeros(53)), torch.zeros(len(b), 3))
+
+
+def test_prior_equals_the_blendshape_at_a_surface_vertex(fit, basis):
+    hm = HeadModel.load()
+    vids = hm.landmarks68[[8, 30, 48, 57, 62, 37]]  # chin, nose tip, mouth corner, lower lip, inner lip, eyelid
+    b = bind(fit.vertices[vids], fit, basis)
+    assert torch.allclose(b.weight, torch.ones(len(vids)))
+    rt = PriorRuntime(b, basis)
+    M = fit.transform[:3, :3]
+    for k in ("jawOpen", "eyeBlink_L", "mouthSmile_R"):
+        z = torch.zeros(53)
+        ki = hm.expression_names.index(k)
+        z[ki] = 1.0
+        want = basis.expression_basis[ki, vids] @ M.T  # the blendshape, in the fitted frame
+        got = rt.displacement(z).numpy()
+        np.testing.assert_allclose(got, want, atol=2e-5)
+    # a batch of expressions gives the same rows
+    zs = torch.rand(3, 53)
+    batch = rt.displacement(zs)
+    for i in range(3):
+        torch.testing.assert_close(batch[i], rt.displacement(zs[i]), atol=1e-6, rtol=1e-5)
+
+
+def test_prior_fades_to_zero_far_from_the_surface(fit, basis):
+    hm = HeadModel.load()
+    chin = fit.vertices[hm.landmarks68[8]]
+    pts = np.stack([chin, chin + [0, 0, 0.010], chin + [0, -0.05, 0.05], chin + [0, -0.2, 0.0]]).astype(np.float32)
+    b = bind(pts, fit, basis, fade=(0.006, 0.025))
+    w = b.weight.numpy()
+    assert w[0] == 1.0 and 0.0 < w[1] < 1.0 and w[2] == 0.0 and w[3] == 0.0
+    z = torch.zeros(53)
+    z[hm.expression_names.index("jawOpen")] = 1.0
+    d = PriorRuntime(b, basis).displacement(z).norm(dim=1)
+    assert d[0] > 0.02 and d[2] == 0 and d[3] == 0  # the chin moves ~4 cm; far points not at all
+
+
+def test_mouth_interior_follows_the_jaw_and_hides_with_closed_lips(fit, basis):
+    hm = HeadModel.load()
+    g, b = mouth_interior(fit, basis, num_features=4)
+    assert len(g) == len(b) > 1000 and g.features.shape == (len(g), 4)
+    assert torch.all(g.colors >= 0) and torch.all(g.colors <= 1)
+    z = torch.zeros(53)
+    z[hm.expression_names.index("jawOpen")] = 1.0
+    d = PriorRuntime(b, basis).displacement(z)
+    lower = torch.from_numpy(basis.expression_basis[hm.expression_names.index("jawOpen"), basis.interior_vertices]).norm(dim=1) > 0.01
+    assert lower.any() and (d[lower].norm(dim=1) > 0.01).all()  # lower teeth/tongue move with the jaw
+    gate = torch.from_numpy(basis.gate)
+    assert float(mouth_gate(torch.zeros(53), gate)) == 0.0
+    assert float(mouth_gate(z, gate)) == 1.0
+    smile = torch.zeros(53)
+    smile[hm.expression_names.index("mouthSmile_L")] = 1.0
+    assert float(mouth_gate(smile, gate)) == 0.0
+
+
+def test_flame_prior_needs_a_user_file(monkeypatch, tmp_path):
+    monkeypatch.delenv("FASTGHA_FLAME_MODEL", raising=False)
+    with pytest.raises(FileNotFoundError, match="FASTGHA_FLAME_MODEL"):
+        load_basis("flame120")
+    nv = 200
+    rng = np.random.default_rng(0)
+    f = tmp_path / "flame.npz"
+    np.savez(f, v_template=rng.normal(0, 0.05, (nv, 3)).astype(np.float32), shapedirs=rng.normal(0, 1e-3, (nv, 3, 400)).astype(np.float32), f=rng.integers(0, nv, (300, 3)))
+    b = load_basis("flame120", f)
+    assert b.expression_basis.shape == (120, nv, 3) and b.identity_basis.shape[1:] == (nv, 3)
+    with pytest.raises(ValueError, match="expected 'ict53' or 'flame120'"):
+        load_basis("arkit")
+
+
+# ---------------------------------------------------------------------------- the model and the avatar
+@pytest.fixture(scope="module")
+def model_and_avatar():
+    from fastgha_core.config import get_preset
+    from fastgha_core.model.fastgha import FastGHA
+
+    cfg = get_preset("tiny")
+    assert cfg.deform.prior and not get_preset("paper").deform.prior
+    torch.manual_seed(0)
+    model = FastGHA(cfg).eval()
+    # A canonical head: the generic ICT skin as Gaussians (what a good reconstruction looks like).
+    hm = HeadModel.load()
+    v = torch.from_numpy(hm.neutral[:11248:2].copy())
+    n = len(v)
+    from fastgha_core.gaussians import Gaussians
+
+    g = Gaussians(v, torch.tensor([1.0, 0, 0, 0]).expand(n, 4).clone(), torch.full((n, 3), 0.002), torch.full((n,), 0.9), torch.full((n, 3), 0.6), torch.randn(n, 32) * 0.1)
+    g2, binding, n_int = model.build_prior(g)
+    from fastgha_core.model.avatar import CanonicalAvatar
+
+    return model, CanonicalAvatar(g2, "tiny", "ict53", binding, n_int), n
+
+
+def test_animate_with_the_prior(model_and_avatar):
+    model, avatar, n_rec = model_and_avatar
+    assert avatar.num_interior > 0 and avatar.num_reconstructed == n_rec
+    hm = HeadModel.load()
+    with torch.no_grad():
+        model.deform.out.weight.zero_()
+        model.deform.out.bias.zero_()
+    neutral = model.animate(avatar, torch.zeros(53))
+    assert len(neutral) == n_rec  # closed lips and open eyes: every gated Gaussian is hidden, and left out
+    torch.testing.assert_close(neutral.means, avatar.gaussians.means[:n_rec])  # identity at zero expression
+    full = model.static_gaussians(avatar)
+    assert len(full) == len(avatar.gaussians) and torch.all(full.opacities[n_rec:] == 0)
+    z = torch.zeros(53)
+    z[hm.expression_names.index("jawOpen")] = 1.0
+    opened = model.animate(avatar, z)
+    chin = int(torch.argmin((avatar.gaussians.means[:n_rec] - torch.tensor(hm.neutral[hm.landmarks68[8]])).norm(dim=1)))
+    assert float((opened.means[chin] - neutral.means[chin]).norm()) > 0.02
+    grp = avatar.prior.groups()
+    mouth, lid_l = grp == 0, grp == 1
+    assert mouth.any() and lid_l.any()
+    n_mouth = int(mouth.sum())
+    assert len(opened) == n_rec + n_mouth and torch.all(opened.opacities[n_rec:] > 0)  # jaw open: mouth, not lids
+    blink = torch.zeros(53)
+    blink[hm.expression_names.index("eyeBlink_L")] = 1.0
+    closed = model.animate(avatar, blink)
+    assert len(closed) == n_rec + n_mouth + int(lid_l.sum())
+    assert torch.all(closed.opacities[lid_l[: len(closed)]] > 0) and torch.all(closed.opacities[mouth[: len(closed)]] == 0)
+    hides = grp == int(avatar.prior.groups().max())  # reconstructed Gaussians on an eyeball fade as its lid closes
+    assert hides.any() and torch.all(neutral.opacities[hides[:n_rec]] > 0)
+    both_eyes = torch.zeros(53)
+    both_eyes[[hm.expression_names.index("eyeBlink_L"), hm.expression_names.index("eyeBlink_R")]] = 1.0
+    either = model.animate(avatar, both_eyes)
+    assert len(either) == len(avatar.gaussians) and torch.all(either.opacities[hides] == 0)
+    off = model.animate(avatar, z, prior=False)  # the ablation: MLP residual only (zero here)
+    torch.testing.assert_close(off.means, avatar.gaussians.means[: len(off)])
+    both = model.animate(avatar, torch.stack([torch.zeros(53), z]))
+    torch.testing.assert_close(both[1].means, opened.means)
+
+
+def test_avatar_file_and_ply_keep_the_prior_and_the_mouth(model_and_avatar, tmp_path):
+    from fastgha_core.io import load_ply
+    from fastgha_core.model.avatar import CanonicalAvatar
+
+    model, avatar, _ = model_and_avatar
+    p = tmp_path / "a.safetensors"
+    avatar.save(p)
+    back = CanonicalAvatar.load(p)
+    assert back.num_interior == avatar.num_interior
+    for k, t in avatar.prior.tensors().items():
+        assert torch.equal(back.prior.tensors()[k], t), k
+    z = torch.rand(53) * 0.5
+    torch.testing.assert_close(model.animate(back, z).means, model.animate(avatar, z).means)
+    avatar.to_ply(tmp_path / "a.ply")
+    g = load_ply(tmp_path / "a.ply")
+    assert len(g) == len(avatar.gaussians)
+    torch.testing.assert_close(g.means[-avatar.num_interior :], avatar.gaussians.means[-avatar.num_interior :])
+
+
+def test_old_avatar_gets_a_prior_on_first_animate(model_and_avatar):
+    from fastgha_core.model.avatar import CanonicalAvatar
+
+    model, avatar, n_rec = model_and_avatar
+    old = CanonicalAvatar(avatar.gaussians[:n_rec], "tiny", "ict53")
+    model.animate(old, torch.zeros(53))
+    assert old.prior is not None and old.num_interior == avatar.num_interior
+
+
+def test_training_forward_with_the_prior_reaches_the_mlp():
+    from fastgha_core.cameras import Cameras
+    from fastgha_core.config import get_preset
+    from fastgha_core.model.fastgha import FastGHA
+
+    cfg = get_preset("tiny")
+    cfg.input_size = cfg.render_size = 64
+    torch.manual_seed(1)
+    model = FastGHA(cfg)
+    with torch.no_grad():
+        model.deform.out.weight.normal_(0, 0.1)
+    cams = Cameras.look_at(torch.tensor([[0.0, 0.0, 1.0], [0.3, 0.0, 0.95]]), torch.zeros(2, 3), fov_deg=18.0, width=64, height=64)
+    imgs = torch.rand(1, 2, 3, 64, 64)
+    z = torch.zeros(1, 53)
+    z[0, 26] = 1.0
+    out = model(imgs, cams.K[None], cams.w2c[None], z)
+    g, c = out.gaussians[0], out.canonical[0]
+    assert len(g) == len(c) > 64 * 64 * 2
+    g.means.sum().backward()
+    assert model.deform.out.weight.grad is not None and model.deform.out.weight.grad.abs().sum() > 0
+
+
+# ---------------------------------------------------------------------------- the response metric
+def _face(gap: float = 0.0, eye_open: float = 1.0, mouth: float = 1.0) -> np.ndarray:
+    """A toy 68-point face: eyes 100 px apart (outer corners), lips ``gap`` px apart."""
+    lm = np.zeros((68, 2))
+    lm[:17] = np.stack([np.linspace(-80, 80, 17), np.full(17, 60)], 1)
+    for a, cx in ((36, -35), (42, 35)):
+        w = 30.0
+        lm[a + 0] = [cx - w / 2, 0]
+        lm[a + 3] = [cx + w / 2, 0]
+        h = 6.0 * eye_open
+        lm[a + 1], lm[a + 2] = [cx - 5, -h], [cx + 5, -h]
+        lm[a + 5], lm[a + 4] = [cx - 5, h], [cx + 5, h]
+    lm[36] = [-50, 0]  # outer corners 100 px apart
+    lm[45] = [50, 0]
+    half = 25 * mouth
+    lm[48], lm[54] = [-half, 70], [half, 70]
+    for i, x in zip((61, 62, 63), (-8, 0, 8)):
+        lm[i] = [x, 70 - gap / 2]
+    for i, x in zip((67, 66, 65), (-8, 0, 8)):
+        lm[i] = [x, 70 + gap / 2]
+    return lm
+
+
+def test_landmark_measures_and_responses_on_a_toy_face():
+    from fastgha_core.train.responses import change, displacement, landmark_measures, response_ratio
+
+    m0 = landmark_measures(_face())
+    assert m0["iod"] == pytest.approx(100.0) and m0["lip_gap"] == pytest.approx(0.0) and m0["mouth_width"] == pytest.approx(0.5)
+    assert m0["ear"] == pytest.approx(12.0 / 30.0, rel=0.2)
+    m = landmark_measures(_face(gap=42.0))
+    assert change("jawOpen", m, m0, 0.0) == pytest.approx(0.42)
+    blink = landmark_measures(_face(eye_open=0.4))
+    assert change("eyeBlink", blink, m0, 0.0) == pytest.approx(0.6, abs=0.05)
+    smile = landmark_measures(_face(mouth=1.25))
+    assert change("mouthSmile", smile, m0, 0.0) == pytest.approx(0.25)
+    assert response_ratio(0.21, 0.42) == pytest.approx(0.5) and response_ratio(0.1, 0.0) is None
+    assert displacement(_face(gap=10.0), _face()) == pytest.approx(6 * 5.0 / 68 / 100)
+    with pytest.raises(ValueError, match=r"\[68, 2\]"):
+        landmark_measures(np.zeros((5, 2)))
+
+
+def test_server_frames_open_the_mouth_of_the_shipped_model():
+    """The server's per-frame path (``server.frames.FrameRenderer``) on an avatar of the shipped model:
+    ``jawOpen`` = 1 changes the mouth region of the streamed JPEG, not the forehead."""
+    from PIL import Image
+
+    from fastgha_core.cameras import load_request_folder
+    from fastgha_core.model.fastgha import load_model
+    from server.frames import FrameRenderer
+
+    folder = REPO_SAMPLES / "synth_1000001" / "request"
+    if not folder.is_dir():
+        pytest.skip("needs the shipped sample synth_1000001/request")
+    model = load_model("tiny")
+    assert model.config.deform.prior, "the shipped tiny model should use the expression prior"
+    paths, cams = load_request_folder(folder)
+    imgs = [torch.from_numpy(np.array(Image.open(p).convert("RGB"))).permute(2, 0, 1) for p in paths]
+    x, c = model.prepare(imgs, cams)
+    avatar = model.reconstruct(x, c)
+    fr = FrameRenderer(model, "cpu")
+    cam = fr.default_camera.resize(256, 256)
+    frames = {}
+    hm = HeadModel.load()
+    for name in ("neutral", "jawOpen"):
+        z = model.expression_space.parse({} if name == "neutral" else {"jawOpen": 1.0})
+        jpeg = fr.render(avatar, z, cam, 95).jpeg
+        frames[name] = np.asarray(Image.open(io.BytesIO(jpeg)).convert("RGB")).astype(np.float32)
+    lm = avatar.prior.fitted_vertices(load_basis("ict53"))[hm.landmarks68].astype(np.float64)
+    w2c, K = cam.w2c.reshape(4, 4).double().numpy(), cam.K.reshape(3, 3).double().numpy()
+    uv = (lm @ w2c[:3, :3].T + w2c[:3, 3]) @ K.T
+    uv = uv[:, :2] / uv[:, 2:]
+
+    def region(ids, pad):
+        lo, hi = uv[ids].min(0), uv[ids].max(0)
+        ext = (hi - lo) * pad
+        (x0, y0), (x1, y1) = np.floor(lo - ext).astype(int), np.ceil(hi + ext).astype(int)
+        return (slice(max(y0, 0), y1), slice(max(x0, 0), x1))
+
+    diff = np.abs(frames["jawOpen"] - frames["neutral"]).mean(-1)
+    mouth = diff[region(list(range(48, 68)) + [8], 0.2)].mean()
+    brows = diff[region(list(range(17, 27)), 0.1)].mean()
+    assert mouth > 10.0 and mouth > 4.0 * brows, (mouth, brows)  # the jaw region moves, the brows hardly
