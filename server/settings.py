@@ -56,7 +56,7 @@ class Settings(BaseSettings):
     max_image_pixels: int = Field(16_777_216, ge=64, description="largest width*height of one uploaded image")
     max_images: int = Field(8, ge=1, le=64, description="most images per avatar")
     max_concurrent_reconstructions: int = Field(1, ge=1, description="reconstructions running at once; others queue")
-    refine_steps: int = Field(40, ge=0, le=1000, description="test-time refinement steps after each reconstruction (0 = off; fastgha_core.refine)")
+    refine_steps: int = Field(0, ge=0, le=1000, description="test-time refinement steps after each reconstruction (0 = off: on real photos it lowers leave-one-out quality today, docs/model-card.md)")
 
     # ------------------------------------------------------------ streaming
     max_output_size: int = Field(1024, ge=16, le=8192, description="cap on the output width and height of a frame")

@@ -14,8 +14,9 @@ def add_arguments(parser) -> None:
         "--refine-steps",
         type=int,
         default=0,
-        help="test-time refinement steps against the input photos after the feed-forward pass (0 = off; 40 is the "
-        "server's default, a few seconds on 2 cores). Uses the inputs' expressions from info.json when present",
+        help="test-time refinement steps against the input photos after the feed-forward pass (0 = off, the default; "
+        "40 reproduces the inputs better but lowers novel-view quality on real photos today, see docs/model-card.md). "
+        "Uses the inputs' expressions from info.json when present",
     )
     parser.add_argument("--cameras-out", default=None, help="with --refine-steps: write the corrected input cameras (cameras.json layout) here")
     parser.add_argument("--dino-weights", default=None, help="local DINOv3 folder (Hugging Face format) to load into the model")

@@ -93,10 +93,10 @@ class RefineConfig:
     w_reg_depth: float = 1e-3
     w_reg_opacity: float = 1e-4
     w_reg_color: float = 1e-4
-    w_reg_camera: float = 1e-3
+    w_reg_camera: float = 1e-2
     rot_sigma: float = 0.05
-    trans_sigma: float = 0.02
-    optimize_cameras: bool = True
+    trans_sigma: float = 0.01
+    optimize_cameras: bool = False
     realign: bool = False
     noise_floor: float = 1.0
     prune_opacity: float = 0.005

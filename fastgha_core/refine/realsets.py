@@ -14,7 +14,8 @@ left-out photo's tracked camera with its tracked expression, and compare with th
 ``python -m fastgha_core.refine.realsets --refine-steps 0,40 --grid OUT.png`` prints a markdown
 table and writes a grid picture (per set: photo, then one render per step count). The sets are not
 ours to publish: write the grid outside the repository. Sets that fail to track are reported and
-skipped; without the folder the script says so and exits 0.
+skipped, and a photo the tracker cannot handle is dropped from its set (reported) while at least 3 remain;
+without the folder the script says so and exits 0.
 """
 
 from __future__ import annotations
@@ -76,7 +77,7 @@ def _identity(faces, img: np.ndarray, box=None):
     return np.asarray(faces.face_rec.compute_face_descriptor(img, shape), dtype=np.float64), n, box
 
 
-def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, faces=None) -> dict:
+def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, faces=None, refine_cameras: bool = True) -> dict:
     """Leave-one-out over the photos of ``folder`` (see the module docstring); one row per (photo, steps)."""
     from ..refine import RefineConfig, refine_avatar
     from ..render import render
@@ -87,7 +88,18 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
 
     photos, names = _load_photos(folder)
     t0 = time.perf_counter()
-    tr = track_photos(photos, TrackConfig(size=size), names=names)
+    dropped = []
+    while True:  # a photo the tracker cannot handle (e.g. no face found) is dropped and reported
+        try:
+            tr = track_photos(photos, TrackConfig(size=size), names=names)
+            break
+        except ValueError as e:
+            bad = [i for i, n in enumerate(names) if n in str(e)]
+            if not bad or len(names) <= 3:
+                raise
+            dropped.append(f"{names[bad[0]]}: {e}")
+            log.warning("%s: dropping %s (%s)", folder.name, names[bad[0]], e)
+            del photos[bad[0]], names[bad[0]]
     t_track = time.perf_counter() - t0
     crops = torch.from_numpy(tr.crops).permute(0, 3, 1, 2).float() / 255.0  # [V, 3, S, S]
     masks = torch.from_numpy(tr.masks)[:, None].float()  # [V, 1, S, S]
@@ -108,7 +120,7 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
         for steps in steps_list:
             t1 = time.perf_counter()
             res = refine_avatar(
-                model, avatar0, matted[keep], cams[keep], masks[keep], config=RefineConfig(steps=steps), expressions=expr[keep]
+                model, avatar0, matted[keep], cams[keep], masks[keep], config=RefineConfig(steps=steps, optimize_cameras=refine_cameras), expressions=expr[keep]
             )
             dt = time.perf_counter() - t1
             g = model.animate(res.avatar, expr[k])
@@ -132,7 +144,7 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
                     row["identity_distance"] = float(np.linalg.norm(p_desc - t_desc))
             rows.append(row)
             renders[steps].append(pred[0])
-    return {"set": folder.name, "track_s": round(t_track, 1), "rows": rows, "targets": list(matted.unbind(0)), "renders": renders}
+    return {"set": folder.name, "track_s": round(t_track, 1), "dropped": dropped, "rows": rows, "targets": list(matted.unbind(0)), "renders": renders}
 
 
 def _mean(vals):
@@ -163,6 +175,7 @@ def main(argv=None) -> int:
     ap.add_argument("--sets", default=None, help="comma-separated set names (default: all)")
     ap.add_argument("--model", default="tiny")
     ap.add_argument("--refine-steps", default="0,40", help="comma-separated refinement step counts to compare")
+    ap.add_argument("--no-refine-cameras", action="store_true", help="refine without per-view camera corrections")
     ap.add_argument("--size", type=int, default=256, help="crop side of the tracked photos and of the renders")
     ap.add_argument("--json", default=None, help="write all rows here")
     ap.add_argument("--grid", default=None, help="write a grid picture here (NOT inside the repository)")
@@ -185,14 +198,14 @@ def main(argv=None) -> int:
     all_rows, grid = [], []
     for folder in sets:
         try:
-            out = evaluate_set(model, folder, steps_list, args.size, faces)
+            out = evaluate_set(model, folder, steps_list, args.size, faces, refine_cameras=not args.no_refine_cameras)
         except (ValueError, ImportError) as e:
             print(f"{folder.name}: skipped ({e})")
             continue
         all_rows += out["rows"]
         for k, t in enumerate(out["targets"]):
             grid.append([t] + [out["renders"][s][k] for s in steps_list])
-        print(f"{folder.name}: tracked in {out['track_s']} s", flush=True)
+        print(f"{folder.name}: tracked in {out['track_s']} s; photos dropped (tracking failed): {out['dropped'] or 'none'}", flush=True)
         for r in out["rows"]:
             print(json.dumps(r), flush=True)
     print(summary_table(all_rows))
