@@ -31,10 +31,11 @@ def test_zero_steps_returns_the_avatar_unchanged(sample):
     assert torch.equal(res.rotations, torch.zeros(4, 3))
 
 
-def test_refinement_fits_the_input_views_better(sample):
+@pytest.mark.parametrize("smooth_grid", [0, 16])
+def test_refinement_fits_the_input_views_better(sample, smooth_grid):
     model, avatar, images, masks, cams, expr = sample
     calls = []
-    cfg = RefineConfig(steps=8, resolution=64, coarse_resolution=64)
+    cfg = RefineConfig(steps=8, resolution=64, coarse_resolution=64, smooth_grid=smooth_grid)
     res = refine_avatar(model, avatar, images, cams, masks, config=cfg, expressions=expr, progress=lambda i, n: calls.append((i, n)))
     assert calls == [(i, 8) for i in range(1, 9)]
     assert res.losses[-1] < res.losses[0]

@@ -71,6 +71,8 @@ class RefineConfig:
         noise_floor: Adam's epsilon of the per-Gaussian groups, in units of the median gradient
             magnitude of the first step (0 = plain Adam, where every Gaussian moves by about the
             step size whatever its gradient).
+        smooth_grid: 0 = one correction per Gaussian; G > 0 = the corrections are ``G x G`` maps per
+            view, sampled bilinearly at each Gaussian's pixel in its own view (smooth corrections).
         realign: before optimising, move every Gaussian (and its colour) back by the deformation of
             its own view's expression, so that deformed to that expression it lies on its pixel ray
             again with its pixel's colour (needs ``expressions``).
@@ -99,6 +101,7 @@ class RefineConfig:
     optimize_cameras: bool = False
     realign: bool = False
     noise_floor: float = 1.0
+    smooth_grid: int = 32
     prune_opacity: float = 0.005
 
     def __post_init__(self) -> None:
@@ -350,15 +353,44 @@ def _refine_avatar(
         ray = F.normalize(g0.means + dxyz[src, ar] - centers[src], dim=-1)
     o_logit0 = torch.logit(g0.opacities.clamp(1e-4, 1 - 1e-4))
     c_logit0 = torch.logit(g0.colors.clamp(1e-3, 1 - 1e-3))
-    dt = torch.zeros(n, requires_grad=True)
-    d_o = torch.zeros(n, requires_grad=True)
-    d_c = torch.zeros(n, 3, requires_grad=True)
+    if config.smooth_grid > 0:
+        # corrections live on a coarse grid per view and are sampled (bilinearly) at each Gaussian's
+        # pixel in its own view, so neighbouring Gaussians of a view move together
+        gs = config.smooth_grid
+        p_dt = torch.zeros(v, 1, gs, gs, requires_grad=True)
+        p_o = torch.zeros(v, 1, gs, gs, requires_grad=True)
+        p_c = torch.zeros(v, 3, gs, gs, requires_grad=True)
+        uv_src, _ = tcams.resize(grid, grid).project(g0.means[None])  # [V, N, 2]
+        pos = uv_src[src, torch.arange(n)] / grid * 2 - 1  # [N, 2] in [-1, 1]
+        order = torch.cat([(src == i).nonzero().squeeze(1) for i in range(v)])
+        inv = torch.empty_like(order)
+        inv[order] = torch.arange(n)
+        pos_v = [pos[src == i] for i in range(v)]
+
+        def corrections():
+            out = []
+            for i in range(v):
+                maps = torch.cat([p_dt[i], p_o[i], p_c[i]], 0)[None]  # [1, 5, G, G]
+                out.append(F.grid_sample(maps, pos_v[i][None, None], mode="bilinear", padding_mode="border", align_corners=False)[0, :, 0].T)
+            c = torch.cat(out)[inv]  # [N, 5]
+            return c[:, 0], c[:, 1], c[:, 2:5]
+
+        params = (p_dt, p_o, p_c)
+    else:
+        p_dt = torch.zeros(n, requires_grad=True)
+        p_o = torch.zeros(n, requires_grad=True)
+        p_c = torch.zeros(n, 3, requires_grad=True)
+
+        def corrections():
+            return p_dt, p_o, p_c
+
+        params = (p_dt, p_o, p_c)
     rot = torch.zeros(v, 3, requires_grad=True)
     trans = torch.zeros(v, 3, requires_grad=True)
     groups = [
-        {"params": [dt], "lr": config.lr_depth},
-        {"params": [d_o], "lr": config.lr_opacity},
-        {"params": [d_c], "lr": config.lr_color},
+        {"params": [params[0]], "lr": config.lr_depth},
+        {"params": [params[1]], "lr": config.lr_opacity},
+        {"params": [params[2]], "lr": config.lr_color},
     ]
     if config.optimize_cameras:
         groups += [{"params": [rot], "lr": config.lr_rotation}, {"params": [trans], "lr": config.lr_translation}]
@@ -378,6 +410,7 @@ def _refine_avatar(
         size = config.coarse_resolution if step < n_coarse else config.resolution
         targets, tmasks, lcams = levels[size]
         K = lcams.K.float()
+        dt, d_o, d_c = corrections()
         means = g0.means + dt[:, None] * ray
         opac = torch.sigmoid(o_logit0 + d_o)
         colors = torch.sigmoid(c_logit0 + d_c)
@@ -422,6 +455,7 @@ def _refine_avatar(
     t_opt = time.perf_counter() - t0
 
     with torch.no_grad():
+        dt, d_o, d_c = corrections()
         means = g0.means + dt[:, None] * ray
         g = g0.replace(
             means=means,
