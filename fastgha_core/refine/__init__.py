@@ -7,10 +7,14 @@ Adam on small corrections, rendering every input view with its known expression 
 with the photo:
 
 - per Gaussian: a displacement along its own pixel ray (metres), an opacity logit offset and a
-  colour logit offset (scale, rotation and the per-Gaussian features stay as predicted);
-- per view: a camera correction ``w2c <- [exp(omega) | tau] w2c`` (rotation vector ``omega`` in
-  radians, translation ``tau`` in metres, both in the camera frame), so that pose error left by
-  tracking is absorbed by the camera instead of distorting the head.
+  colour logit offset (scale, rotation and the per-Gaussian features stay as predicted). By
+  default (``RefineConfig.smooth_grid``) these live on a coarse grid per view and are sampled at
+  each Gaussian's pixel in its own view, so neighbouring Gaussians move together;
+- per view (``RefineConfig.optimize_cameras``, off by default): a camera correction
+  ``w2c <- [exp(omega) | tau] w2c`` (rotation vector ``omega`` in radians, translation ``tau`` in
+  metres, both in the camera frame), so that pose error left by tracking can be absorbed by the
+  camera instead of distorting the head. Off by default because, with exact cameras, the
+  corrections absorb the avatar's shape error instead (all cameras drift towards the head).
 
 Loss per view, averaged over views (images at ``RefineConfig.resolution``):
 
