@@ -115,6 +115,8 @@ class RefineConfig:
             r = getattr(self, name)
             if r < 16 or r % 16:
                 raise ValueError(f"{name} must be a multiple of 16 (>= 16), got {r}")
+        if self.smooth_grid < 0 or self.noise_floor < 0:
+            raise ValueError(f"smooth_grid and noise_floor must be >= 0, got {self.smooth_grid} and {self.noise_floor}")
         if not 0.0 <= self.coarse_fraction <= 1.0:
             raise ValueError(f"coarse_fraction must lie in [0, 1], got {self.coarse_fraction}")
         for name in ("depth_sigma", "rot_sigma", "trans_sigma"):
