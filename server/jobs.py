@@ -229,6 +229,7 @@ class CreationState:
     images: Tensor | None = None
     cameras: Any = None
     masks: Tensor | None = None
+    expressions: Tensor | None = None  # [V, E] the photos' tracked expressions, or None
     avatar: Any = None
     timings_ms: dict[str, float] = field(default_factory=dict)
 
@@ -238,10 +239,23 @@ ExtraStage = tuple[str, Callable[[CreationState, Callable[[float], None]], None]
 
 
 def extra_stages_for(ctx) -> list[ExtraStage]:
-    """Stages run after reconstruction and before saving. None today; test-time refinement
-    (``fastgha_core.refine.refine_avatar`` with ``FASTGHA_REFINE_STEPS``) is plugged in here as
-    ``("refining", fn)``, where ``fn`` sets ``state.avatar`` and reports ``fraction`` in [0, 1]."""
-    return []
+    """Stages run after reconstruction and before saving: test-time refinement
+    (``fastgha_core.refine.refine_avatar``) when ``FASTGHA_REFINE_STEPS`` > 0, as ``("refining", fn)``;
+    ``fn`` replaces ``state.avatar`` and reports its steps as the stage's fraction in [0, 1]."""
+    steps = int(ctx.settings.refine_steps)
+    if steps <= 0:
+        return []
+
+    def refine(state: CreationState, fraction: Callable[[float], None]) -> None:
+        from fastgha_core.refine import RefineConfig, refine_avatar
+
+        result = refine_avatar(
+            state.model, state.avatar, state.images, state.cameras, state.masks,
+            config=RefineConfig(steps=steps), progress=lambda i, n: fraction(i / n), expressions=state.expressions,
+        )  # fmt: skip
+        state.avatar = result.avatar
+
+    return [("refining", refine)]
 
 
 class JobCancelled(Exception):
@@ -631,7 +645,7 @@ class JobQueue:
             avatar = model.reconstruct(x.to(ctx.device), c.to(ctx.device), expressions=expressions)
         recon_ms = 1e3 * (time.perf_counter() - t2)
         progress("reconstructing", 1.0)
-        state = CreationState(model=model, device=ctx.device, names=names, images=x, cameras=c, avatar=avatar)
+        state = CreationState(model=model, device=ctx.device, names=names, images=x, cameras=c, avatar=avatar, expressions=expressions)
         if self.extra_stages and mlist is not None:
             mm = [m.expand(3, -1, -1) for m in (mlist if isinstance(mlist, list) else list(mlist.unbind(0)))]
             state.masks = model.prepare(mm, cams)[0][:, :1]  # the same crop and resize as the images

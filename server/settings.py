@@ -108,6 +108,7 @@ class Settings(BaseSettings):
     min_avatar_gaussians: int = Field(
         256, ge=1, description="a reconstruction with fewer Gaussians holds no head (e.g. cameras far from it): 422"
     )
+    refine_steps: int = Field(0, ge=0, le=1000, description="test-time refinement steps after each reconstruction (0 = off: on real photos it lowers leave-one-out quality today, docs/model-card.md)")
 
     # ------------------------------------------------------------ streaming
     max_output_size: int = Field(1024, ge=16, le=8192, description="cap on the output width and height of a frame")

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+import torch
 import pytest
 from PIL import Image
 
@@ -495,8 +496,8 @@ def test_an_extra_stage_sees_the_prepared_inputs_reports_progress_and_replaces_t
         seen.update(images=tuple(state.images.shape), masks=tuple(state.masks.shape), views=len(state.cameras.K),
                     size=(state.cameras.width, state.cameras.height), names=list(state.names), n=len(state.avatar.gaussians))  # fmt: skip
         fraction(0.5)
-        keep = len(state.avatar.gaussians) // 2
-        state.avatar = dataclasses.replace(state.avatar, gaussians=state.avatar.gaussians[:keep])
+        g = state.avatar.gaussians
+        state.avatar = dataclasses.replace(state.avatar, gaussians=dataclasses.replace(g, colors=torch.full_like(g.colors, 0.25)))
 
     imgs = sorted(samples.glob("[0-9][0-9].jpg"))
     photos = [Photo(p.name, p.read_bytes()) for p in imgs]
@@ -525,5 +526,57 @@ def test_an_extra_stage_sees_the_prepared_inputs_reports_progress_and_replaces_t
     assert job.stages == ["queued", "decoding", "reconstructing", "refining", "saving"]
     assert "refining" in [st for st, _ in stages] and [p for _, p in stages] == sorted(p for _, p in stages)
     meta = ctx.store.get_meta(job.id)
-    assert meta["num_gaussians"] == seen["n"] // 2 == job.result["num_gaussians"] and "refining_ms" in meta
-    assert len(ctx.store.get(job.id).avatar.gaussians) == seen["n"] // 2  # the stage's avatar is what was saved
+    assert meta["num_gaussians"] == seen["n"] == job.result["num_gaussians"] and "refining_ms" in meta
+    stored = ctx.store.get(job.id).avatar.gaussians
+    assert torch.all(stored.colors == 0.25)  # the stage's avatar is what was saved
+
+
+def test_refine_steps_setting_plugs_test_time_refinement_into_the_job(model_dir, samples, tmp_path):
+    """``FASTGHA_REFINE_STEPS`` > 0: the job runs ``fastgha_core.refine`` as its ``refining`` stage,
+    reporting its steps, and stores the refined avatar; 0 (the default) adds no stage."""
+    import asyncio
+
+    from fastgha_core import load_model
+    from fastgha_core.cameras import cameras_from_json
+    from fastgha_core.model.avatar import CanonicalAvatar
+    from server.context import ServerContext
+    from server.jobs import JobQueue, extra_stages_for
+    from server.settings import Settings
+    from server.store import AvatarStore
+
+    assert extra_stages_for(ServerContext(settings=Settings(data_dir=tmp_path, warmup=False))) == []
+    imgs = sorted(samples.glob("[0-9][0-9].jpg"))
+    cams = cameras_from_json(json.loads((samples / "cameras.json").read_text()))
+    model = load_model(str(model_dir), device="cpu")
+
+    def create(steps: int, sub: str):
+        ctx = ServerContext(settings=Settings(data_dir=tmp_path / sub, warmup=False, refine_steps=steps))
+        ctx.model = model
+        ctx.store = AvatarStore(tmp_path / sub, 10**9, 0, load_fn=CanonicalAvatar.load)
+        photos = [Photo(p.name, p.read_bytes()) for p in imgs]
+        masks = [Photo(f"{p.stem}_mask.png", (samples / f"{p.stem}_mask.png").read_bytes()) for p in imgs]
+
+        async def run():
+            q = JobQueue(ctx, tracker=None, extra_stages=extra_stages_for(ctx))
+            await q.start()
+            try:
+                job, _ = q.submit(q.reserve("test", 1), CreationRequest(photos, masks, cams))
+                seen = []
+                update = job.update
+                job.update = lambda st, f: (update(st, f), seen.append((job.stage, job.stage_fraction)))
+                await q.wait(job)
+                return job, seen
+            finally:
+                await q.stop()
+
+        job, seen = asyncio.run(run())
+        assert job.status == "ready", job.error and job.error.message
+        return ctx.store.get(job.id).avatar.gaussians, ctx.store.get_meta(job.id), job, seen
+
+    g0, meta0, job0, _ = create(0, "plain")
+    g2, meta2, job2, seen = create(2, "refined")
+    assert "refining" not in job0.stages and "refining_ms" not in meta0
+    assert "refining" in job2.stages and "refining_ms" in meta2
+    fractions = [f for st, f in seen if st == "refining"]
+    assert 0.5 in fractions and fractions == sorted(fractions)  # one update per step of the two
+    assert len(g2) == len(g0) and not torch.allclose(g2.colors, g0.colors)  # the refined avatar is the one stored

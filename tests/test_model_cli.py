@@ -79,3 +79,18 @@ def test_cli_errors_are_one_line(tmp_path, model_dir, capsys):
     assert main(["reconstruct", "--input", str(req), "--model", str(model_dir), "--out", str(tmp_path / "a.safetensors")]) == 2
     assert "missing masks" in capsys.readouterr().err
     assert main(["reconstruct", "--input", str(tmp_path / "nope"), "--out", str(tmp_path / "a.safetensors")]) == 2
+
+
+def test_reconstruct_with_refinement_writes_avatar_and_corrected_cameras(tmp_path, model_dir, capsys):
+    req = _request(tmp_path / "req", masks=True)
+    info = {"expressions": np.random.default_rng(2).random((3, 53)).round(3).tolist()}
+    (req / "info.json").write_text(json.dumps(info))
+    out, cams_out = tmp_path / "avatar.safetensors", tmp_path / "cams.json"
+    args = ["reconstruct", "--input", str(req), "--model", str(model_dir), "--out", str(out), "--refine-steps", "2", "--cameras-out", str(cams_out)]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    assert "refined in" in printed and "(2 steps)" in printed
+    assert len(CanonicalAvatar.load(out)) > 0
+    cams = json.loads(cams_out.read_text())
+    assert len(cams) == 3 and (cams[0]["width"], cams[0]["height"]) == (40, 36)
+    assert main(["reconstruct", "--input", str(req), "--model", str(model_dir), "--out", str(out), "--refine-steps", "-1"]) != 0

@@ -10,6 +10,15 @@ def add_arguments(parser) -> None:
     parser.add_argument("--out", required=True, help="output avatar file (.safetensors)")
     parser.add_argument("--ply", default=None, help="also export the canonical Gaussians as a 3DGS PLY")
     parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")
+    parser.add_argument(
+        "--refine-steps",
+        type=int,
+        default=0,
+        help="test-time refinement steps against the input photos after the feed-forward pass (0 = off, the default; "
+        "40 reproduces the inputs better but lowers novel-view quality on real photos today, see docs/model-card.md). "
+        "Uses the inputs' expressions from info.json when present",
+    )
+    parser.add_argument("--cameras-out", default=None, help="with --refine-steps: write the corrected input cameras (cameras.json layout) here")
     parser.add_argument("--dino-weights", default=None, help="local DINOv3 folder (Hugging Face format) to load into the model")
     parser.add_argument("--vae-weights", default=None, help="local AutoencoderKL folder (Hugging Face format) to load into the model")
 
@@ -60,12 +69,55 @@ def run(args) -> int:
     if torch.device(args.device).type == "cuda":
         torch.cuda.synchronize()
     dt = time.perf_counter() - t0
+    refine_note = ""
+    if args.refine_steps < 0:
+        raise ValueError(f"--refine-steps must be >= 0, got {args.refine_steps}")
+    if args.refine_steps > 0:
+        avatar, refine_note = _refine(args, model, avatar, paths, images, cams, masks)
     avatar.save(args.out)
     print(
         f"reconstructed {len(avatar)} Gaussians from {len(imgs)} views at {model.config.input_size}^2 "
-        f"in {dt * 1000:.0f} ms (model {model.config.name!r}, expression space {model.config.expression_space}) -> {args.out}"
+        f"in {dt * 1000:.0f} ms{refine_note} (model {model.config.name!r}, expression space {model.config.expression_space}) -> {args.out}"
     )
     if args.ply:
         avatar.to_ply(args.ply)
         print(f"wrote the canonical Gaussians as a 3DGS PLY -> {args.ply}")
     return 0
+
+
+def _refine(args, model, avatar, paths, images, cams, masks):
+    """Run ``fastgha_core.refine.refine_avatar`` with a tqdm bar; returns the avatar and a note for the summary."""
+    import json
+
+    import torch
+    from tqdm.auto import tqdm
+
+    from ..cameras import Cameras, cameras_to_json
+    from ..refine import RefineConfig, refine_avatar
+
+    sizes = {tuple(im.shape[-2:]) for im in images}
+    if len(sizes) != 1:
+        raise ValueError(f"--refine-steps needs input photos of one size, got sizes {sorted(sizes)}")
+    expressions = None
+    info = paths[0].parent / "info.json"
+    if info.exists():
+        data = json.loads(info.read_text())
+        if "expressions" in data:
+            expressions = torch.tensor(data["expressions"], dtype=torch.float32)
+            if tuple(expressions.shape) != (len(paths), model.config.expression_dim):
+                raise ValueError(
+                    f"{info}: expressions must be {len(paths)} x {model.config.expression_dim} for model {model.config.name!r}, "
+                    f"got {list(expressions.shape)}"
+                )
+    cam_batch = Cameras.stack([c.flatten()[0] for c in cams])
+    mask_t = torch.stack(masks) if masks[0] is not None else None
+    with tqdm(total=args.refine_steps, desc="refining", unit="step") as bar:
+        res = refine_avatar(
+            model, avatar, torch.stack(images), cam_batch, mask_t,
+            config=RefineConfig(steps=args.refine_steps), progress=lambda i, n: bar.update(1), expressions=expressions,
+        )
+    if args.cameras_out:
+        from pathlib import Path
+
+        Path(args.cameras_out).write_text(json.dumps(cameras_to_json(res.cameras), indent=1) + "\n")
+    return res.avatar, f", refined in {res.timings['total']:.1f} s ({args.refine_steps} steps)"

@@ -6,6 +6,12 @@ records, branch-free SIMD compositing, no state kept for a backward pass
 (``cpu_kernels.sort_pack`` / ``bin_sorted`` / ``raster_forward_fast``). It agrees with the
 float64 kernels to float32 rounding (tested against the dense reference).
 
+With gradients and in float32 (training, test-time refinement) it runs the same float32 forward
+and ``cpu_kernels.raster_backward_fast``, which walks each tile front to back again and takes
+the colour behind a splat from the final sums (no per-pixel state beyond the forward's outputs).
+Float64 inputs, and ``FASTGHA_RASTER_FAST=0``, keep the float64 kernels (``raster_forward`` /
+``raster_backward``, the exact path the gradcheck test uses).
+
 Threads: numba uses ``FASTGHA_NUMBA_THREADS`` threads when that environment variable is set,
 else as many as torch (``torch.get_num_threads()``), capped by numba's pool size. The setting
 is applied per call (``numba.set_num_threads`` is thread-local), never at import.
@@ -166,6 +172,64 @@ def rasterize_fast(
     return acc, T.neg_().add_(1.0)
 
 
+class _RasterizeFast32(torch.autograd.Function):
+    """The float32 gradient path: ``raster_forward_fast`` + ``raster_backward_fast`` (see cpu_kernels)."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, values, depths, rects, width, height):  # type: ignore[override]
+        C, N, D = values.shape
+        tw = (width + TILE_SIZE - 1) // TILE_SIZE
+        th = (height + TILE_SIZE - 1) // TILE_SIZE
+        n_chunks = numba.get_num_threads()
+        acc = torch.empty(C, height, width, 4, dtype=torch.float32)
+        T = torch.empty(C, height, width, dtype=torch.float32)
+        op = _np(opacities.detach().float())
+        m2d_all, con_all = _np(means2d.detach().float()), _np(conics.detach().float())
+        val_all, rect_all = _np(values.detach().float()), _np(rects)
+        bits_all = _np(depths.detach().float()).view(np.uint32)  # [C, N] depth bits
+        saved = []
+        for c in range(C):
+            rec_all = np.empty((N, _K.N_REC), np.float32)
+            vis = np.empty(N, np.uint8)
+            _K.pack_splats(m2d_all[c], con_all[c], rect_all[c], op, val_all[c], rec_all, vis)
+            idx = _K.sort_visible(bits_all[c], vis)
+            rec, trect = _K.gather_rows(rec_all, rect_all[c], idx)
+            offsets, ids = _K.bin_sorted(trect, th * tw, tw, n_chunks)
+            _K.raster_forward_fast(rec, offsets, ids, width, height, tw, n_chunks, acc[c].numpy(), T[c].numpy())
+            saved.append((rec, offsets, ids, idx))
+        ctx.saved = saved
+        ctx.meta = (C, N, width, height)
+        ctx.save_for_backward(acc, T)
+        ctx.mark_non_differentiable(T)
+        return acc, 1.0 - T
+
+    @staticmethod
+    def backward(ctx, g_acc, g_alpha):  # type: ignore[override]
+        acc, T = ctx.saved_tensors
+        C, N, width, height = ctx.meta
+        tw = (width + TILE_SIZE - 1) // TILE_SIZE
+        g_acc = torch.zeros(C, height, width, 4) if g_acc is None else g_acc.float().contiguous()
+        g_alpha = torch.zeros(C, height, width) if g_alpha is None else g_alpha.float().contiguous()
+        prev = numba.get_num_threads()
+        numba.set_num_threads(num_threads())
+        try:
+            n_chunks = numba.get_num_threads()
+            g = torch.zeros(C, N, _K.N_GRAD32, dtype=torch.float64)
+            for c, (rec, offsets, ids, idx) in enumerate(ctx.saved):
+                isect = np.empty((ids.shape[0], _K.N_GRAD32), np.float32)
+                _K.raster_backward_fast(
+                    rec, offsets, ids, width, height, tw, n_chunks,
+                    acc[c].numpy(), T[c].numpy(), g_acc[c].numpy(), g_alpha[c].numpy(), isect,
+                )
+                g[c, torch.from_numpy(idx)] = torch.from_numpy(_K.reduce_rows(ids, isect, idx.shape[0]))
+        finally:
+            numba.set_num_threads(prev)
+        ctx.saved = None
+        g = g.float()
+        # row layout: v0..v3, opacity, conic a, b, c, mx, my
+        return g[..., 8:10], g[..., 5:8], g[..., 4].sum(0), g[..., 0:4], None, None, None, None
+
+
 class _StageClock:
     """Adds the time since the previous lap to ``stages[name]``; does nothing when ``stages`` is None."""
 
@@ -192,6 +256,12 @@ def _wants_fast(opacities: Tensor, values: Tensor, *more: Tensor) -> bool:
     return os.environ.get("FASTGHA_RASTER_FAST", "1") != "0"
 
 
+def _wants_fast_grad(values: Tensor) -> bool:
+    if values.dtype != torch.float32 or values.shape[-1] != 4:
+        return False
+    return os.environ.get("FASTGHA_RASTER_FAST", "1") != "0"
+
+
 def rasterize_cpu(
     proj: Projected,
     opacities: Tensor,  # [N]
@@ -213,6 +283,10 @@ def rasterize_cpu(
     try:
         if fast is not False and _wants_fast(opacities, values, proj.means2d, proj.conics):
             return rasterize_fast(proj, opacities, values, width, height, rects)
+        if fast is not False and _wants_fast_grad(values):
+            if rects is None:
+                rects = tile_rects(proj.means2d, proj.radii, width, height)
+            return _RasterizeFast32.apply(proj.means2d, proj.conics, opacities, values, proj.depths, rects, width, height)
         offsets, ids = bin_tiles_cpu(proj, width, height, rects)
         return _RasterizeCPU.apply(proj.means2d, proj.conics, opacities, values, offsets, ids, width, height)
     finally:

@@ -753,3 +753,188 @@ def raster_forward_fast(rec, offsets, ids, width, height, tw, n_chunks, out_acc,
                 out_acc[i, j, 2] = S[i - y0, 4, jj]
                 out_acc[i, j, 3] = S[i - y0, 5, jj]
                 out_T[i, j] = S[i - y0, 0, jj]
+
+
+# ---------------------------------------------------------------------------------------------
+# Float32 gradient path (``cpu_backend.rasterize_cpu`` picks it for float32 inputs that need
+# gradients). The forward is ``raster_forward_fast`` above, unchanged. The backward walks every
+# tile FRONT to back again, repeating the forward's exact float32 arithmetic (so the same splats
+# are composited and the same pixels stop), and gets the colour behind splat i from the final
+# sums: ``S_after = acc_final - acc_through_i``. No per-pixel state beyond the forward's outputs is
+# kept, and no transmittance is recovered by division (which loses accuracy behind opaque splats).
+#
+# Gradient of one composited splat at one pixel (w = alpha T, a = alpha, Tf = final T):
+#   d acc_d / d a = v_d T - S_after_d / (1 - a),  d (1 - Tf) / d a = Tf / (1 - a),
+#   a = o exp(-sigma) (where not clamped at ALPHA_MAX), sigma = 0.5 (A dx^2 + C dy^2) + B dx dy.
+# Per-pixel contributions of a splat are accumulated in 16 lanes (one per tile column, so the
+# row loop vectorises) and summed into one row per (tile, splat) intersection; ``reduce_rows``
+# then sums those rows per splat in list order (deterministic for any thread count).
+# ---------------------------------------------------------------------------------------------
+
+N_GRAD32 = 10  # per-intersection gradient row: v0..v3, opacity, conic a, b, c, mx, my
+_NB = 15  # backward tile state rows: T, live, running acc x4, final acc x4, g_acc x4, g_alpha * T_final
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def raster_backward_fast(rec, offsets, ids, width, height, tw, n_chunks, acc_final, T_final, g_acc, g_alpha, out_g):
+    """Gradients of ``raster_forward_fast`` (same ``rec``/``offsets``/``ids``), float32, D = 4.
+
+    Args:
+        acc_final ``[H, W, 4]`` and T_final ``[H, W]``: the forward's outputs; g_acc ``[H, W, 4]``,
+        g_alpha ``[H, W]``: incoming gradients of acc and of alpha = 1 - T_final.
+    Writes:
+        out_g ``[M, N_GRAD32]`` float32, one row per intersection (``ids`` order): d/d(v0..v3,
+        opacity, conic a, b, c, mx, my); rows of splats never composited are zero.
+
+    The per-pixel float32 arithmetic that decides alpha, compositing and stopping is written
+    exactly as in ``_composite_px`` (same operations in the same order, no fused multiply-add), so
+    the same splats are composited at the same pixels. Pixels outside the splat's row span
+    (``_row_span``, conservative) are skipped: there alpha < ALPHA_MIN, the forward skips them too.
+    """
+    n_tiles = offsets.shape[0] - 1
+    per = (n_tiles + n_chunks - 1) // n_chunks
+    for k in prange(n_chunks * per):
+        t = (k % per) * n_chunks + k // per
+        if t >= n_tiles:
+            continue
+        s = offsets[t]
+        e = offsets[t + 1]
+        for kk in range(s, e):
+            for q in range(N_GRAD32):
+                out_g[kk, q] = _ZERO
+        if e == s:
+            continue
+        ty = t // tw
+        x0 = (t - ty * tw) * _TS
+        y0 = ty * _TS
+        x1 = min(x0 + _TS, width)
+        y1 = min(y0 + _TS, height)
+        # pixel state: T, live, running acc x4, final acc x4, g_acc x4, g_alpha * T_final
+        P = np.zeros((_NPIX, _NB), np.float32)
+        rowlive = np.zeros(_TS, np.int32)
+        n_live = 0
+        for i in range(y0, y1):
+            for j in range(x0, x1):
+                p = (i - y0) * _TS + (j - x0)
+                P[p, 0] = _ONE
+                P[p, 1] = _ONE
+                for d in range(4):
+                    P[p, 6 + d] = acc_final[i, j, d]
+                    P[p, 10 + d] = g_acc[i, j, d]
+                P[p, 14] = g_alpha[i, j] * T_final[i, j]
+            rowlive[i - y0] = x1 - x0
+            n_live += x1 - x0
+        for kk in range(s, e):
+            r = ids[kk]
+            bx0 = int(rec[r, R_BOX + 0])
+            bx1 = int(rec[r, R_BOX + 1])
+            iy0 = max(int(rec[r, R_BOX + 2]), y0)
+            iy1 = min(int(rec[r, R_BOX + 3]), y1)
+            if bx0 >= x1 or bx1 <= x0 or iy0 >= iy1:
+                continue
+            mx = rec[r, 0]
+            my = rec[r, 1]
+            A = rec[r, 2]
+            hA = _HALF * A
+            B = rec[r, 3]
+            Cc = rec[r, 4]
+            hC = _HALF * Cc
+            o = rec[r, 5]
+            v0 = rec[r, 6]
+            v1 = rec[r, 7]
+            v2 = rec[r, 8]
+            v3 = rec[r, 9]
+            jx0 = max(bx0, x0)
+            jx1 = min(bx1, x1)
+            sig_max = math.log(max(float(o), 1e-30)) + _LOG_INV_AMIN + 1e-3
+            sig_max32 = _F32(sig_max)
+            gv0 = _ZERO
+            gv1 = _ZERO
+            gv2 = _ZERO
+            gv3 = _ZERO
+            go = _ZERO
+            ga = _ZERO
+            gb = _ZERO
+            gc = _ZERO
+            gmx = _ZERO
+            gmy = _ZERO
+            for i in range(iy0, iy1):
+                if rowlive[i - y0] == 0:
+                    continue
+                dy = my - (_F32(i) + _HALF)
+                cy = hC * dy * dy
+                by = B * dy
+                j0, j1 = _row_span(float(A), float(B), float(Cc), sig_max, float(mx), float(dy), jx0, jx1)
+                for j in range(j0, j1):
+                    p = (i - y0) * _TS + (j - x0)
+                    if P[p, 1] == _ZERO:
+                        continue
+                    dx = mx - (_F32(j) + _HALF)
+                    sig = hA * dx * dx + cy + by * dx
+                    if not (sig >= _ZERO) or sig > sig_max32:  # sig > sig_max: alpha < ALPHA_MIN surely
+                        continue
+                    G = _exp_neg32(sig)
+                    raw = o * G
+                    al = min(_AMAX, raw)
+                    if not (al >= _AMIN):
+                        continue
+                    Tp = P[p, 0]
+                    nT = Tp * (_ONE - al)
+                    if nT <= _TMIN:
+                        P[p, 1] = _ZERO
+                        rowlive[i - y0] -= 1
+                        n_live -= 1
+                        continue
+                    w = al * Tp
+                    a0 = P[p, 2] + w * v0
+                    a1 = P[p, 3] + w * v1
+                    a2 = P[p, 4] + w * v2
+                    a3 = P[p, 5] + w * v3
+                    P[p, 2] = a0
+                    P[p, 3] = a1
+                    P[p, 4] = a2
+                    P[p, 5] = a3
+                    P[p, 0] = nT
+                    g0 = P[p, 10]
+                    g1 = P[p, 11]
+                    g2 = P[p, 12]
+                    g3 = P[p, 13]
+                    gv0 += w * g0
+                    gv1 += w * g1
+                    gv2 += w * g2
+                    gv3 += w * g3
+                    if raw < _AMAX:
+                        ra = _ONE / (_ONE - al)
+                        dal = P[p, 14] * ra + g0 * (v0 * Tp - (P[p, 6] - a0) * ra) + g1 * (v1 * Tp - (P[p, 7] - a1) * ra)
+                        dal = dal + g2 * (v2 * Tp - (P[p, 8] - a2) * ra) + g3 * (v3 * Tp - (P[p, 9] - a3) * ra)
+                        dsig = -dal * raw
+                        go += dal * G
+                        ga += _HALF * dx * dx * dsig
+                        gb += dx * dy * dsig
+                        gc += _HALF * dy * dy * dsig
+                        gmx += (A * dx + B * dy) * dsig
+                        gmy += (Cc * dy + B * dx) * dsig
+            out_g[kk, 0] = gv0
+            out_g[kk, 1] = gv1
+            out_g[kk, 2] = gv2
+            out_g[kk, 3] = gv3
+            out_g[kk, 4] = go
+            out_g[kk, 5] = ga
+            out_g[kk, 6] = gb
+            out_g[kk, 7] = gc
+            out_g[kk, 8] = gmx
+            out_g[kk, 9] = gmy
+            if n_live == 0:
+                break
+
+
+@njit(cache=True, fastmath=False)
+def reduce_rows(ids, isect_g, n_rows):
+    """Sum per-intersection rows ``[M, K]`` into ``[n_rows, K]`` float64 by ``ids`` in list order."""
+    K = isect_g.shape[1]
+    out = np.zeros((n_rows, K))
+    for k in range(ids.shape[0]):
+        r = ids[k]
+        for q in range(K):
+            out[r, q] += isect_g[k, q]
+    return out

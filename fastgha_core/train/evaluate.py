@@ -65,6 +65,8 @@ class EvalConfig:
     backend: str = "auto"  # render backend
     grid_subjects: int = 4  # subjects shown in the comparison grid
     resolution: int = 0  # side of the rendered/ground-truth target images (0 = the model's render_size)
+    refine_steps: int = 0  # test-time refinement (fastgha_core.refine) against the inputs; 0 = off
+    refine_cameras: bool = False  # let the refinement correct the (exact) input cameras
 
     def __post_init__(self) -> None:
         if self.ablation not in ABLATIONS:
@@ -202,6 +204,11 @@ def evaluate(
         in_expr = torch.stack([source.expression(t).float() for t, _ in pairs])
         in_expr = in_expr if in_expr.shape[-1] == model.config.expression_dim else None
         avatar = model.reconstruct(in_imgs.to(device), in_cams.to(device), expressions=in_expr)
+        if cfg.refine_steps > 0:
+            from ..refine import RefineConfig, refine_avatar
+
+            rcfg = RefineConfig(steps=cfg.refine_steps, optimize_cameras=cfg.refine_cameras)
+            avatar = refine_avatar(model, avatar, images, _cameras_at(source, pairs), masks, config=rcfg, expressions=in_expr).avatar
         if cfg.ablation == "no-features":
             from ..model.avatar import CanonicalAvatar
 

@@ -1,0 +1,97 @@
+"""Test-time refinement (fastgha_core.refine): contract, geometry helpers, and that it fits the inputs better."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from fastgha_core import Cameras
+from fastgha_core.refine import RefineConfig, corrected_w2c, masked_psnr, prepare_targets, refine_avatar, source_views
+from fastgha_core.refine.measure import SAMPLE_REQUEST, read_request, render_inputs
+
+
+@pytest.fixture(scope="module")
+def sample():
+    from fastgha_core.model.fastgha import load_model
+
+    model = load_model("tiny")
+    images, masks, cams, expr = read_request(SAMPLE_REQUEST)
+    imgs, in_cams = model.prepare(list(images), [cams[i : i + 1] for i in range(len(cams.K))], list(masks))
+    avatar = model.reconstruct(imgs, in_cams)
+    return model, avatar, images, masks, cams, expr
+
+
+def test_zero_steps_returns_the_avatar_unchanged(sample):
+    model, avatar, images, masks, cams, expr = sample
+    res = refine_avatar(model, avatar, images, cams, masks, config=RefineConfig(steps=0), expressions=expr)
+    assert res.avatar is avatar
+    assert torch.equal(res.cameras.w2c, cams.w2c) and res.timings["steps"] == 0
+    assert torch.equal(res.rotations, torch.zeros(4, 3))
+
+
+@pytest.mark.parametrize("smooth_grid", [0, 16])
+def test_refinement_fits_the_input_views_better(sample, smooth_grid):
+    model, avatar, images, masks, cams, expr = sample
+    calls = []
+    cfg = RefineConfig(steps=8, resolution=64, coarse_resolution=64, smooth_grid=smooth_grid)
+    res = refine_avatar(model, avatar, images, cams, masks, config=cfg, expressions=expr, progress=lambda i, n: calls.append((i, n)))
+    assert calls == [(i, 8) for i in range(1, 9)]
+    assert res.losses[-1] < res.losses[0]
+    targets, tmask, _ = prepare_targets(images, cams, masks, 64)
+    before = masked_psnr(render_inputs(model, avatar, prepare_targets(images, cams, masks, 64)[2], expr, 64)[0], targets, tmask)
+    after = masked_psnr(render_inputs(model, res.avatar, prepare_targets(images, res.cameras, masks, 64)[2], expr, 64)[0], targets, tmask)
+    assert float(after.mean()) > float(before.mean()) + 0.3
+    # the refined avatar is an ordinary avatar: features kept, animated like any other
+    assert res.avatar.gaussians.features.shape[1] == avatar.gaussians.features.shape[1]
+    assert len(model.animate(res.avatar, expr[0])) == len(res.avatar)
+    assert res.cameras.w2c.shape == cams.w2c.shape and (res.cameras.width, res.cameras.height) == (cams.width, cams.height)
+
+
+def test_bad_inputs_raise_clear_errors(sample):
+    model, avatar, images, masks, cams, expr = sample
+    with pytest.raises(ValueError, match="expressions must have shape"):
+        refine_avatar(model, avatar, images, cams, masks, config=RefineConfig(steps=1), expressions=expr[:, :5])
+    with pytest.raises(ValueError, match="images must have shape"):
+        refine_avatar(model, avatar, images[:3], cams, masks, config=RefineConfig(steps=1))
+    with pytest.raises(ValueError, match="resolution must be a multiple of 16"):
+        RefineConfig(resolution=100)
+    with pytest.raises(ValueError, match="steps must be >= 0"):
+        RefineConfig(steps=-1)
+
+
+def test_source_views_finds_the_ray_each_point_came_from():
+    cams = Cameras.look_at(torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.1, 0.8], [-0.5, 0.3, 0.8]]), fov_deg=25.0, width=32, height=32)
+    g = torch.Generator().manual_seed(0)
+    pts, truth = [], []
+    for v in range(3):
+        origins, dirs = cams[v : v + 1].pixel_rays(16, 16)
+        t = 0.9 + 0.2 * torch.rand(16, 16, 1, generator=g)
+        pts.append((origins + t * dirs).reshape(-1, 3))
+        truth.append(torch.full((256,), v))
+    found = source_views(torch.cat(pts), cams, 16)
+    assert torch.equal(found, torch.cat(truth))
+
+
+def test_camera_correction_is_a_rigid_motion_in_the_camera_frame():
+    w2c = Cameras.look_at(torch.tensor([[0.2, 0.1, 0.9]]), fov_deg=25.0, width=32, height=32).w2c
+    assert torch.allclose(corrected_w2c(w2c, torch.zeros(1, 3), torch.zeros(1, 3)), w2c)
+    rot, trans = torch.tensor([[0.0, 0.0, math.pi / 2]]), torch.tensor([[0.01, -0.02, 0.03]])
+    out = corrected_w2c(w2c, rot, trans)
+    Rz = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    assert torch.allclose(out[0, :3, :3], Rz @ w2c[0, :3, :3], atol=1e-6)
+    assert torch.allclose(out[0, :3, 3], Rz @ w2c[0, :3, 3] + trans[0], atol=1e-6)
+    small = corrected_w2c(w2c, torch.tensor([[1e-6, 0.0, 0.0]]), torch.zeros(1, 3))
+    assert torch.isfinite(small).all()
+
+
+def test_masked_psnr_counts_only_the_mask():
+    a = torch.zeros(1, 3, 4, 4)
+    b = a.clone()
+    b[..., :2] = 1.0  # wrong only on the left half
+    m = torch.zeros(1, 1, 4, 4)
+    m[..., 2:] = 1.0
+    assert float(masked_psnr(a, b, m)[0]) == pytest.approx(100.0)  # clamped at mse 1e-10
+    m[..., 0] = 1.0  # 4 wrong of 12 pixels -> mse 1/3
+    assert float(masked_psnr(a, b, m)[0]) == pytest.approx(10 * math.log10(3), rel=1e-5)
