@@ -37,7 +37,6 @@ ordinary ``CanonicalAvatar``).
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 from typing import Callable
