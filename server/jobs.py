@@ -656,7 +656,7 @@ class JobQueue:
             state.timings_ms[f"{name}_ms"] = 1e3 * (time.perf_counter() - t)
             progress(name, 1.0)
         avatar = state.avatar
-        _check_head(len(avatar.gaussians), s)
+        _check_head(avatar.num_reconstructed, s)  # the head model's mouth interior and lids are not a head
         # ---- saving (the avatar is durable before the job reports ready)
         progress("saving", 0.0)
         n = len(avatar.gaussians)
