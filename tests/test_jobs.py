@@ -474,16 +474,37 @@ def test_decompression_amplification_is_bounded(model_dir, tmp_path):
 
 
 # ---------------------------------------------------------------- the extra-stage hook (test-time refinement plugs in here)
+def _run_job(ctx, request, extra_stages) -> tuple:
+    """Run one creation through an in-process ``JobQueue``; ``(job, [(stage, fraction, progress)]`` of
+    every update (watchers may see them coalesced)."""
+    import asyncio
+
+    from server.jobs import JobQueue
+
+    async def run():
+        q = JobQueue(ctx, tracker=None, extra_stages=extra_stages)
+        await q.start()
+        try:
+            job, _ = q.submit(q.reserve("test", 1), request)
+            seen = []
+            update = job.update
+            job.update = lambda st, f: (update(st, f), seen.append((job.stage, job.stage_fraction, job.progress)))
+            await q.wait(job)
+            return job, seen
+        finally:
+            await q.stop()
+
+    return asyncio.run(run())
+
+
 def test_an_extra_stage_sees_the_prepared_inputs_reports_progress_and_replaces_the_avatar(model_dir, samples, tmp_path):
     """``JobQueue(extra_stages=[("refining", fn)])`` in-process with a real model and store."""
-    import asyncio
     import dataclasses
 
     from fastgha_core import load_model
     from fastgha_core.cameras import cameras_from_json
     from fastgha_core.model.avatar import CanonicalAvatar
     from server.context import ServerContext
-    from server.jobs import JobQueue
     from server.settings import Settings
     from server.store import AvatarStore
 
@@ -505,20 +526,8 @@ def test_an_extra_stage_sees_the_prepared_inputs_reports_progress_and_replaces_t
     cams = cameras_from_json(json.loads((samples / "cameras.json").read_text()))
     probe_request(photos, masks, cams, max_pixels=10**7, max_request_pixels=10**8)
 
-    async def run():
-        q = JobQueue(ctx, tracker=None, extra_stages=[("refining", refine)])
-        await q.start()
-        try:
-            job, token = q.submit(q.reserve("test", 1), CreationRequest(photos, masks, cams))
-            stages = []  # every update (watchers may see them coalesced)
-            update = job.update
-            job.update = lambda st, f: (update(st, f), stages.append((job.stage, job.progress)))
-            await q.wait(job)
-            return job, stages
-        finally:
-            await q.stop()
-
-    job, stages = asyncio.run(run())
+    job, updates = _run_job(ctx, CreationRequest(photos, masks, cams), [("refining", refine)])
+    stages = [(st, p) for st, _, p in updates]
     assert job.status == "ready", job.error and job.error.message
     s = ctx.model.config.input_size
     assert seen["images"] == (4, 3, s, s) and seen["masks"] == (4, 1, s, s) and seen["views"] == 4 and seen["size"] == (s, s)
@@ -534,13 +543,12 @@ def test_an_extra_stage_sees_the_prepared_inputs_reports_progress_and_replaces_t
 def test_refine_steps_setting_plugs_test_time_refinement_into_the_job(model_dir, samples, tmp_path):
     """``FASTGHA_REFINE_STEPS`` > 0: the job runs ``fastgha_core.refine`` as its ``refining`` stage,
     reporting its steps, and stores the refined avatar; 0 (the default) adds no stage."""
-    import asyncio
 
     from fastgha_core import load_model
     from fastgha_core.cameras import cameras_from_json
     from fastgha_core.model.avatar import CanonicalAvatar
     from server.context import ServerContext
-    from server.jobs import JobQueue, extra_stages_for
+    from server.jobs import extra_stages_for
     from server.settings import Settings
     from server.store import AvatarStore
 
@@ -556,20 +564,8 @@ def test_refine_steps_setting_plugs_test_time_refinement_into_the_job(model_dir,
         photos = [Photo(p.name, p.read_bytes()) for p in imgs]
         masks = [Photo(f"{p.stem}_mask.png", (samples / f"{p.stem}_mask.png").read_bytes()) for p in imgs]
 
-        async def run():
-            q = JobQueue(ctx, tracker=None, extra_stages=extra_stages_for(ctx))
-            await q.start()
-            try:
-                job, _ = q.submit(q.reserve("test", 1), CreationRequest(photos, masks, cams))
-                seen = []
-                update = job.update
-                job.update = lambda st, f: (update(st, f), seen.append((job.stage, job.stage_fraction)))
-                await q.wait(job)
-                return job, seen
-            finally:
-                await q.stop()
-
-        job, seen = asyncio.run(run())
+        job, updates = _run_job(ctx, CreationRequest(photos, masks, cams), extra_stages_for(ctx))
+        seen = [(st, f) for st, f, _ in updates]
         assert job.status == "ready", job.error and job.error.message
         return ctx.store.get(job.id).avatar.gaussians, ctx.store.get_meta(job.id), job, seen
 
