@@ -303,10 +303,19 @@ class FastGHA(nn.Module):
         if view_expressions is not None:
             if view_index is None or view_index.shape != (len(g),):
                 raise ValueError(f"build_prior: view_index must have shape [{len(g)}] with view_expressions")
-            rt = self._runtime(binding)
             ve = torch.as_tensor(view_expressions, dtype=torch.float32).cpu()
-            d = rt.displacement(ve)  # [V, N, 3]
-            shift = d[view_index.cpu().long(), torch.arange(len(g))]  # [N, 3]
+            vi = view_index.cpu().long()
+            shift = self._runtime(binding).displacement(ve)[vi, torch.arange(len(g))]  # [N, 3]
+            if float(ve.abs().max()) > 0 and int(solid.sum()) >= 100:
+                # refit and rebind on the neutralised cloud: an open mouth in an input photo otherwise
+                # pulls the neutral head's fit (and so the lip seam every Gaussian binds across)
+                neutral = (means - shift).numpy()
+                try:
+                    fit = fit_head(neutral[solid.numpy()], basis)
+                    binding = bind(neutral, fit, basis, tuple(self.config.deform.prior_fade))
+                    shift = self._runtime(binding).displacement(ve)[vi, torch.arange(len(g))]
+                except (ValueError, np.linalg.LinAlgError):
+                    pass
             g = g.replace(means=g.means - shift.to(dev, g.means.dtype))
         binding = binding.to(dev)
         n_int = 0
