@@ -12,7 +12,7 @@ Pieces (all numpy/torch on CPU, no learning):
   the triangles Gaussians bind to and the vertex ids the fit uses. ``load_basis("ict53")`` reads the
   shipped ICT-FaceKit model; ``load_basis("flame120", path)`` reads a FLAME model file given by the
   user (FLAME's blendshapes cannot ship).
-- ``fit_head(points, basis)``: trimmed ICP of identity modes + similarity transform against the
+- ``fit_head(points, basis)``: trimmed ICP of identity modes + a rigid transform (scale optional) against the
   canonical Gaussian centres (model vertex -> nearest Gaussian correspondences).
 - ``bind(points, fit, basis)``: each point's nearest triangle of the fitted surface (barycentric
   coordinates of the clamped projection) and a fade weight ``1 - smoothstep((d - d0) / (d1 - d0))``
@@ -279,7 +279,7 @@ def _neutral_normals(basis: HeadBasis) -> np.ndarray:
 
 
 def fit_head(points: np.ndarray, basis: HeadBasis, iters: int = 10, keep: float = 0.5, ridge: float = 4.0, free_scale: bool = False) -> HeadFit:
-    """Fit identity modes and a similarity transform to a point cloud (trimmed ICP).
+    """Fit identity modes and a rigid transform (a similarity with ``free_scale``) to a point cloud (trimmed ICP).
 
     Args:
         points: ``[P, 3]`` canonical Gaussian centres (metres, head roughly at the origin).
