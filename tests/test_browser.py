@@ -304,11 +304,6 @@ def shipped_server(tmp_path_factory):
     srv.stop()
 
 
-@pytest.mark.xfail(
-    reason="the shipped tiny model's jawOpen moves the whole head (neck and crown change about as much as the mouth: "
-    "mouth 3.5 vs crown 2.8 mean summed-RGB change); issue 16's expression work makes the jaw open",
-    strict=False,
-)
 def test_jaw_open_changes_the_mouth_region(shipped_server):
     import numpy as np
 

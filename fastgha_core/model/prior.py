@@ -12,7 +12,7 @@ Pieces (all numpy/torch on CPU, no learning):
   the triangles Gaussians bind to and the vertex ids the fit uses. ``load_basis("ict53")`` reads the
   shipped ICT-FaceKit model; ``load_basis("flame120", path)`` reads a FLAME model file given by the
   user (FLAME's blendshapes cannot ship).
-- ``fit_head(points, basis)``: trimmed ICP of identity modes + similarity transform against the
+- ``fit_head(points, basis)``: trimmed ICP of identity modes + a rigid transform (scale optional) against the
   canonical Gaussian centres (model vertex -> nearest Gaussian correspondences).
 - ``bind(points, fit, basis)``: each point's nearest triangle of the fitted surface (barycentric
   coordinates of the clamped projection) and a fade weight ``1 - smoothstep((d - d0) / (d1 - d0))``
@@ -278,15 +278,21 @@ def _neutral_normals(basis: HeadBasis) -> np.ndarray:
     return _normals_cached(id(basis), basis)
 
 
-def fit_head(points: np.ndarray, basis: HeadBasis, iters: int = 10, keep: float = 0.8, ridge: float = 4.0) -> HeadFit:
-    """Fit identity modes and a similarity transform to a point cloud (trimmed ICP).
+def fit_head(points: np.ndarray, basis: HeadBasis, iters: int = 10, keep: float = 0.5, ridge: float = 4.0, free_scale: bool = False) -> HeadFit:
+    """Fit identity modes and a rigid transform (a similarity with ``free_scale``) to a point cloud (trimmed ICP).
 
     Args:
         points: ``[P, 3]`` canonical Gaussian centres (metres, head roughly at the origin).
         basis: the head basis.
         iters: ICP iterations (each: correspondences, linear shape solve, rigid update).
-        keep: fraction of correspondences kept (the closest), so hair and stray Gaussians do not pull.
+        keep: fraction of correspondences kept (the closest), so hair and stray Gaussians do not pull
+            (0.5: on held-out synthetic reconstructions the mean landmark error of the fit drops from
+            5.3 mm at 0.8 to 4.2 mm).
         ridge: weight of the ``|identity|^2`` penalty (unit-variance modes), in mm^2 of point noise.
+        free_scale: solve a global scale besides the identity modes. Off by default: the identity
+            modes already carry the head's size, and a free scale trades off against them (it settled
+            at 0.90-0.94 on held-out synthetic heads of the model's own size), which shrinks every
+            blendshape displacement by the same factor, since the prior applies the fit's scale.
     Raises:
         ValueError: fewer than 100 points.
     """
@@ -328,8 +334,13 @@ def fit_head(points: np.ndarray, basis: HeadBasis, iters: int = 10, keep: float 
         rhs = np.concatenate([bp, 0.3 * rhs])
         # MAP with unit-variance modes and ~2 mm point noise: ridge = noise variance (m^2)
         reg = np.diag(np.concatenate([[0.0], np.full(K, ridge * 1e-6), np.zeros(3)]))
-        sol = np.linalg.solve(A.T @ A + reg + 1e-12 * np.eye(len(reg)), A.T @ rhs)
-        sc = float(np.clip(sol[0], 0.8, 1.25))
+        if free_scale:
+            sol = np.linalg.solve(A.T @ A + reg + 1e-12 * np.eye(len(reg)), A.T @ rhs)
+            sc = float(np.clip(sol[0], 0.8, 1.25))
+        else:  # sc = 1: its column moves to the right-hand side
+            rest = np.linalg.solve(A[:, 1:].T @ A[:, 1:] + reg[1:, 1:] + 1e-12 * np.eye(len(reg) - 1), A[:, 1:].T @ (rhs - A[:, 0]))
+            sol = np.concatenate([[1.0], rest])
+            sc = 1.0
         a, tm = sol[1 : 1 + K], sol[1 + K :]
         local = sc * n0[m] + np.tensordot(a, B[:, m], axes=1) + tm
         R, off = _kabsch(local, p[j[m]])
