@@ -331,7 +331,9 @@ def _refine_avatar(
         levels[size] = prepare_targets(images.cpu(), cams_in.to("cpu", torch.float32), None if masks is None else masks.cpu(), size)
     tcams = levels[config.resolution][2]
     n_coarse = int(round(config.coarse_fraction * config.steps))
-    g0 = avatar.gaussians.detach().to("cpu").to(dtype=torch.float32)
+    # only the network's Gaussians are refined; a model with the expression prior rebinds the head
+    # surface and appends its mouth interior / eyelids to the result (``FastGHA.attach_prior``)
+    g0 = avatar.gaussians[: avatar.num_reconstructed].detach().to("cpu").to(dtype=torch.float32)
     n = len(g0)
     grid = model.config.input_size
     src = source_views(g0.means, tcams, grid)  # [N]
@@ -348,6 +350,9 @@ def _refine_avatar(
             for i in range(v):
                 a, b = model.deform(feats, xyz, expressions[i].to(dev))
                 dxyz[i], drgb[i] = a.float().cpu(), b.float().cpu()
+            if avatar.prior is not None:  # the head model's displacement under the MLP's residual
+                rt = model._runtime(avatar.prior)
+                dxyz += rt.displacement(expressions.to(rt.basis_u.device)).float().cpu()[:, :n]
 
     if config.realign and expressions is not None:
         # Pixel re-alignment: the network predicts each Gaussian on its own pixel ray (and with its
@@ -471,6 +476,8 @@ def _refine_avatar(
             g = g.prune(config.prune_opacity)
         w2c_full = corrected_w2c(cams_in.w2c.float().cpu(), rot.detach(), trans.detach())
     out = CanonicalAvatar(g.to(avatar.gaussians.device), avatar.model_name, avatar.expression_space)
+    if avatar.prior is not None:
+        model.attach_prior(out)
     cams_out = Cameras(cams_in.K.float().cpu(), w2c_full, cams_in.width, cams_in.height)
     timings = {"setup": t_setup, "optimize": t_opt, "total": time.perf_counter() - t_start, "steps": config.steps}
     return RefineResult(out, cams_out, rot.detach().clone(), trans.detach().clone(), losses, timings)

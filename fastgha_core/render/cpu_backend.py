@@ -224,8 +224,7 @@ class _RasterizeFast32(torch.autograd.Function):
                 g[c, torch.from_numpy(idx)] = torch.from_numpy(_K.reduce_rows(ids, isect, idx.shape[0]))
         finally:
             numba.set_num_threads(prev)
-        ctx.saved = None
-        g = g.float()
+        g = g.float()  # ctx.saved stays: a graph kept with retain_graph=True may run backward again
         # row layout: v0..v3, opacity, conic a, b, c, mx, my
         return g[..., 8:10], g[..., 5:8], g[..., 4].sum(0), g[..., 0:4], None, None, None, None
 
