@@ -74,6 +74,27 @@ def test_prior_equals_the_blendshape_at_a_surface_vertex(fit, basis):
         torch.testing.assert_close(batch[i], rt.displacement(zs[i]), atol=1e-6, rtol=1e-5)
 
 
+def test_sparse_displacement_matches_the_plain_gather_on_outputs_and_gradients(fit, basis, head_points):
+    """``PriorRuntime.displacement`` (one sparse [N, U] product) against ``displacement_reference``
+    (gather the three corners, weight, sum) for single and batched expressions, with gradients."""
+    rng = np.random.default_rng(3)
+    verts = head_points[0]
+    pts = verts[rng.choice(len(verts), 500, replace=False)] + rng.normal(0, 0.004, (500, 3))  # on and off the surface
+    rt = PriorRuntime(bind(torch.as_tensor(pts, dtype=torch.float32), fit, basis), basis)
+    for shape in ((53,), (4, 53)):
+        z = torch.rand(*shape, dtype=torch.float64).float().requires_grad_(True)
+        z_ref = z.detach().clone().requires_grad_(True)
+        got, want = rt.displacement(z), rt.displacement_reference(z_ref)
+        torch.testing.assert_close(got, want, atol=1e-6, rtol=1e-5)
+        w = torch.randn_like(want)
+        (got * w).sum().backward()
+        (want * w).sum().backward()
+        torch.testing.assert_close(z.grad, z_ref.grad, atol=1e-5, rtol=1e-4)
+    sparse_z = torch.zeros(53)
+    sparse_z[[5, 17]] = torch.tensor([0.7, 0.3])  # a slider frame: the few-rows branch
+    torch.testing.assert_close(rt.displacement(sparse_z), rt.displacement_reference(sparse_z), atol=1e-6, rtol=1e-5)
+
+
 def test_prior_fades_to_zero_far_from_the_surface(fit, basis):
     hm = HeadModel.load()
     chin = fit.vertices[hm.landmarks68[8]]

@@ -33,6 +33,7 @@ import functools
 import os
 from dataclasses import dataclass
 from pathlib import Path
+import warnings
 
 import numpy as np
 import torch
@@ -647,6 +648,15 @@ class PriorRuntime:
         self.M = binding.transform[:3, :3].float().to(dev)  # [3, 3]
         self.coef = (binding.bary * binding.weight[:, None]).float().to(dev)[..., None]  # [N, 3, 1]
         self.n = len(binding)
+        # the same gather-and-weight as one sparse [N, U] matrix (3 entries a row): one sparse product
+        # per frame instead of an [N, 3, 3] gather, multiply and sum (1.6 -> ~0.4 ms for 37k Gaussians)
+        u = self.basis_u.shape[1] // 3
+        with warnings.catch_warnings():  # torch marks CSR tensors "beta"; this one is built valid by construction
+            warnings.simplefilter("ignore", UserWarning)
+            self.W = torch.sparse_csr_tensor(
+                torch.arange(0, 3 * self.n + 1, 3, dtype=torch.int64), self.local.cpu(), self.coef.reshape(-1).cpu(),
+                size=(self.n, u), check_invariants=False,
+            ).to(dev)  # [N, U]
         grp = binding.groups()
         self.gated = bool((grp >= 0).any())
         self.group_index = (grp + 1).to(dev)  # [N] into opacity_factors' table
@@ -658,9 +668,16 @@ class PriorRuntime:
             nz = torch.nonzero(z).flatten()
             # a slider frame drives a few blendshapes: read only their rows of the basis
             d = z[nz] @ self.basis_u[nz] if len(nz) * 4 < len(z) else z @ self.basis_u  # [U*3]
-            du = d.view(-1, 3)  # [U, 3]
-            out = (du.index_select(0, self.local).view(self.n, 3, 3) * self.coef).sum(1)  # [N, 3], model frame
-            return out @ self.M.T
-        d = z @ self.basis_u  # [B, U*3]
-        du = d.view(z.shape[0], -1, 3)
-        return (du[:, self.local].view(z.shape[0], self.n, 3, 3) * self.coef).sum(2) @ self.M.T
+            du = d.view(-1, 3) @ self.M.T  # [U, 3], the fit's frame (linear: commutes with the weighting)
+            return self.W @ du  # [N, 3]
+        b = z.shape[0]
+        du = (z @ self.basis_u).view(b, -1, 3) @ self.M.T  # [B, U, 3]
+        out = self.W @ du.permute(1, 0, 2).reshape(du.shape[1], 3 * b)  # [N, B*3]
+        return out.view(self.n, b, 3).permute(1, 0, 2)  # [B, N, 3]
+
+    def displacement_reference(self, z: Tensor) -> Tensor:
+        """The plain gather-weight-sum that ``displacement`` computes with one sparse product (tests)."""
+        z = z.to(self.basis_u.dtype)
+        du = (z @ self.basis_u).view(*z.shape[:-1], -1, 3)  # [..., U, 3]
+        out = (du[..., self.local, :].view(*z.shape[:-1], self.n, 3, 3) * self.coef).sum(-2)
+        return out @ self.M.T
