@@ -144,3 +144,23 @@ class ServerProcess:
                 self.proc.wait()
         self.log.close()
         return self.proc.returncode
+
+
+def random_avatar(n: int = 16, seed: int = 0):
+    """A small random ``CanonicalAvatar`` (``n`` Gaussians, 4 features, ``tiny`` / ``ict53``) for store tests."""
+    import torch
+
+    from fastgha_core.gaussians import Gaussians
+    from fastgha_core.model.avatar import CanonicalAvatar
+
+    g = torch.Generator().manual_seed(seed)
+    q = torch.randn(n, 4, generator=g)
+    gs = Gaussians(
+        means=torch.randn(n, 3, generator=g) * 0.1,
+        quats=q / q.norm(dim=-1, keepdim=True),
+        scales=torch.rand(n, 3, generator=g) * 0.01 + 1e-3,
+        opacities=torch.rand(n, generator=g) * 0.9 + 0.05,
+        colors=torch.rand(n, 3, generator=g),
+        features=torch.randn(n, 4, generator=g),
+    )
+    return CanonicalAvatar(gs, "tiny", "ict53")

@@ -17,9 +17,9 @@ import torch
 
 from fastgha_core.cameras import Cameras, cameras_to_json
 from fastgha_core.expressions import get_space
-from fastgha_core.gaussians import Gaussians
 from fastgha_core.model.avatar import CanonicalAvatar
 from server.protocol import ProtocolError, pack_binary_request, parse_binary_message, parse_cameras_json, parse_text_message
+from server_process import random_avatar
 
 SPACE = get_space("ict53")
 REPO = Path(__file__).resolve().parent.parent
@@ -227,18 +227,6 @@ def test_log_throttle_one_traceback_then_counts(caplog):
 
 
 # ---------------------------------------------------------------- items 6 and 8: store
-def _avatar(n: int = 16) -> CanonicalAvatar:
-    g = torch.Generator().manual_seed(0)
-    q = torch.randn(n, 4, generator=g)
-    gs = Gaussians(
-        means=torch.randn(n, 3, generator=g) * 0.1,
-        quats=q / q.norm(dim=-1, keepdim=True),
-        scales=torch.rand(n, 3, generator=g) * 0.01 + 1e-3,
-        opacities=torch.rand(n, generator=g) * 0.9 + 0.05,
-        colors=torch.rand(n, 3, generator=g),
-        features=torch.randn(n, 4, generator=g),
-    )
-    return CanonicalAvatar(gs, "tiny", "ict53")
 
 
 def test_store_disk_full_is_typed_and_leaves_nothing(tmp_path, monkeypatch):
@@ -248,7 +236,7 @@ def test_store_disk_full_is_typed_and_leaves_nothing(tmp_path, monkeypatch):
     def full(self, *a, **k):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    av = _avatar()
+    av = random_avatar()
     # the avatar file cannot be written
     monkeypatch.setattr(CanonicalAvatar, "save", lambda self, p: full(p))
     with pytest.raises(StorageFullError):
@@ -269,8 +257,8 @@ def test_store_quarantines_a_corrupt_avatar_once(tmp_path, caplog):
 
     store = AvatarStore(tmp_path, 1 << 30, 0, load_fn=CanonicalAvatar.load)
     aid, bid = "C" * 22, "D" * 22
-    store.put(aid, _avatar(), {"avatar_id": aid})
-    store.put(bid, _avatar(), {"avatar_id": bid})
+    store.put(aid, random_avatar(), {"avatar_id": aid})
+    store.put(bid, random_avatar(), {"avatar_id": bid})
     fresh = AvatarStore(tmp_path, 1 << 30, 0, load_fn=CanonicalAvatar.load)  # nothing cached
     p = fresh.dir / f"{aid}.safetensors"
     p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])  # truncated

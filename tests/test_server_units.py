@@ -17,7 +17,6 @@ from PIL import Image
 
 from fastgha_core.cameras import Cameras, cameras_to_json
 from fastgha_core.expressions import get_space
-from fastgha_core.gaussians import Gaussians
 from fastgha_core.model.avatar import CanonicalAvatar
 from server import auth
 from server.errors import ApiError
@@ -36,6 +35,7 @@ from server.protocol import (
 )
 from server.store import AvatarStore
 from server.streaming import LatestSlot, RateLimiter
+from server_process import random_avatar
 
 SPACE = get_space("ict53")
 
@@ -199,22 +199,10 @@ def test_bearer_and_api_keys():
 
 
 # ---------------------------------------------------------------- store
-def _avatar(n: int, seed: int) -> CanonicalAvatar:
-    g = torch.Generator().manual_seed(seed)
-    q = torch.randn(n, 4, generator=g)
-    gs = Gaussians(
-        means=torch.randn(n, 3, generator=g) * 0.1,
-        quats=q / q.norm(dim=-1, keepdim=True),
-        scales=torch.rand(n, 3, generator=g) * 0.01 + 1e-3,
-        opacities=torch.rand(n, generator=g) * 0.9 + 0.05,
-        colors=torch.rand(n, 3, generator=g),
-        features=torch.randn(n, 4, generator=g),
-    )
-    return CanonicalAvatar(gs, "tiny", "ict53")
 
 
 def test_store_lru_budget_reload_delete(tmp_path):
-    a = [_avatar(100, i) for i in range(3)]
+    a = [random_avatar(100, i) for i in range(3)]
     size = a[0].nbytes
     store = AvatarStore(tmp_path, max_bytes=2 * size, ttl_seconds=0, load_fn=CanonicalAvatar.load)
     ids = [auth.new_avatar_id() for _ in a]
@@ -243,7 +231,7 @@ def test_store_cleans_partial_writes_and_expires(tmp_path):
     store = AvatarStore(tmp_path, max_bytes=1 << 30, ttl_seconds=100, load_fn=CanonicalAvatar.load)
     keep, old, streaming = (auth.new_avatar_id() for _ in range(3))
     for i in (keep, old, streaming):
-        store.put(i, _avatar(10, 0), {"avatar_id": i})
+        store.put(i, random_avatar(10, 0), {"avatar_id": i})
     d = tmp_path / "avatars"
     (d / ".tmp-abc-x.safetensors").write_bytes(b"partial")
     orphan = auth.new_avatar_id()
