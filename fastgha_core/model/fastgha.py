@@ -188,12 +188,14 @@ class FastGHA(nn.Module):
         return out
 
     # ------------------------------------------------------------ reconstruction
-    def forward_gaussians(self, images: Tensor, cameras: Cameras) -> list[Gaussians]:
+    def forward_gaussians(self, images: Tensor, cameras: Cameras, ray_depth: Tensor | None = None) -> list[Gaussians]:
         """Canonical Gaussians per sample.
 
         Args:
             images: ``[B, V, 3, H, W]`` in [0, 1], matted on ``BACKGROUND_RGB``.
             cameras: batch ``[B, V]`` describing the ``W x H`` images.
+            ray_depth: optional ``[B, V, H, W]`` distances (metres) along each pixel's ray that replace
+                the predicted depth (``model/surface.py``).
         Returns:
             ``B`` canonical ``Gaussians`` of ``V*H*W`` points with features.
         """
@@ -216,7 +218,7 @@ class FastGHA(nn.Module):
         tokens = torch.cat([f_dino, f_enc.to(f_dino.dtype), p_cam.to(f_dino.dtype)], dim=2)
         x = self.transformer(tokens)  # [B, V, D, H/8, W/8]
         maps = self.decoder(x)  # [B, V, 12+F, H, W]
-        return self.head(maps, cameras, images)
+        return self.head(maps, cameras, images, ray_depth)
 
     def forward(self, images: Tensor, K: Tensor, w2c: Tensor, expression: Tensor, input_expressions: Tensor | None = None) -> FastGHAOutput:
         """Training forward.
@@ -276,7 +278,7 @@ class FastGHA(nn.Module):
         return opacity_factors(z, rt.basis, rt.group_index) if rt.gated else None
 
     @torch.no_grad()
-    def build_prior(self, g: Gaussians, view_index: Tensor | None = None, view_expressions: Tensor | None = None):
+    def build_prior(self, g: Gaussians, view_index: Tensor | None = None, view_expressions: Tensor | None = None, head_fit=None):
         """Fit the head surface to canonical ``g``, bind every Gaussian, optionally undo the input
         photos' expressions, and append the mouth interior. The fit and the binding use the neutral
         positions the avatar is drawn at (centres + the deformation MLP's residual at the neutral
@@ -287,6 +289,8 @@ class FastGHA(nn.Module):
             view_index: ``[N]`` input view each Gaussian came from (with ``view_expressions``).
             view_expressions: ``[V, E]`` expression of each input photo (known or tracked): its prior
                 displacement is subtracted from the Gaussians of that view (a neutral canonical head).
+            head_fit: a ``prior.HeadFit`` to bind to (the tracked head, ``HeadSurface.head_fit``)
+                instead of fitting the head surface to the Gaussians.
         Returns:
             ``(gaussians, binding, num_interior)``; the returned Gaussians keep ``g``'s autograd graph
             (means are shifted by a constant when neutralising).
@@ -302,10 +306,13 @@ class FastGHA(nn.Module):
         # -0.19 -> 0.04 (jawOpen 0.75 -> 0.77).
         z0 = torch.as_tensor(self.expression_space.neutral(), dtype=g.means.dtype, device=g.means.device)
         means = means + self.deform(g.features.detach(), g.means.detach(), z0)[0].detach().float().cpu()
-        try:
-            fit = fit_head((means[solid] if int(solid.sum()) >= 100 else means).numpy(), basis)
-        except (ValueError, np.linalg.LinAlgError):  # too few Gaussians or a degenerate cloud: the generic head
-            fit = generic_fit(basis)
+        if head_fit is not None:
+            fit = head_fit
+        else:
+            try:
+                fit = fit_head((means[solid] if int(solid.sum()) >= 100 else means).numpy(), basis)
+            except (ValueError, np.linalg.LinAlgError):  # too few Gaussians or a degenerate cloud: the generic head
+                fit = generic_fit(basis)
         binding = bind(means, fit, basis, tuple(self.config.deform.prior_fade))
         dev = g.means.device
         if view_expressions is not None:
@@ -314,7 +321,7 @@ class FastGHA(nn.Module):
             ve = torch.as_tensor(view_expressions, dtype=torch.float32).cpu()
             vi = view_index.cpu().long()
             shift = self._runtime(binding).displacement(ve)[vi, torch.arange(len(g))]  # [N, 3]
-            if float(ve.abs().max()) > 0 and int(solid.sum()) >= 100:
+            if head_fit is None and float(ve.abs().max()) > 0 and int(solid.sum()) >= 100:
                 # refit and rebind on the neutralised cloud: an open mouth in an input photo otherwise
                 # pulls the neutral head's fit (and so the lip seam every Gaussian binds across)
                 neutral = (means - shift).numpy()
@@ -414,7 +421,7 @@ class FastGHA(nn.Module):
         return torch.stack(out_i), Cameras.stack(out_c)
 
     @torch.no_grad()
-    def reconstruct(self, images: Tensor, cameras: Cameras, expressions: Tensor | None = None) -> CanonicalAvatar:
+    def reconstruct(self, images: Tensor, cameras: Cameras, expressions: Tensor | None = None, surface=None) -> CanonicalAvatar:
         """Canonical avatar from ``images [V, 3, S, S]`` in [0, 1] and ``cameras [V]`` of size ``S x S``.
 
         ``S`` is ``config.input_size`` and ``1 <= V <= config.max_views``. Other sizes raise a
@@ -423,6 +430,11 @@ class FastGHA(nn.Module):
         (``config.deform.prior``), ``expressions [V, E]`` (each photo's known or tracked expression,
         optional) are undone so the canonical head is neutral, and the avatar gets its head-surface
         binding and mouth interior.
+
+        ``surface`` (a ``model.surface.HeadSurface`` of the ``V`` views, from tracking) puts every
+        pixel's Gaussian on the tracked head along its ray instead of the predicted depth, and the
+        expression prior binds to that head; its expressions are the photos' own unless
+        ``expressions`` is given. See ``model/surface.py`` for why and what it changes.
         """
         s, vmax = self.config.input_size, self.config.max_views
         hint = "use model.prepare(images, cameras) to crop/resize them"
@@ -448,8 +460,22 @@ class FastGHA(nn.Module):
             expressions = torch.as_tensor(expressions, dtype=torch.float32)
             if tuple(expressions.shape) != (v, self.config.expression_dim):
                 raise ValueError(f"reconstruct: expressions must have shape [{v}, {self.config.expression_dim}], got {list(expressions.shape)}")
+        ray_depth = head_fit = None
+        if surface is not None:
+            from .surface import surface_ray_depth
+
+            if len(surface) != v:
+                raise ValueError(f"reconstruct: surface has {len(surface)} views but {v} images were given")
+            ray_depth = surface_ray_depth(surface, cameras)[None]
+            if self.config.expression_space == "ict53":
+                if expressions is None:
+                    expressions = torch.from_numpy(surface.expressions)
+                if self.config.deform.prior:
+                    head_fit = surface.head_fit(self.head_basis())
         dev = self.device
-        g = self.forward_gaussians(images.to(dev, torch.float32)[None], cameras.to(dev, torch.float32)[None])[0]
+        g = self.forward_gaussians(
+            images.to(dev, torch.float32)[None], cameras.to(dev, torch.float32)[None], None if ray_depth is None else ray_depth.to(dev)
+        )[0]
         view_index = torch.arange(v, device=dev).repeat_interleave(len(g) // v)  # Gaussians are V*S*S, view-major
         thr = self.config.gaussians.prune_opacity
         if thr > 0:
@@ -457,7 +483,7 @@ class FastGHA(nn.Module):
             g, view_index = g[keep], view_index[keep]
         prior, n_int = None, 0
         if self.config.deform.prior:
-            g, prior, n_int = self.build_prior(g, view_index if expressions is not None else None, expressions)
+            g, prior, n_int = self.build_prior(g, view_index if expressions is not None else None, expressions, head_fit=head_fit)
         avatar = CanonicalAvatar(g, self.config.name, self.config.expression_space, prior, n_int)
         self._deform_partial(avatar)
         return avatar

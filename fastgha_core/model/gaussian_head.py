@@ -6,7 +6,8 @@ map ``[12+F, H, W]``:
 - depth 1: distance along the pixel's ray, ``t = |c| + depth_range * tanh(raw)`` where ``|c|`` is the
   camera's distance to the world origin (the head centre). Zero raw output puts the point on the
   sphere around the camera through the origin, and the parameterisation works for any camera
-  distance. The Gaussian centre is ``origin + t * direction`` (``Cameras.pixel_rays``).
+  distance. The Gaussian centre is ``origin + t * direction`` (``Cameras.pixel_rays``). A given
+  ``ray_depth [B, V, H, W]`` replaces ``t`` (the tracked head surface, ``model/surface.py``).
 - rgb 3: sigmoid; with ``rgb_residual`` the raw value is a residual on the logit of the map
   pixel's own input colour, ``sigmoid(raw + logit(clamp(image, 0.01, 0.99)))``.
 - quat 4: wxyz in the *camera* frame, ``normalize(raw + (1, 0, 0, 0))`` (identity at zero), rotated to
@@ -116,15 +117,16 @@ class GaussianHead:
         self.cfg = cfg
         self.layout = GaussianLayout(cfg.feature_dim)
 
-    def __call__(self, maps: Tensor, cameras: Cameras, images: Tensor | None = None) -> list[Gaussians]:
+    def __call__(self, maps: Tensor, cameras: Cameras, images: Tensor | None = None, ray_depth: Tensor | None = None) -> list[Gaussians]:
         """Raw maps ``[B, V, 12+F, H, W]`` (any float dtype) -> float32 Gaussians, computed without autocast.
 
         ``images [B, V, 3, H, W]`` (the inputs, at the maps' size) are required when ``cfg.rgb_residual``.
+        ``ray_depth [B, V, H, W]`` (metres along each pixel's ray), when given, replaces the predicted depth.
         """
         with torch.autocast(device_type=maps.device.type, enabled=False):
-            return self._activate(maps.float(), cameras, images)
+            return self._activate(maps.float(), cameras, images, ray_depth)
 
-    def _activate(self, maps: Tensor, cameras: Cameras, images: Tensor | None = None) -> list[Gaussians]:
+    def _activate(self, maps: Tensor, cameras: Cameras, images: Tensor | None = None, ray_depth: Tensor | None = None) -> list[Gaussians]:
         lay = self.layout
         if maps.ndim != 5 or maps.shape[2] != lay.channels:
             raise ValueError(f"GaussianHead: maps must have shape [B, V, {lay.channels}, H, W], got {list(maps.shape)}")
@@ -135,7 +137,12 @@ class GaussianHead:
         x = maps.permute(0, 1, 3, 4, 2)  # [B, V, H, W, C]
         origins, dirs = cams.pixel_rays(h, w)  # [B, V, H, W, 3] each
         dist = cams.centers.norm(dim=-1)[..., None, None, None]  # [B, V, 1, 1, 1]
-        t = dist + self.cfg.depth_range * torch.tanh(x[..., lay.depth])  # [B, V, H, W, 1]
+        if ray_depth is None:
+            t = dist + self.cfg.depth_range * torch.tanh(x[..., lay.depth])  # [B, V, H, W, 1]
+        else:
+            if tuple(ray_depth.shape) != (b, v, h, w):
+                raise ValueError(f"GaussianHead: ray_depth must have shape [{b}, {v}, {h}, {w}], got {list(ray_depth.shape)}")
+            t = ray_depth.to(maps)[..., None]
         means = origins + t * dirs  # [B, V, H, W, 3]
 
         focal = cams.resize(w, h).K[..., [0, 1], [0, 1]].mean(-1)[..., None, None, None]  # [B, V, 1, 1, 1]

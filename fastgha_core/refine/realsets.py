@@ -77,8 +77,11 @@ def _identity(faces, img: np.ndarray, box=None):
     return np.asarray(faces.face_rec.compute_face_descriptor(img, shape), dtype=np.float64), n, box
 
 
-def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, faces=None, refine_cameras: bool = True) -> dict:
-    """Leave-one-out over the photos of ``folder`` (see the module docstring); one row per (photo, steps)."""
+def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, faces=None, refine_cameras: bool = True, surface: bool = True) -> dict:
+    """Leave-one-out over the photos of ``folder`` (see the module docstring); one row per (photo, steps).
+
+    ``surface``: reconstruct on the tracked head surface (``model/surface.py``), as the server does."""
+    from ..model.surface import HeadSurface
     from ..refine import RefineConfig, refine_avatar
     from ..render import render
     from ..train.faces import to_uint8_hwc
@@ -112,7 +115,8 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
     for k in range(v):
         keep = [i for i in range(v) if i != k][: model.config.max_views]
         imgs, in_cams = model.prepare(matted[keep], cams[keep])
-        avatar0 = model.reconstruct(imgs, in_cams)
+        head = HeadSurface.from_tracking(tr).subset(keep) if surface else None
+        avatar0 = model.reconstruct(imgs, in_cams, expressions=expr[keep], surface=head)
         target = matted[k : k + 1]
         m = (masks[k : k + 1] > 0.5).float()
         t_img = to_uint8_hwc(target[0])
@@ -176,6 +180,7 @@ def main(argv=None) -> int:
     ap.add_argument("--model", default="tiny")
     ap.add_argument("--refine-steps", default="0,40", help="comma-separated refinement step counts to compare")
     ap.add_argument("--no-refine-cameras", action="store_true", help="refine without per-view camera corrections")
+    ap.add_argument("--no-surface", action="store_true", help="use the network's depth instead of the tracked head surface")
     ap.add_argument("--size", type=int, default=256, help="crop side of the tracked photos and of the renders")
     ap.add_argument("--json", default=None, help="write all rows here")
     ap.add_argument("--grid", default=None, help="write a grid picture here (NOT inside the repository)")
@@ -198,7 +203,7 @@ def main(argv=None) -> int:
     all_rows, grid = [], []
     for folder in sets:
         try:
-            out = evaluate_set(model, folder, steps_list, args.size, faces, refine_cameras=not args.no_refine_cameras)
+            out = evaluate_set(model, folder, steps_list, args.size, faces, refine_cameras=not args.no_refine_cameras, surface=not args.no_surface)
         except (ValueError, ImportError) as e:
             print(f"{folder.name}: skipped ({e})")
             continue

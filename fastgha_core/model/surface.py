@@ -1,0 +1,135 @@
+"""Per-pixel ray depth from a tracked head surface: one geometry shared by every input view.
+
+Why (issue 17, measured on the real photo sets): from a few real photos the network's per-pixel
+depth disagrees between views (the decoder was trained on synthetic heads, and tracking leaves pose
+errors of a few degrees), so each view's Gaussians land at a different depth and a novel view shows
+two overlapping faces. The tracker (``fastgha_core.tracking``) has already fitted **one** ICT-FaceKit
+head per person (shared identity, per-photo expression and pose) that projects onto each photo's
+landmarks. Putting the Gaussian of every pixel on that surface, along the pixel's own ray, makes the
+views agree where they overlap whatever the pose error: the fit ties each photo's eyes, nose and
+mouth to the same surface points.
+
+Per pixel of each input view (``surface_ray_depth``):
+
+- where the ray hits the head mesh (skin, ears, eyes; ICT-FaceKit's visible surfaces without the
+  eyelashes), the distance along the ray to the first hit, eroded by one pixel at the outline where
+  a ray grazes the surface;
+- elsewhere (hair beyond the skull, neck, shoulders, background), the distance of the nearest hit
+  pixel (a Euclidean distance transform), so those Gaussians form a continuous shell around the head
+  instead of a second layer at the network's guess.
+
+Distances are along the pixel ray from the camera centre (``Cameras.pixel_rays``), in metres: the
+quantity ``GaussianHead`` calls ``t``. The head frame is the tracker's: metres, +x the subject's
+left, +y up, +z out of the face, origin the ICT head centre (``docs/conventions.md``), which is the
+world frame of the tracked cameras (``tracking/camera.py``: ``w2c = [R | t]`` of the head pose).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..cameras import Cameras
+
+__all__ = ["HeadSurface", "surface_ray_depth"]
+
+
+@dataclass
+class HeadSurface:
+    """The tracked ICT-FaceKit head of one person, one expression per input view.
+
+    Attributes:
+        identity: ``[100]`` ICT identity coefficients (``FitResult.identity``; modes ~ N(0, 1)).
+        expressions: ``[V, 53]`` ``ict53`` blendshape weights of each input photo, in [0, 1].
+    """
+
+    identity: np.ndarray
+    expressions: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.identity = np.asarray(self.identity, dtype=np.float32).reshape(-1)
+        self.expressions = np.asarray(self.expressions, dtype=np.float32)
+        if self.expressions.ndim != 2 or self.expressions.shape[1] != 53:
+            raise ValueError(f"HeadSurface: expressions must have shape [V, 53] (ict53), got {list(self.expressions.shape)}")
+        if self.identity.shape[0] > 100:
+            raise ValueError(f"HeadSurface: identity must have at most 100 ICT coefficients, got {self.identity.shape[0]}")
+        if not (np.isfinite(self.identity).all() and np.isfinite(self.expressions).all()):
+            raise ValueError("HeadSurface: identity and expressions must be finite")
+
+    def __len__(self) -> int:
+        return int(self.expressions.shape[0])
+
+    @staticmethod
+    def from_tracking(tracked) -> "HeadSurface":
+        """From ``tracking.TrackedPhotos`` (or a ``tracking.fit.FitResult``)."""
+        fit = getattr(tracked, "fit", tracked)
+        return HeadSurface(fit.identity, fit.expressions)
+
+    def subset(self, views) -> "HeadSurface":
+        """The surface of the views ``views`` (indices or a bool mask), in that order."""
+        return HeadSurface(self.identity, self.expressions[np.asarray(views)])
+
+    def vertices(self, view: int, head=None) -> np.ndarray:
+        """Head-frame vertices ``[Nv, 3]`` (metres) of view ``view``'s expression."""
+        from ..data.headmodel import HeadModel
+
+        head = head or HeadModel.load()
+        ident = np.zeros(head.num_identity, np.float32)
+        ident[: len(self.identity)] = self.identity[: head.num_identity]
+        return head.vertices(ident, self.expressions[view])
+
+    def head_fit(self, basis):
+        """The ``model.prior.HeadFit`` of this head at the neutral expression (identity truncated to
+        the basis' modes), so the expression prior binds to the tracked surface instead of an ICP fit."""
+        from .prior import HeadFit
+
+        k = basis.identity_basis.shape[0]
+        ident = np.zeros(k, np.float32)
+        n = min(k, len(self.identity))
+        ident[:n] = self.identity[:n]
+        verts = basis.neutral.astype(np.float64) + np.tensordot(ident, basis.identity_basis, axes=1)
+        return HeadFit(identity=ident, transform=np.eye(4), vertices=verts.astype(np.float32), rms=0.0)
+
+
+def surface_ray_depth(surface: HeadSurface, cameras: Cameras) -> Tensor:
+    """Ray distance ``[V, H, W]`` float32 (metres) to the tracked head for every pixel of ``cameras``.
+
+    Args:
+        surface: ``V`` views of one tracked head.
+        cameras: ``Cameras [V]`` of the ``W x H`` input views (world = the head frame).
+    Returns:
+        ``t [V, H, W]``: hit pixels get their own ray's distance, the others the nearest hit pixel's
+        (module doc).
+    Raises:
+        ValueError: when the batch sizes differ, or the head is not in front of a view's camera.
+    """
+    from scipy.ndimage import binary_erosion, distance_transform_edt
+
+    from ..data.headmodel import HeadModel
+    from ..data.meshraster import render_mesh
+
+    cams = cameras.flatten()
+    v = len(cams.K)
+    if v != len(surface):
+        raise ValueError(f"surface_ray_depth: {len(surface)} surface views but {v} cameras")
+    head = HeadModel.load()
+    faces = head.visible_faces(eyelashes=False)
+    w, h = cams.width, cams.height
+    u, r = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    out = np.empty((v, h, w), np.float32)
+    for i in range(v):
+        w2c = cams.w2c[i].double().numpy()
+        K = cams.K[i].double().numpy()
+        pts = surface.vertices(i, head).astype(np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
+        m = render_mesh(pts.astype(np.float32), faces, np.ones((len(pts), 1), np.float32), K, w, h, supersample=1)
+        hit = binary_erosion((m.alpha > 0.99) & (m.depth > 0), iterations=1)
+        if not hit.any():
+            raise ValueError(f"surface_ray_depth: the tracked head is not visible in view {i}")
+        x, y = (u - K[0, 2]) / K[0, 0], (r - K[1, 2]) / K[1, 1]
+        t = m.depth * np.sqrt(x * x + y * y + 1.0)  # camera z -> distance along the unit ray
+        _, (iy, ix) = distance_transform_edt(~hit, return_indices=True)
+        out[i] = t[iy, ix]
+    return torch.from_numpy(out)

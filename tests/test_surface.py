@@ -1,0 +1,156 @@
+"""Reconstruction on the tracked head surface (``fastgha_core/model/surface.py``, issue 17)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from fastgha_core.data.headmodel import HeadModel
+from fastgha_core.model.surface import HeadSurface, surface_ray_depth
+from fastgha_core.tracking.camera import pose_to_cameras
+from fastgha_core.tracking.fit import FRONTAL_R, default_intrinsics, rodrigues
+
+
+def _cameras(yaws_deg, size=128, dist=0.6):
+    """Head-centric cameras looking at the head from ``yaws_deg`` (OpenCV, world = head frame)."""
+    R = np.stack([FRONTAL_R @ rodrigues(np.array([0.0, np.radians(y), 0.0])) for y in yaws_deg])
+    t = np.tile([0.0, 0.01, dist], (len(yaws_deg), 1))
+    return pose_to_cameras(R, t, default_intrinsics(size, size, 30.0), size, size)
+
+
+@pytest.fixture(scope="module")
+def surface():
+    rng = np.random.default_rng(5)
+    ident = np.zeros(100, np.float32)
+    ident[:20] = rng.standard_normal(20) * 0.7
+    expr = np.zeros((3, 53), np.float32)
+    expr[1, HeadModel.load().expression_names.index("jawOpen")] = 0.6
+    return HeadSurface(ident, expr)
+
+
+def _points(cams, t):
+    origins, dirs = cams.pixel_rays()
+    return origins + t[..., None] * dirs  # [V, H, W, 3]
+
+
+def test_hit_pixels_lie_on_the_tracked_mesh_and_the_rest_continue_it(surface):
+    from scipy.spatial import cKDTree
+
+    cams = _cameras([0.0, 35.0, -70.0])
+    t = surface_ray_depth(surface, cams)
+    assert t.shape == (3, 128, 128) and torch.isfinite(t).all()
+    pts = _points(cams, t)
+    head = HeadModel.load()
+    for v in range(3):
+        tree = cKDTree(surface.vertices(v, head))
+        d, _ = tree.query(pts[v].reshape(-1, 3).numpy())
+        d = d.reshape(128, 128)
+        centre = d[48:80, 48:80]  # the face fills the middle of the view
+        assert np.median(centre) < 0.002 and np.percentile(centre, 95) < 0.006, (v, np.median(centre))
+        # pixels off the head take the distance of the nearest head pixel: bounded by the head's range
+        corner = float(t[v, 0, 0])
+        assert float(t[v, 40:88, 40:88].min()) - 0.15 < corner < float(t[v].max()) + 1e-6
+
+
+def test_a_surface_point_seen_by_two_views_lands_in_one_place(surface):
+    """The point of the feature: views of one head agree on where a feature is, at any pose."""
+    head = HeadModel.load()
+    cams = _cameras([0.0, 35.0], size=256)
+    two = surface.subset([0, 0])  # same expression in both views
+    t = surface_ray_depth(two, cams)
+    pts = _points(cams, t)
+    verts = two.vertices(0, head)
+    lm = head.landmarks68[[30, 33, 36, 39, 42, 45, 48, 54]]  # nose, eye corners, mouth corners (seen from both)
+    P = torch.from_numpy(verts[lm]).double()
+    c = cams.flatten()
+    got, seen = [], torch.ones(len(lm), dtype=torch.bool)
+    for v in range(2):
+        x = P @ c.R[v].double().T + c.t[v].double()
+        uv = (x @ c.K[v].double().T)[:, :2] / x[:, 2:3]
+        col, row = uv[:, 0].long().clamp(0, 255), uv[:, 1].long().clamp(0, 255)
+        got.append(pts[v, row, col].double())
+        seen &= (x.norm(dim=-1) - t[v, row, col].double()).abs() < 0.003  # not hidden in this view
+    assert int(seen.sum()) >= 5, seen
+    err_surface = (got[0] - got[1]).norm(dim=-1)[seen]
+    assert float(err_surface.max()) < 0.004, err_surface
+    # the network's zero-depth guess (the sphere through the head centre) puts them centimetres apart
+    sphere = [_points(c[v : v + 1], torch.full((1, 256, 256), float(c.centers[v].norm())))[0] for v in range(2)]
+    rows_cols = []
+    for v in range(2):
+        x = P @ c.R[v].double().T + c.t[v].double()
+        uv = (x @ c.K[v].double().T)[:, :2] / x[:, 2:3]
+        rows_cols.append((uv[:, 1].long(), uv[:, 0].long()))
+    err_sphere = (sphere[0][rows_cols[0]] - sphere[1][rows_cols[1]]).norm(dim=-1)[seen]
+    assert float(err_sphere.median()) > 5 * float(err_surface.median())
+
+
+def test_the_open_jaw_view_follows_its_own_expression(surface):
+    cams = _cameras([0.0, 0.0])
+    t = surface_ray_depth(surface.subset([0, 1]), cams)  # neutral, jaw open 0.6
+    head = HeadModel.load()
+    chin = surface.vertices(1, head)[head.landmarks68[8]]
+    x = chin @ cams.R[1].numpy().T + cams.t[1].numpy()
+    u, v = (cams.K[1].numpy() @ x)[:2] / x[2]
+    assert float((t[0] - t[1]).abs().max()) > 0.005  # the two views do not share one depth map
+    assert int(v) < 128 and np.isfinite(float(t[1, int(v), int(u)]))
+
+
+def test_head_surface_checks_its_input_and_subsets():
+    with pytest.raises(ValueError, match="53"):
+        HeadSurface(np.zeros(100), np.zeros((2, 52)))
+    with pytest.raises(ValueError, match="at most 100"):
+        HeadSurface(np.zeros(101), np.zeros((2, 53)))
+    with pytest.raises(ValueError, match="finite"):
+        HeadSurface(np.full(100, np.nan), np.zeros((2, 53)))
+    s = HeadSurface(np.zeros(100), np.arange(3 * 53, dtype=np.float32).reshape(3, 53) / 200)
+    assert len(s.subset([2, 0])) == 2 and s.subset([2, 0]).expressions[0, 0] == s.expressions[2, 0]
+    with pytest.raises(ValueError, match="2 surface views but 3 cameras"):
+        surface_ray_depth(s.subset([0, 1]), _cameras([0, 10, 20]))
+
+
+def test_gaussian_head_puts_centres_at_the_given_ray_depth():
+    from fastgha_core.config import get_preset
+    from fastgha_core.model.gaussian_head import GaussianHead
+
+    cfg = get_preset("tiny").gaussians
+    head = GaussianHead(cfg)
+    cams = _cameras([0.0, 20.0], size=16)
+    maps = torch.randn(1, 2, head.layout.channels, 16, 16)
+    images = torch.rand(1, 2, 3, 16, 16)
+    depth = 0.5 + 0.1 * torch.rand(1, 2, 16, 16)
+    g = head(maps, cams[None], images, ray_depth=depth)[0]
+    g0 = head(maps, cams[None], images)[0]
+    origins, dirs = cams.pixel_rays(16, 16)
+    want = (origins + depth[0][..., None] * dirs).reshape(-1, 3)
+    assert torch.allclose(g.means, want, atol=1e-5)
+    t0 = ((g0.means - origins.reshape(-1, 3)) * dirs.reshape(-1, 3)).sum(-1)
+    ratio = (g.scales / g0.scales)[:, 0]
+    assert torch.allclose(ratio, depth.reshape(-1) / t0, rtol=1e-4)  # footprint scales with the distance
+    assert torch.equal(g.colors, g0.colors) and torch.equal(g.opacities, g0.opacities)
+    with pytest.raises(ValueError, match="ray_depth must have shape"):
+        head(maps, cams[None], images, ray_depth=depth[:, :1])
+
+
+def test_reconstruct_on_a_surface_binds_the_prior_to_it(surface):
+    from fastgha_core.model.fastgha import load_model
+
+    model = load_model("tiny")
+    s = model.config.input_size
+    cams = _cameras([0.0, 35.0, -35.0], size=s)
+    from fastgha_core.constants import BACKGROUND_RGB
+
+    imgs = torch.tensor(BACKGROUND_RGB, dtype=torch.float32).view(1, 3, 1, 1).repeat(3, 1, s, s)
+    imgs[:, :, s // 4 : 3 * s // 4, 3 * s // 8 : 5 * s // 8] = torch.rand(3, 3, s // 2, s // 4)  # the face: the rest is matted away
+    av = model.reconstruct(imgs, cams, surface=surface)
+    k = av.prior.identity.shape[0]
+    assert np.allclose(av.prior.identity.numpy(), surface.identity[:k])
+    assert torch.allclose(av.prior.transform, torch.eye(4))
+    # every reconstructed Gaussian sits on (or continues) the tracked head: at most a few cm from it
+    from scipy.spatial import cKDTree
+
+    neutral = HeadSurface(surface.identity, np.zeros((1, 53))).vertices(0)
+    d, _ = cKDTree(neutral).query(av.gaussians.means[: av.num_reconstructed].numpy())
+    assert np.median(d) < 0.004, np.median(d)
+    with pytest.raises(ValueError, match="surface has 2 views but 3 images"):
+        model.reconstruct(imgs, cams, surface=surface.subset([0, 1]))
