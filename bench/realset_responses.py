@@ -2,7 +2,8 @@
 
 For every set in ``../shared/realsets/`` (or ``$FASTGHA_REALSETS``): track the photos
 (``fastgha_core.tracking.track_photos``: crops, cameras, masks, each photo's expression), reconstruct
-an avatar (the tracked expressions are undone when the model has the expression prior), render it
+an avatar on the tracked head surface as the server does (``--no-surface``: on the network's depth;
+the tracked expressions are undone when the model has the expression prior), render it
 from the server's default frontal camera at 512² with the neutral expression, ``jawOpen`` = 1,
 ``eyeBlink_L`` = ``eyeBlink_R`` = 1 and ``mouthSmile_L`` = ``mouthSmile_R`` = 1, and measure dlib's
 68 landmarks (the ``faces`` extra) as in ``fastgha_core/train/responses.py``:
@@ -44,11 +45,12 @@ def realsets_root() -> Path:
     return Path(env) if env else (REPO / ".." / "shared" / "realsets").resolve()
 
 
-def run_set(model, folder: Path, size: int, det, pictures: Path | None, drop_untracked: bool = True) -> dict:
+def run_set(model, folder: Path, size: int, det, pictures: Path | None, drop_untracked: bool = True, surface: bool = True) -> dict:
     import torch
     from PIL import Image  # call site: the files helper's fastgha_core.images decoder replaces this at merge
 
     from fastgha_core.constants import BACKGROUND_RGB
+    from fastgha_core.model.surface import HeadSurface
     from fastgha_core.render import render
     from fastgha_core.tracking import track_photos
     from fastgha_core.train.responses import _u8, landmark_measures
@@ -72,7 +74,7 @@ def run_set(model, folder: Path, size: int, det, pictures: Path | None, drop_unt
     x, c = model.prepare(crops, tr.cameras, masks)
     expr = torch.from_numpy(tr.expressions) if tr.expressions.shape[1] == model.config.expression_dim else None
     with torch.inference_mode():
-        avatar = model.reconstruct(x, c, expressions=expr)
+        avatar = model.reconstruct(x, c, expressions=expr, surface=HeadSurface.from_tracking(tr) if surface else None)
     cam = FrameRenderer(model, "cpu").default_camera.resize(size, size)
     out: dict = {"photos": [p.name for p in paths], "dropped": dropped, "gaussians": len(avatar), "measures": {}, "detected": {}}
     space = model.expression_space
@@ -115,6 +117,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None, help="write the results here")
     ap.add_argument("--pictures", default=None, help="write the renders here (local look only; never commit pictures of these people)")
     ap.add_argument("--sets", default=None, help="comma-separated set names (default: all)")
+    ap.add_argument("--no-surface", action="store_true", help="use the network's depth, not the tracked head surface (the server's default)")
     ap.add_argument("--keep-untracked", action="store_true", help="fail a set when one photo does not track (default: leave that photo out and report it)")
     args = ap.parse_args(argv)
     root = realsets_root()
@@ -134,7 +137,7 @@ def main(argv=None) -> int:
     report = {"model": args.model, "size": args.size, "prior": bool(model.config.deform.prior), "sets": {}}
     for s in sets:
         try:
-            report["sets"][s.name] = run_set(model, s, args.size, det, Path(args.pictures) if args.pictures else None, not args.keep_untracked)
+            report["sets"][s.name] = run_set(model, s, args.size, det, Path(args.pictures) if args.pictures else None, not args.keep_untracked, not args.no_surface)
         except Exception as e:  # tracking failures name the photo; report and go on
             report["sets"][s.name] = {"error": f"{type(e).__name__}: {e}"}
         r = report["sets"][s.name]

@@ -623,9 +623,10 @@ class JobQueue:
         # ---- tracking (photos without cameras)
         tracking_ms = None
         expressions = None  # the photos' own expressions, when tracked: undone for a neutral canonical head
+        surface = None  # the tracked head: every pixel's Gaussian goes on it (fastgha_core/model/surface.py)
         if req.cameras is None:
             progress("tracking", 0.0)
-            crops, cam_batch, crop_masks, expressions = self.tracker.track(images, mlist, size, names=names)
+            crops, cam_batch, crop_masks, expressions, surface = self.tracker.track(images, mlist, size, names=names)
             tracking_ms = 1e3 * (time.perf_counter() - t1)
             images, mlist = crops, crop_masks
             cams = cam_batch
@@ -640,9 +641,11 @@ class JobQueue:
         del images
         if expressions is not None and tuple(expressions.shape) != (x.shape[0], model.config.expression_dim):
             expressions = None  # tracked in another expression space than the model's: nothing to undo
+        if not s.surface_depth:
+            surface = None
         with torch.inference_mode():
             # with the expression prior, the tracked expressions make the canonical head neutral
-            avatar = model.reconstruct(x.to(ctx.device), c.to(ctx.device), expressions=expressions)
+            avatar = model.reconstruct(x.to(ctx.device), c.to(ctx.device), expressions=expressions, surface=surface)
         recon_ms = 1e3 * (time.perf_counter() - t2)
         progress("reconstructing", 1.0)
         state = CreationState(model=model, device=ctx.device, names=names, images=x, cameras=c, avatar=avatar, expressions=expressions)

@@ -108,6 +108,9 @@ class Settings(BaseSettings):
     min_avatar_gaussians: int = Field(
         256, ge=1, description="a reconstruction with fewer Gaussians holds no head (e.g. cameras far from it): 422"
     )
+    surface_depth: bool = Field(
+        True, description="photos without cameras: put every pixel's Gaussian on the tracked head (one geometry for all views; docs/model-card.md)"
+    )
     refine_steps: int = Field(0, ge=0, le=1000, description="test-time refinement steps after each reconstruction (0 = off: on real photos it lowers leave-one-out quality today, docs/model-card.md)")
 
     # ------------------------------------------------------------ streaming

@@ -81,8 +81,10 @@ class PhotoTracker:
         masks: list[Tensor] | None,  # V x [1, H_i, W_i] alpha in [0, 1], or None
         size: int,  # the model's input side S
         names: list[str] | None = None,  # the photos' filenames, for error messages
-    ) -> tuple[Tensor, Cameras, Tensor, Tensor]:
-        """Crops ``[V, 3, T, T]`` (not matted), ``Cameras [V]``, masks ``[V, 1, T, T]``, ict53 ``[V, 53]``.
+    ):
+        """Crops ``[V, 3, T, T]`` (not matted), ``Cameras [V]``, masks ``[V, 1, T, T]``, ict53 ``[V, 53]``
+        and the tracked head (``fastgha_core.model.surface.HeadSurface``, reconstruction puts the
+        Gaussians on it).
 
         ``T = max(size, TRACK_MIN_SIZE)``; the caller passes the result through ``FastGHA.prepare``.
         """
@@ -110,4 +112,6 @@ class PhotoTracker:
                  ", ".join(f"{r:.1f}" for r in res.fit.rms_px))  # fmt: skip
         crops = torch.from_numpy(res.crops).permute(0, 3, 1, 2).float().div_(255.0)  # [V, 3, T, T]
         out_masks = torch.from_numpy(res.masks)[:, None]  # [V, 1, T, T]
-        return crops, res.cameras, out_masks, torch.from_numpy(res.expressions)
+        from fastgha_core.model.surface import HeadSurface
+
+        return crops, res.cameras, out_masks, torch.from_numpy(res.expressions), HeadSurface.from_tracking(res)

@@ -474,7 +474,7 @@ def test_decompression_amplification_is_bounded(model_dir, tmp_path):
 
 
 # ---------------------------------------------------------------- the extra-stage hook (test-time refinement plugs in here)
-def _run_job(ctx, request, extra_stages) -> tuple:
+def _run_job(ctx, request, extra_stages, tracker=None) -> tuple:
     """Run one creation through an in-process ``JobQueue``; ``(job, [(stage, fraction, progress)]`` of
     every update (watchers may see them coalesced)."""
     import asyncio
@@ -482,7 +482,7 @@ def _run_job(ctx, request, extra_stages) -> tuple:
     from server.jobs import JobQueue
 
     async def run():
-        q = JobQueue(ctx, tracker=None, extra_stages=extra_stages)
+        q = JobQueue(ctx, tracker=tracker, extra_stages=extra_stages)
         await q.start()
         try:
             job, _ = q.submit(q.reserve("test", 1), request)
@@ -576,3 +576,45 @@ def test_refine_steps_setting_plugs_test_time_refinement_into_the_job(model_dir,
     fractions = [f for st, f in seen if st == "refining"]
     assert 0.5 in fractions and fractions == sorted(fractions)  # one update per step of the two
     assert len(g2) == len(g0) and not torch.allclose(g2.colors, g0.colors)  # the refined avatar is the one stored
+
+
+@pytest.mark.parametrize("surface_depth", [True, False])
+def test_tracked_photos_are_reconstructed_on_the_tracked_head(model_dir, samples, tmp_path, surface_depth):
+    """Photos without cameras: the job hands the tracker's head surface to ``reconstruct`` (unless
+    ``FASTGHA_SURFACE_DEPTH=0``), and the avatar's Gaussians then lie on that head."""
+    import numpy as np
+
+    from fastgha_core import load_model
+    from fastgha_core.cameras import cameras_from_json
+    from fastgha_core.model.avatar import CanonicalAvatar
+    from fastgha_core.model.surface import HeadSurface
+    from server.context import ServerContext
+    from server.settings import Settings
+    from server.store import AvatarStore
+
+    imgs = sorted(samples.glob("[0-9][0-9].jpg"))
+    cams = cameras_from_json(json.loads((samples / "cameras.json").read_text()))
+    surface = HeadSurface(np.zeros(100), np.zeros((len(imgs), 53)))
+
+    class Tracker:  # stands in for server.tracking.PhotoTracker: the sample's own cameras, a generic head
+        def track(self, images, masks, size, names=None):
+            crops = torch.stack([im for im in images])
+            return crops, Cameras.stack([cams[i] for i in range(len(imgs))]), torch.ones(len(imgs), 1, *crops.shape[-2:]), torch.zeros(len(imgs), 53), surface
+
+    from fastgha_core.cameras import Cameras
+
+    ctx = ServerContext(settings=Settings(data_dir=tmp_path, warmup=False, surface_depth=surface_depth))
+    ctx.model = load_model(str(model_dir), device="cpu")
+    ctx.store = AvatarStore(tmp_path, 10**9, 0, load_fn=CanonicalAvatar.load)
+    got = []
+    recon = ctx.model.reconstruct
+    ctx.model.reconstruct = lambda *a, **k: (got.append(k.get("surface")), recon(*a, **k))[1]
+    photos = [Photo(p.name, p.read_bytes()) for p in imgs]
+    job, _ = _run_job(ctx, CreationRequest(photos, None, None), [], tracker=Tracker())
+    assert job.status == "ready", job.error and job.error.message
+    assert job.stages[:3] == ["queued", "decoding", "tracking"]
+    assert got == [surface if surface_depth else None]
+    if surface_depth:  # the stored avatar's prior is bound to the tracked (generic) head, not an ICP fit
+        stored = ctx.store.get(job.id).avatar
+        assert stored.prior is not None and torch.allclose(stored.prior.transform, torch.eye(4))
+        assert float(stored.prior.identity.abs().max()) == 0.0

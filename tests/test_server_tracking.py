@@ -110,8 +110,9 @@ def test_photo_tracker_output_matches_model_input():
     from fastgha_core.cameras import Cameras
 
     img = torch.from_numpy(np.array(Image.open(io.BytesIO(_portrait_jpeg())).convert("RGB"))).permute(2, 0, 1).float() / 255.0
-    crops, cams, masks, expr = PhotoTracker().track([img], None, 64)
+    crops, cams, masks, expr, surface = PhotoTracker().track([img], None, 64)
     assert crops.shape == (1, 3, 256, 256) and masks.shape == (1, 1, 256, 256) and expr.shape == (1, 53)  # tracked at >= 256
+    assert len(surface) == 1 and np.allclose(surface.expressions, expr.numpy()) and np.abs(surface.identity).max() > 0
     assert isinstance(cams, Cameras) and (cams.width, cams.height) == (256, 256)
     # the head centre (world origin) projects near the crop centre, in front of the camera
     uv, z = cams.project(torch.zeros(1, 1, 3))
