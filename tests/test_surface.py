@@ -154,3 +154,41 @@ def test_reconstruct_on_a_surface_binds_the_prior_to_it(surface):
     assert np.median(d) < 0.004, np.median(d)
     with pytest.raises(ValueError, match="surface has 2 views but 3 images"):
         model.reconstruct(imgs, cams, surface=surface.subset([0, 1]))
+
+
+def _faces_installed() -> bool:
+    try:
+        from fastgha_core.tracking.faces import load_face_detector
+
+        load_face_detector()
+        return True
+    except ImportError:
+        return False
+
+
+@pytest.mark.skipif(not _faces_installed(), reason="needs the 'faces' extra (mediapipe, dlib)")
+def test_track_then_reconstruct_uses_the_tracked_head(tmp_path, capsys):
+    """`fastgha track` writes head.json; `fastgha reconstruct` binds to that head (not with --no-surface)."""
+    import json
+
+    import matplotlib.cbook as cbook
+    from PIL import Image
+
+    from fastgha_core.cli import main
+    from fastgha_core.model.avatar import CanonicalAvatar
+
+    photo = tmp_path / "gh.jpg"
+    Image.open(cbook.get_sample_data("grace_hopper.jpg", asfileobj=False)).convert("RGB").save(photo)
+    req = tmp_path / "req"
+    assert main(["track", "--images", str(photo), "--out", str(req), "--size", "128"]) == 0
+    ident = np.asarray(json.loads((req / "head.json").read_text())["identity"], np.float32)
+    assert ident.shape == (100,) and np.abs(ident).max() > 0
+    assert main(["reconstruct", "--input", str(req), "--out", str(tmp_path / "a.safetensors")]) == 0
+    assert main(["reconstruct", "--input", str(req), "--out", str(tmp_path / "b.safetensors"), "--no-surface"]) == 0
+    a, b = CanonicalAvatar.load(tmp_path / "a.safetensors"), CanonicalAvatar.load(tmp_path / "b.safetensors")
+    k = a.prior.identity.shape[0]
+    assert np.allclose(a.prior.identity.numpy(), ident[:k], atol=1e-5) and torch.allclose(a.prior.transform, torch.eye(4))
+    assert not np.allclose(b.prior.identity.numpy(), ident[:k], atol=1e-3)  # an ICP fit to the network's Gaussians
+    (req / "expressions.json").unlink()
+    assert main(["reconstruct", "--input", str(req), "--out", str(tmp_path / "c.safetensors")]) == 2
+    assert "needs expressions.json" in capsys.readouterr().err

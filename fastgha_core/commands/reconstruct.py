@@ -18,6 +18,11 @@ def add_arguments(parser) -> None:
         "40 reproduces the inputs better but lowers novel-view quality on real photos today, see docs/model-card.md). "
         "Uses the inputs' expressions from info.json when present",
     )
+    parser.add_argument(
+        "--no-surface",
+        action="store_true",
+        help="ignore head.json (written by `fastgha track`): use the network's depth instead of the tracked head surface",
+    )
     parser.add_argument("--cameras-out", default=None, help="with --refine-steps: write the corrected input cameras (cameras.json layout) here")
     parser.add_argument("--dino-weights", default=None, help="local DINOv3 folder (Hugging Face format) to load into the model")
     parser.add_argument("--vae-weights", default=None, help="local AutoencoderKL folder (Hugging Face format) to load into the model")
@@ -39,6 +44,39 @@ def _read_mask(path):
     from ..images import read_mask
 
     return torch.from_numpy(read_mask(path))  # [H, W] uint8
+
+
+def _tracked_expressions(paths):
+    """``[V, 53]`` ict53 codes of the images from ``expressions.json`` (``fastgha track``), or None."""
+    import json
+
+    import numpy as np
+
+    f = paths[0].parent / "expressions.json"
+    if not f.exists():
+        return None
+    data = json.loads(f.read_text())
+    by_name = dict(zip(data.get("images", []), data.get("expressions", [])))
+    missing = [p.name for p in paths if p.name not in by_name]
+    if data.get("space") != "ict53" or missing:
+        raise ValueError(f"{f}: expected ict53 expressions for every image, missing {missing} (space {data.get('space')!r})")
+    return np.asarray([by_name[p.name] for p in paths], dtype=np.float32)
+
+
+def _read_surface(path, expressions):
+    """The tracked head of ``head.json`` (``{"identity": [100 ICT coefficients]}``) with each image's expression."""
+    import json
+
+    import numpy as np
+
+    from ..model.surface import HeadSurface
+
+    if expressions is None:
+        raise ValueError(f"{path} needs expressions.json beside it (both are written by `fastgha track`)")
+    data = json.loads(path.read_text())
+    if "identity" not in data:
+        raise ValueError(f"{path}: expected a JSON object with an 'identity' list (ICT-FaceKit identity coefficients)")
+    return HeadSurface(np.asarray(data["identity"], dtype=np.float32), expressions)
 
 
 def run(args) -> int:
@@ -64,8 +102,14 @@ def run(args) -> int:
     imgs, cameras = model.prepare(images, cams, masks if masks[0] is not None else None)
     if not 1 <= len(imgs) <= model.config.max_views:
         raise ValueError(f"model {model.config.name!r} takes 1 to {model.config.max_views} images, the folder has {len(imgs)}")
+    expr_ict53 = _tracked_expressions(paths)
+    surface = None
+    head_file = paths[0].parent / "head.json"
+    if head_file.exists() and not args.no_surface:
+        surface = _read_surface(head_file, expr_ict53)
+    expressions = expr_ict53 if expr_ict53 is not None and model.config.expression_space == "ict53" else None
     t0 = time.perf_counter()
-    avatar = model.reconstruct(imgs, cameras)
+    avatar = model.reconstruct(imgs, cameras, expressions=None if expressions is None else torch.from_numpy(expressions), surface=surface)
     if torch.device(args.device).type == "cuda":
         torch.cuda.synchronize()
     dt = time.perf_counter() - t0

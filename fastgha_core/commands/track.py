@@ -1,5 +1,5 @@
 NAME = "track"
-HELP = "track photos of one person (MediaPipe Face Mesh landmarks + one joint ICT head fit) into a request folder: crops, cameras.json, masks, expressions.json"
+HELP = "track photos of one person (MediaPipe Face Mesh landmarks + one joint ICT head fit) into a request folder: crops, cameras.json, masks, expressions.json, head.json"
 
 
 def add_arguments(parser) -> None:
@@ -57,6 +57,8 @@ def run(args) -> int:
     (out / "cameras.json").write_text(json.dumps(cameras_to_json(res.cameras)))
     expr = {"space": "ict53", "names": list(ICT53_NAMES), "images": [f"{s}.png" for s in stems], "expressions": res.expressions.round(4).tolist()}
     (out / "expressions.json").write_text(json.dumps(expr))
+    # the tracked head (shared identity): `fastgha reconstruct` puts every pixel's Gaussian on it
+    (out / "head.json").write_text(json.dumps({"model": "ict_facekit", "identity": res.fit.identity.round(5).tolist()}))
     if args.json:
         from ..tracking.realsets import head_angles_deg
 
@@ -84,5 +86,5 @@ def run(args) -> int:
         }
         Path(args.json).write_text(json.dumps(report, indent=1))
     log.info("tracked %d photo(s)", len(names))
-    print(f"wrote {out}: {len(names)} crop(s) {args.size}x{args.size} + masks, cameras.json, expressions.json")
+    print(f"wrote {out}: {len(names)} crop(s) {args.size}x{args.size} + masks, cameras.json, expressions.json, head.json")
     return 0
