@@ -334,3 +334,19 @@ def test_server_frames_open_the_mouth_of_the_shipped_model():
     mouth = diff[region(list(range(48, 68)) + [8], 0.2)].mean()
     brows = diff[region(list(range(17, 27)), 0.1)].mean()
     assert mouth > 10.0 and mouth > 4.0 * brows, (mouth, brows)  # the jaw region moves, the brows hardly
+
+
+def test_closed_lids_take_the_skin_colour_not_the_dark_eye_or_brow():
+    """A lid point between a dark brow/eye and skin gets the skin's colour (a plain median of the
+    neighbourhood made real-photo blinks look like dark glasses)."""
+    from fastgha_core.model.prior import _lid_skin_colors
+
+    rng = np.random.default_rng(0)
+    lid = np.zeros((1, 3), np.float32)
+    skin = np.array([0.8, 0.6, 0.5], np.float32)
+    pts, cols = [], []
+    for dy, c in ((0.012, [0.1, 0.08, 0.07]), (0.004, skin), (0.0, [0.05, 0.05, 0.05]), (-0.006, [0.1, 0.1, 0.1]), (-0.014, skin)):
+        pts.append(rng.normal([0.0, dy, 0.0], 0.0015, (40, 3)))  # brow, crease skin, eye, lashes, under-eye skin
+        cols.append(np.tile(c, (40, 1)))
+    got = _lid_skin_colors(lid, np.eye(3), np.concatenate(pts).astype(np.float32), np.concatenate(cols).astype(np.float32))
+    assert np.allclose(got[0], skin, atol=0.02), got

@@ -38,7 +38,7 @@ def test_hit_pixels_lie_on_the_tracked_mesh_and_the_rest_continue_it(surface):
     from scipy.spatial import cKDTree
 
     cams = _cameras([0.0, 35.0, -70.0])
-    t = surface_ray_depth(surface, cams)
+    t = surface_ray_depth(surface, cams).t
     assert t.shape == (3, 128, 128) and torch.isfinite(t).all()
     pts = _points(cams, t)
     head = HeadModel.load()
@@ -58,7 +58,7 @@ def test_a_surface_point_seen_by_two_views_lands_in_one_place(surface):
     head = HeadModel.load()
     cams = _cameras([0.0, 35.0], size=256)
     two = surface.subset([0, 0])  # same expression in both views
-    t = surface_ray_depth(two, cams)
+    t = surface_ray_depth(two, cams).t
     pts = _points(cams, t)
     verts = two.vertices(0, head)
     lm = head.landmarks68[[30, 33, 36, 39, 42, 45, 48, 54]]  # nose, eye corners, mouth corners (seen from both)
@@ -85,9 +85,35 @@ def test_a_surface_point_seen_by_two_views_lands_in_one_place(surface):
     assert float(err_sphere.median()) > 5 * float(err_surface.median())
 
 
+def test_only_the_air_in_front_of_the_face_is_dropped(surface):
+    """In a profile, pixels in front of the nose and chin are air (``beyond_face``); above and
+    behind the head (hair) and below it (neck, shoulders) they are kept."""
+    head = HeadModel.load()
+    cams = _cameras([0.0, 90.0])
+    sd = surface_ray_depth(surface.subset([0, 0]), cams)
+    c = cams.flatten()
+    tip = torch.from_numpy(surface.vertices(0, head)[head.landmarks68[30]]).double()  # nose tip
+    x = c.R[1].double() @ tip + c.t[1].double()
+    u, v = ((c.K[1].double() @ x)[:2] / x[2]).tolist()
+    row = sd.beyond_face[1, int(v)]
+    step = 1 if u > 64 else -1  # the side the face points to in the image
+    ahead = row[int(u) + 3 * step :: step] if step > 0 else row[: int(u) - 2].flip(0)
+    assert bool(ahead[:10].all())  # in front of the nose: air
+    hit = sd.hit[1]
+    rows = torch.nonzero(hit.any(1)).flatten()
+    top = int(rows.min())
+    assert not bool(sd.beyond_face[1, : max(top - 2, 1)].any())  # above the head: hair may be there
+    chin = torch.from_numpy(surface.vertices(0, head)[head.landmarks68[8]]).double()
+    xc = c.R[1].double() @ chin + c.t[1].double()
+    chin_row = int((c.K[1].double() @ xc)[1] / xc[2])
+    assert not bool(sd.beyond_face[1, chin_row + 2 :].any())  # below the chin: neck, chest
+    assert not bool(sd.beyond_face[0].any())  # frontal: beside the head (ears, hair) is kept
+    assert not bool(sd.beyond_face[1][hit].any())  # never on the head itself
+
+
 def test_the_open_jaw_view_follows_its_own_expression(surface):
     cams = _cameras([0.0, 0.0])
-    t = surface_ray_depth(surface.subset([0, 1]), cams)  # neutral, jaw open 0.6
+    t = surface_ray_depth(surface.subset([0, 1]), cams).t  # neutral, jaw open 0.6
     head = HeadModel.load()
     chin = surface.vertices(1, head)[head.landmarks68[8]]
     x = chin @ cams.R[1].numpy().T + cams.t[1].numpy()

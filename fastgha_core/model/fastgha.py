@@ -466,7 +466,8 @@ class FastGHA(nn.Module):
 
             if len(surface) != v:
                 raise ValueError(f"reconstruct: surface has {len(surface)} views but {v} images were given")
-            ray_depth = surface_ray_depth(surface, cameras)[None]
+            sd = surface_ray_depth(surface, cameras)
+            ray_depth = sd.t[None]
             if self.config.expression_space == "ict53":
                 if expressions is None:
                     expressions = torch.from_numpy(surface.expressions)
@@ -477,6 +478,8 @@ class FastGHA(nn.Module):
             images.to(dev, torch.float32)[None], cameras.to(dev, torch.float32)[None], None if ray_depth is None else ray_depth.to(dev)
         )[0]
         view_index = torch.arange(v, device=dev).repeat_interleave(len(g) // v)  # Gaussians are V*S*S, view-major
+        if surface is not None:  # off the head next to the face is air: drop what a matte left there
+            g = g.replace(opacities=g.opacities * (~sd.beyond_face).reshape(-1).to(dev, g.opacities.dtype))
         thr = self.config.gaussians.prune_opacity
         if thr > 0:
             keep = g.opacities >= thr

@@ -521,11 +521,31 @@ def bind(points: np.ndarray | Tensor, fit: HeadFit, basis: HeadBasis, fade: tupl
     )
 
 
+def _lid_skin_colors(points: np.ndarray, M: np.ndarray, means: np.ndarray, colors: np.ndarray, k: int = 16) -> np.ndarray:
+    """Skin colour ``[P, 3]`` for closed-eyelid points ``[P, 3]`` from an avatar's Gaussians
+    (``means``/``colors [N, 3]``, solid ones): the ``k`` nearest Gaussians to the lid crease (6 mm above
+    each point) and to the skin under the eye (14 mm below), and of those 2k the median of the brighter
+    half. Only skin is that bright there: eyebrows, lashes, the iris and a reconstruction's doubled
+    dark eye all sit in those neighbourhoods and, with a plain median, made a closed lid look like dark
+    glasses (issue 16, real photo sets). ``M [3, 3]``: the head fit's linear part (its up axis)."""
+    from scipy.spatial import cKDTree
+
+    up = M[:, 1] / max(np.linalg.norm(M[:, 1]), 1e-9)
+    fwd = M[:, 2] / max(np.linalg.norm(M[:, 2]), 1e-9)
+    tree = cKDTree(means)
+    _, above = tree.query(points + (0.006 * up + 0.002 * fwd).astype(np.float32), k=k)
+    _, below = tree.query(points + (-0.014 * up + 0.004 * fwd).astype(np.float32), k=k)
+    c = colors[np.concatenate([above, below], axis=1)]  # [P, 2k, 3]
+    lum = c @ np.array([0.299, 0.587, 0.114], np.float32)  # [P, 2k]
+    order = np.argsort(lum, axis=1)[:, k:]  # the brighter half
+    return np.median(np.take_along_axis(c, order[..., None], axis=1), axis=1).astype(np.float32)
+
+
 def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gaussians | None" = None) -> tuple["Gaussians", PriorBinding]:  # noqa: F821
     """Gated Gaussians of the fitted head, each bound to its own vertex with full weight: the mouth
     interior (teeth, gums/tongue, mouth socket; coloured like the synthetic albedo) and the closed
-    upper eyelids (coloured like the avatar's skin just above each point, from ``avatar``'s
-    Gaussians; skin grey without it). ``features`` are zeros ``[I, num_features]``; the binding's
+    upper eyelids (coloured like the avatar's skin around each eye, ``_lid_skin_colors``; skin grey
+    without ``avatar``). ``features`` are zeros ``[I, num_features]``; the binding's
     ``group`` says which gate (``gate_factors``) hides each one."""
     from scipy.spatial import cKDTree
 
@@ -544,12 +564,7 @@ def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "G
             am = avatar.means.detach().float().cpu().numpy()
             solid = avatar.opacities.detach().cpu().numpy() > 0.3
             if solid.sum() >= 16:
-                up = M[:, 1] / max(np.linalg.norm(M[:, 1]), 1e-9)
-                fwd = M[:, 2] / max(np.linalg.norm(M[:, 2]), 1e-9)
-                q = pos[smp] + (0.009 * up + 0.002 * fwd).astype(np.float32)  # the lid crease / brow skin above
-                _, nn = cKDTree(am[solid]).query(q, k=8)
-                ac = avatar.colors.detach().float().cpu().numpy()[solid]
-                cols[smp] = np.median(ac[nn], axis=1)
+                cols[smp] = _lid_skin_colors(pos[smp], M, am[solid], avatar.colors.detach().float().cpu().numpy()[solid])
     g = Gaussians(
         means=torch.from_numpy(pos),
         quats=torch.tensor([1.0, 0.0, 0.0, 0.0]).expand(n, 4).contiguous(),

@@ -16,7 +16,11 @@ Per pixel of each input view (``surface_ray_depth``):
   a ray grazes the surface;
 - elsewhere (hair beyond the skull, neck, shoulders, background), the distance of the nearest hit
   pixel (a Euclidean distance transform), so those Gaussians form a continuous shell around the head
-  instead of a second layer at the network's guess.
+  instead of a second layer at the network's guess;
+- except pixels off the head, above the chin, whose nearest head pixel is on the face's midline
+  (nose, lips, chin, forehead centre): in front of a profile's nose there is only air, and what a matte leaves there
+  (wall, shadow) would be laid along the nose as a white streak (seen on the real sets);
+  ``beyond_face`` marks them and ``FastGHA.reconstruct`` drops their Gaussians.
 
 Distances are along the pixel ray from the camera centre (``Cameras.pixel_rays``), in metres: the
 quantity ``GaussianHead`` calls ``t``. The head frame is the tracker's: metres, +x the subject's
@@ -34,7 +38,7 @@ from torch import Tensor
 
 from ..cameras import Cameras
 
-__all__ = ["HeadSurface", "surface_ray_depth"]
+__all__ = ["HeadSurface", "SurfaceDepth", "surface_ray_depth", "face_vertex_mask"]
 
 
 @dataclass
@@ -94,15 +98,37 @@ class HeadSurface:
         return HeadFit(identity=ident, transform=np.eye(4), vertices=verts.astype(np.float32), rms=0.0)
 
 
-def surface_ray_depth(surface: HeadSurface, cameras: Cameras) -> Tensor:
-    """Ray distance ``[V, H, W]`` float32 (metres) to the tracked head for every pixel of ``cameras``.
+@dataclass
+class SurfaceDepth:
+    """Per-pixel geometry of ``V`` input views from the tracked head (module doc)."""
+
+    t: Tensor  # [V, H, W] float32 metres along each pixel's unit ray
+    hit: Tensor  # [V, H, W] bool: the pixel's own ray hits the head
+    beyond_face: Tensor  # [V, H, W] bool: off the head, next to the face's outline (air: no Gaussian)
+
+
+def face_vertex_mask(head) -> np.ndarray:
+    """``[Nv]`` bool: ICT-FaceKit vertices of the face's midline strip (``|x| < 2.5 cm`` of the face
+    mesh, below the brows + 2 cm: forehead centre, nose, lips, chin). Off the head next to them there
+    is only air in every view (a profile's nose, a raised chin); beside the cheeks and temples hair,
+    ears and shoulders continue the head, so those stay."""
+    v = head.neutral
+    lm = v[head.landmarks68]
+    m = np.zeros(len(v), bool)
+    m[:9409] = True  # the face mesh (data/headmodel.py: face 0-9408)
+    m &= (np.abs(v[:, 0]) < 0.025) & (v[:, 2] > lm[0, 2]) & (v[:, 1] < lm[17:27, 1].max() + 0.02)
+    return m
+
+
+def surface_ray_depth(surface: HeadSurface, cameras: Cameras) -> SurfaceDepth:
+    """Ray distances (metres) to the tracked head for every pixel of ``cameras``.
 
     Args:
         surface: ``V`` views of one tracked head.
         cameras: ``Cameras [V]`` of the ``W x H`` input views (world = the head frame).
     Returns:
-        ``t [V, H, W]``: hit pixels get their own ray's distance, the others the nearest hit pixel's
-        (module doc).
+        ``SurfaceDepth``: ``t [V, H, W]`` (hit pixels get their own ray's distance, the others the
+        nearest hit pixel's), ``hit`` and ``beyond_face`` (module doc).
     Raises:
         ValueError: when the batch sizes differ, or the head is not in front of a view's camera.
     """
@@ -117,19 +143,28 @@ def surface_ray_depth(surface: HeadSurface, cameras: Cameras) -> Tensor:
         raise ValueError(f"surface_ray_depth: {len(surface)} surface views but {v} cameras")
     head = HeadModel.load()
     faces = head.visible_faces(eyelashes=False)
+    attrs = np.stack([np.ones(head.num_vertices), face_vertex_mask(head)], axis=1).astype(np.float32)
     w, h = cams.width, cams.height
     u, r = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
     out = np.empty((v, h, w), np.float32)
+    hits = np.empty((v, h, w), bool)
+    beyond = np.empty((v, h, w), bool)
     for i in range(v):
         w2c = cams.w2c[i].double().numpy()
         K = cams.K[i].double().numpy()
         pts = surface.vertices(i, head).astype(np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
-        m = render_mesh(pts.astype(np.float32), faces, np.ones((len(pts), 1), np.float32), K, w, h, supersample=1)
-        hit = binary_erosion((m.alpha > 0.99) & (m.depth > 0), iterations=1)
+        m = render_mesh(pts.astype(np.float32), faces, attrs, K, w, h, supersample=1)
+        covered = (m.alpha > 0.99) & (m.depth > 0)
+        hit = binary_erosion(covered, iterations=1)
         if not hit.any():
             raise ValueError(f"surface_ray_depth: the tracked head is not visible in view {i}")
         x, y = (u - K[0, 2]) / K[0, 0], (r - K[1, 2]) / K[1, 1]
         t = m.depth * np.sqrt(x * x + y * y + 1.0)  # camera z -> distance along the unit ray
-        _, (iy, ix) = distance_transform_edt(~hit, return_indices=True)
+        dist, (iy, ix) = distance_transform_edt(~hit, return_indices=True)
         out[i] = t[iy, ix]
-    return torch.from_numpy(out)
+        hits[i] = hit
+        face = m.color[..., 1] > 0.5  # premultiplied by coverage: > 0.5 only on covered face pixels
+        chin = pts[head.landmarks68[8]]  # below the chin the neck and chest continue the head
+        chin_row = float(K[1, 1] * chin[1] / chin[2] + K[1, 2])
+        beyond[i] = ~covered & (dist > 1.5) & face[iy, ix] & (r < chin_row)
+    return SurfaceDepth(torch.from_numpy(out), torch.from_numpy(hits), torch.from_numpy(beyond))
