@@ -17,12 +17,13 @@ of it real photo sets hold:
 The pose in ``b`` inherits ``a``'s pose and head shape (the 3D points come from ``a``'s fit), so
 it measures the rotation *between* the photos: ``R_b R_a^T``.
 
-On synthetic renders with known cameras (true geometry for ``a``), 20-45 degrees apart, the pose
-in ``b`` comes out within ~1 degree (tests/test_tracking_multiview.py). On the real sets
-(``python -m fastgha_core.tracking.multiview``) pairs 15-20 degrees apart of the white-background
-video give 40-70 inliers, but pairs 55-85 degrees apart (the photos the landmark fit gets wrong)
-give 5-9 inliers among 15-50 putative matches, and the poses they imply scatter over tens of
-degrees: too little evidence to correct the wide yaws, so it is not a residual of the fit.
+On synthetic renders with known cameras (true geometry for ``a``) 20-25 degrees apart, the pose in
+``b`` comes out within 1.4-2.1 degrees with 32-48 inliers; 45 degrees apart, 10 inliers remain
+(tests/test_tracking_multiview.py). On the real sets (``python -m fastgha_core.tracking.multiview``)
+neighbouring frames of the white-background video give 22-69 inliers, but the wide pairs (55-85
+degrees apart: the photos the landmark fit gets wrong) give 0-8 inliers among 14-46 putative
+matches, and the poses they imply scatter over +-150 degrees: too little evidence to correct the
+wide yaws, so it is not a residual of the fit (docs/tracking.md).
 """
 
 from __future__ import annotations
