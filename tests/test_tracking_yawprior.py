@@ -72,3 +72,22 @@ def test_yaw_prior_jacobian_matches_finite_differences():
         x[c] = 1e-6
         num = (p.residuals(*p.apply(x, beta, E, Rs, ts))[-2:] - r0[-2:]) / 1e-6
         np.testing.assert_allclose(J[-2:, c], num, rtol=1e-4, atol=1e-3)
+
+
+def test_calibration_table_bins_both_ways():
+    from fastgha_core.tracking.yawprior import calibration_table
+
+    true = np.array([60.0, 61.0, -59.0, 80.0, -80.0, 85.0])
+    read = np.array([63.0, 64.0, -66.0, 62.0, 64.0, 67.0])  # the -80 view read on the wrong side
+    t = calibration_table(true, read)
+    rows = {c: (n, m, e) for c, n, m, e in t["by_true"]}
+    assert sorted(rows) == [60.0, 80.0, 85.0]
+    n, m, e = rows[60.0]
+    assert n == 3 and m == pytest.approx((63 + 64 + 66) / 3) and e == pytest.approx((3 + 3 + 7) / 3)
+    n, m, e = rows[80.0]
+    assert n == 2 and m == pytest.approx((62 - 64) / 2) and e == pytest.approx((18 + 144) / 2)
+    reads = {c: (n, m) for c, n, m in t["by_reading"]}
+    assert reads[60.0] == (3, pytest.approx((60 + 61 + 80) / 3)) and reads[65.0] == (2, pytest.approx((59 + 85) / 2))
+    assert reads[-65.0] == (1, pytest.approx(80.0))
+    with pytest.raises(ValueError, match="same length"):
+        calibration_table(true, read[:3])

@@ -15,6 +15,7 @@ are numpy/scipy. See ``docs/tracking.md``.
 - ``video.py``    per-frame expression + pose tracking with One-Euro smoothing
 - ``evaluate.py`` synthetic accuracy figures (``python -m fastgha_core.tracking.evaluate``)
 - ``realsets.py`` yaw on the real photo sets (``python -m fastgha_core.tracking.realsets``)
+- ``multiview.py`` relative head poses from SIFT features lifted onto the fitted head (a measurement, not in the fit)
 """
 
 from .pipeline import TrackConfig, TrackedPhotos, track_photos, track_request

@@ -33,13 +33,15 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["layout_features", "predict_yaw", "load_regression", "render_training_views", "train_regression", "REGRESSION_ASSET"]
+__all__ = ["layout_features", "predict_yaw", "load_regression", "render_training_views", "train_regression", "calibration_table",
+           "REGRESSION_ASSET", "HELD_OUT_BATCHES"]
 
 REGRESSION_ASSET = Path(__file__).resolve().parent.parent / "assets" / "headmodel" / "mediapipe_yaw_regression.npz"
 TRAINING_BATCHES = ((1_000_100, 8), (1_000_300, 16))  # (first seed, subjects); rng seeded by the first seed
 TRAINING_YAWS = (0, 20, 40, 50, 55, 60, 65, 70, 75, 80, 85, 90)
 MIN_TRAIN_YAW = 35.0
 RIDGE = 1.0
+HELD_OUT_BATCHES = ((1_000_200, 12),)  # the evaluation subjects (never trained on): ``--check``
 
 
 def layout_features(points: np.ndarray) -> np.ndarray:
@@ -121,7 +123,51 @@ def train_regression(points: np.ndarray, yaw: np.ndarray, min_yaw: float = MIN_T
     return np.linalg.solve(A.T @ A + ridge * np.eye(A.shape[1]), A.T @ yaw[keep].astype(np.float64))
 
 
+def calibration_table(true_yaw: np.ndarray, read_yaw: np.ndarray, width: float = 5.0) -> dict[str, list[tuple]]:
+    """How the regression reads held-out views, both ways (views are folded to one side: |true yaw|,
+    readings signed by the true side, so a reading on the wrong side counts as negative).
+
+    Returns ``{"by_true": [(bin centre, n, mean reading, mean |error|)], "by_reading": [(bin start, n,
+    mean true)]}``: ``by_true`` bins the true yaw to the nearest multiple of ``width`` degrees;
+    ``by_reading`` bins the folded reading in ``[k width, (k + 1) width)``; empty bins are left out.
+    ``by_reading`` is what a calibration of the output (E[true | reading]) would map a reading to.
+    Raises ValueError on different lengths.
+    """
+    y, r = np.asarray(true_yaw, np.float64).reshape(-1), np.asarray(read_yaw, np.float64).reshape(-1)
+    if y.shape != r.shape:
+        raise ValueError(f"true and read yaws must have the same length, got {y.size} and {r.size}")
+    side = np.where(y < 0, -1.0, 1.0)
+    a, rf = np.abs(y), r * side
+    by_true, by_read = [], []
+    centre = np.round(a / width) * width
+    for c in np.unique(centre):
+        k = centre == c
+        by_true.append((float(c), int(k.sum()), float(rf[k].mean()), float(np.abs(rf[k] - a[k]).mean())))
+    lo = np.floor(rf / width) * width
+    for c in np.unique(lo):
+        k = lo == c
+        by_read.append((float(c), int(k.sum()), float(a[k].mean())))
+    return {"by_true": by_true, "by_reading": by_read}
+
+
 def main(argv: list[str] | None = None) -> int:  # pragma: no cover - rebuilds the shipped asset
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m fastgha_core.tracking.yawprior", description="rebuild the yaw regression (or check it)")
+    p.add_argument("--check", action="store_true", help="instead: read renders of the held-out subjects with the shipped regression")
+    if p.parse_args(argv).check:
+        d = render_training_views(HELD_OUT_BATCHES)
+        coef = load_regression()
+        read = np.array([predict_yaw(q, coef) for q in d["points"]])
+        t = calibration_table(d["yaw"], read)
+        print(f"{len(read)} detected views of {HELD_OUT_BATCHES[0][1]} held-out subjects")
+        print("| true yaw | views | mean reading | mean abs error |\n|---|---|---|---|")
+        for c, n, m, e in t["by_true"]:
+            print(f"| {c:.0f} | {n} | {m:.1f} | {e:.1f} |")
+        print("| reading | views | mean true yaw |\n|---|---|---|")
+        for c, n, m in t["by_reading"]:
+            print(f"| {c:.0f}-{c + 5:.0f} | {n} | {m:.1f} |")
+        return 0
     d = render_training_views()
     coef = train_regression(d["points"], d["yaw"])
     np.savez_compressed(REGRESSION_ASSET, coef=coef.astype(np.float32))
