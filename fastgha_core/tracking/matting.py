@@ -43,14 +43,15 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["MattingConfig", "head_silhouette", "matte_from_head", "GaussianMixture"]
+__all__ = ["MattingConfig", "head_silhouette", "face_region", "matte_from_head", "GaussianMixture"]
 
 logger = logging.getLogger(__name__)
 
 
 @dataclass
 class MattingConfig:
-    erode_m: float = 0.01  # sure foreground = silhouette eroded by this much
+    erode_m: float = 0.01  # likely head = silhouette eroded by this much
+    core_erode_m: float = 0.01  # sure foreground = the fitted face region (brows to chin) eroded by this much
     hair_m: float = 0.05  # hair may extend this far beyond the skull
     hair_below_m: float = 0.02  # ... down to this far below the mouth centre (landmark 57)
     edge_m: float = 0.008  # width of the uncertain band elsewhere
@@ -61,6 +62,7 @@ class MattingConfig:
     samples: int = 4000  # pixels per colour model fit
     feather_px: float = 1.0  # edge softening (Gaussian sigma, output pixels)
     grabcut_iterations: int = 5
+    wall_quantile: float = 0.1  # mixture / GrabCut: a pixel the background model scores above this quantile of its own pixels is wall-like
     seed: int = 0
 
 
@@ -123,6 +125,39 @@ def _disk(r: float) -> np.ndarray:
     return x * x + y * y <= r * r
 
 
+def face_region(points: np.ndarray, size: int) -> np.ndarray:
+    """``[size, size]`` bool: pixels whose centres lie in the convex hull of ``points [N, 2]``
+    (crop pixels, corner convention: the top-left pixel's centre is (0.5, 0.5)). Raises
+    ValueError for fewer than 3 points; collinear points give an empty region."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    if pts.shape[0] < 3:
+        raise ValueError(f"need at least 3 face points for a face region, got {pts.shape[0]}")
+    try:
+        eq = ConvexHull(pts).equations  # [M, 3]: a x + b y + c <= 0 inside
+    except QhullError:  # all points on a line: no area
+        return np.zeros((size, size), dtype=bool)
+    c = np.arange(size) + 0.5
+    inside = np.ones((size, size), dtype=bool)
+    for a, b, off in eq:
+        inside &= (a * c[None, :] + b * c[:, None] + off) <= 1e-9
+    return inside
+
+
+def _erode(mask: np.ndarray, r: float) -> np.ndarray:
+    """Erosion by a disk of radius ``r`` px (outside the array counts as background)."""
+    pad = np.pad(mask, 1, constant_values=False)
+    return (ndimage.distance_transform_edt(pad) > max(r, 1.0))[1:-1, 1:-1]
+
+
+def _dilate(mask: np.ndarray, r: float) -> np.ndarray:
+    """Dilation by a disk of radius ``r`` px."""
+    if not mask.any():
+        return mask.copy()
+    return ndimage.distance_transform_edt(~mask) <= max(r, 1.0)
+
+
 def matte_from_head(
     img: np.ndarray,  # [S, S, 3] uint8 crop
     silhouette: np.ndarray,  # [S, S] coverage of the fitted head
@@ -130,25 +165,18 @@ def matte_from_head(
     mouth_row: float,  # row (pixels) of landmark 57 in the crop
     valid: np.ndarray | None = None,  # [S, S] bool: pixels inside the photo (not padding)
     config: MattingConfig | None = None,
+    face_points: np.ndarray | None = None,  # [N, 2] fitted face landmarks in crop pixels (brows to chin)
 ) -> np.ndarray:
-    """Foreground alpha ``[S, S]`` float32 in [0, 1] (module doc)."""
+    """Foreground alpha ``[S, S]`` float32 in [0, 1] (module doc).
+
+    Raises ValueError when the silhouette is empty or ``config.method`` is unknown.
+    """
     cfg = config or MattingConfig()
     s = img.shape[0]
     valid = np.ones((s, s), dtype=bool) if valid is None else valid.astype(bool)
     sil = silhouette > 0.5
     if not sil.any():
         raise ValueError("the fitted head is not visible in the crop; cannot build a mask")
-    sure_fg = ndimage.binary_erosion(sil, _disk(cfg.erode_m * px_per_m)) & valid
-    if sure_fg.sum() < 50:
-        sure_fg = sil & valid
-    rows = np.arange(s)[:, None]
-    hair_zone = ndimage.binary_dilation(sil, _disk(cfg.hair_m * px_per_m)) & (rows <= mouth_row + cfg.hair_below_m * px_per_m)
-    edge_zone = ndimage.binary_dilation(sil, _disk(cfg.edge_m * px_per_m))
-    maybe = (hair_zone | edge_zone) & valid & ~sure_fg
-    sure_bg = valid & ~(hair_zone | edge_zone)
-    fg = sure_fg.copy()
-    pix = img.reshape(-1, 3).astype(np.float64) / 255.0
-    rng = np.random.default_rng(cfg.seed)
     method = cfg.method
     if method not in ("auto", "mixture", "grabcut", "segmentation"):
         raise ValueError(f"matting method must be 'auto', 'mixture', 'grabcut' or 'segmentation', got {method!r}")
@@ -159,37 +187,66 @@ def matte_from_head(
             method = "segmentation"
         except ImportError:
             method = "mixture"
-    if method == "grabcut" and maybe.any() and sure_bg.any():
-        import cv2  # opencv-contrib-python-headless (faces extra)
+    sil_in = _erode(sil, cfg.erode_m * px_per_m) & valid  # likely head; not sure (module doc)
+    if sil_in.sum() < 50:
+        sil_in = sil & valid
+    # sure foreground: the face between brows and chin, eroded (the fitted silhouette's back of the head
+    # and neck can lie over the wall when the skull, the hair or the yaw is off)
+    if face_points is not None:
+        core = _erode(face_region(face_points, s), cfg.core_erode_m * px_per_m) & sil_in
+    else:
+        core = _erode(sil, (cfg.core_erode_m + cfg.erode_m) * px_per_m) & valid
+    if core.sum() < 20:
+        core = sil_in
+    rows = np.arange(s)[:, None]
+    hair_zone = _dilate(sil, cfg.hair_m * px_per_m) & (rows <= mouth_row + cfg.hair_below_m * px_per_m)
+    edge_zone = _dilate(sil, cfg.edge_m * px_per_m)
+    zone = (hair_zone | edge_zone | sil) & valid  # where the head may be
+    maybe = zone & ~core
+    sure_bg = valid & ~zone
+    fg = core.copy()
+    pix = img.reshape(-1, 3).astype(np.float64) / 255.0
+    rng = np.random.default_rng(cfg.seed)
+    def sample(mask):
+        idx = np.flatnonzero(mask.reshape(-1))
+        return pix[rng.choice(idx, min(cfg.samples, idx.size), replace=False)]
 
-        gc = np.full((s, s), cv2.GC_BGD, np.uint8)
-        gc[maybe] = cv2.GC_PR_FGD
-        gc[sure_fg] = cv2.GC_FGD
-        bgm, fgm = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
-        cv2.setRNGSeed(cfg.seed)
-        cv2.grabCut(np.ascontiguousarray(img[..., ::-1]), gc, None, bgm, fgm, cfg.grabcut_iterations, cv2.GC_INIT_WITH_MASK)
-        fg |= maybe & ((gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD))
-    elif method == "segmentation":
+    colour_ok = sure_bg.sum() >= 10 * cfg.components and sil_in.sum() >= 10 * cfg.components
+    if method == "segmentation":
         from .silhouette import person_mask
 
         fg |= maybe & (person_mask(img) > 0.5)
-    elif maybe.any() and sure_bg.sum() >= 10 * cfg.components and sure_fg.sum() >= 10 * cfg.components:
-        def sample(mask):
-            idx = np.flatnonzero(mask.reshape(-1))
-            return pix[rng.choice(idx, min(cfg.samples, idx.size), replace=False)]
-
-        gf = GaussianMixture(cfg.components, seed=cfg.seed).fit(sample(sure_fg))
+    elif maybe.any() and colour_ok:
+        # background colour model: everything outside the zone (the crop's wall, floor, studio grey);
+        # a likely-head pixel it explains as well as its typical pixels is wall, not head
         gb = GaussianMixture(cfg.components, seed=cfg.seed).fit(sample(sure_bg))
-        idx = np.flatnonzero(maybe.reshape(-1))
-        is_fg = gf.score(pix[idx]) > gb.score(pix[idx])
-        fg.reshape(-1)[idx[is_fg]] = True
+        thr = np.quantile(gb.score(sample(sure_bg)), cfg.wall_quantile)
+        lb = gb.score(pix).reshape(s, s)
+        wall_like = lb >= thr
+        head_like = core | (sil_in & ~wall_like)
+        if head_like.sum() < 10 * cfg.components:
+            head_like = sil_in
+        gf = GaussianMixture(cfg.components, seed=cfg.seed).fit(sample(head_like))
+        lf = gf.score(pix).reshape(s, s)
+        if method == "grabcut":
+            import cv2  # opencv-contrib-python-headless (faces extra)
+
+            gc = np.full((s, s), cv2.GC_BGD, np.uint8)
+            gc[maybe] = np.where((wall_like & (lb > lf))[maybe], cv2.GC_PR_BGD, cv2.GC_PR_FGD)
+            gc[core] = cv2.GC_FGD
+            bgm, fgm = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+            cv2.setRNGSeed(cfg.seed)
+            cv2.grabCut(np.ascontiguousarray(img[..., ::-1]), gc, None, bgm, fgm, cfg.grabcut_iterations, cv2.GC_INIT_WITH_MASK)
+            fg |= maybe & ((gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD))
+        else:
+            fg |= maybe & (lf > lb)
     else:
         logger.info("matting: too few sure pixels for a colour model; using the silhouette band")
-        fg |= edge_zone & valid
-    fg = ndimage.binary_opening(fg, _disk(1.5)) | sure_fg
+        fg |= (sil_in | edge_zone) & valid
+    fg = ndimage.binary_opening(fg, _disk(1.5)) | core
     lab, n = ndimage.label(fg)
-    if n > 1:
-        keep = np.unique(lab[sure_fg])
+    if n > 1:  # only regions connected to the face
+        keep = np.unique(lab[core])
         fg = np.isin(lab, keep[keep > 0])
     fg = ndimage.binary_fill_holes(fg)
     alpha = fg.astype(np.float32)
