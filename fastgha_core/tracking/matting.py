@@ -145,6 +145,16 @@ def face_region(points: np.ndarray, size: int) -> np.ndarray:
     return inside
 
 
+def shading_features(rgb: np.ndarray) -> np.ndarray:
+    """Colour features ``[N, 3]`` of ``rgb [N, 3]`` uint8 for the colour models: chromaticity
+    ``(r, g) / (r + g + b + 0.05)`` (a shadow or a shading ramp on a wall scales r, g, b together and
+    leaves it nearly unchanged; the 0.05 offset in [0, 3] units keeps near-black hair apart from
+    grey) and ``0.03 x`` the mean brightness."""
+    x = np.asarray(rgb, dtype=np.float64) / 255.0
+    tot = x.sum(1, keepdims=True)
+    return np.concatenate([x[:, :2] / (tot + 0.05), 0.03 * tot / 3.0], axis=1)
+
+
 def _erode(mask: np.ndarray, r: float) -> np.ndarray:
     """Erosion by a disk of radius ``r`` px (outside the array counts as background)."""
     pad = np.pad(mask, 1, constant_values=False)
@@ -205,7 +215,7 @@ def matte_from_head(
     maybe = zone & ~core
     sure_bg = valid & ~zone
     fg = core.copy()
-    pix = img.reshape(-1, 3).astype(np.float64) / 255.0
+    pix = shading_features(img.reshape(-1, 3))
     rng = np.random.default_rng(cfg.seed)
     def sample(mask):
         idx = np.flatnonzero(mask.reshape(-1))
@@ -232,12 +242,14 @@ def matte_from_head(
             import cv2  # opencv-contrib-python-headless (faces extra)
 
             gc = np.full((s, s), cv2.GC_BGD, np.uint8)
-            gc[maybe] = np.where((wall_like & (lb > lf))[maybe], cv2.GC_PR_BGD, cv2.GC_PR_FGD)
+            wall = lb > lf  # the colour models say wall
+            gc[maybe] = np.where(wall[maybe], cv2.GC_PR_BGD, cv2.GC_PR_FGD)
             gc[core] = cv2.GC_FGD
             bgm, fgm = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
             cv2.setRNGSeed(cfg.seed)
-            cv2.grabCut(np.ascontiguousarray(img[..., ::-1]), gc, None, bgm, fgm, cfg.grabcut_iterations, cv2.GC_INIT_WITH_MASK)
-            fg |= maybe & ((gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD))
+            feat = np.clip(pix.reshape(s, s, 3) * 400.0, 0, 255).astype(np.uint8)  # GrabCut's colour models on the shading features too
+            cv2.grabCut(feat, gc, None, bgm, fgm, cfg.grabcut_iterations, cv2.GC_INIT_WITH_MASK)
+            fg |= maybe & ((gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)) & ~wall  # what the border model explains stays wall
         else:
             fg |= maybe & (lf > lb)
     else:
