@@ -185,6 +185,71 @@ def _scores(seed, yaw, m, ta, sh, valid, dt) -> dict:
     }  # fmt: skip
 
 
+def wall_like_fraction(img: np.ndarray, mask: np.ndarray, valid: np.ndarray, silhouette: np.ndarray, face: np.ndarray,
+                       px_per_m: float, delta_e: float = 6.0) -> float:
+    """Leak score of a mask on a real crop (no true alpha): the fraction of the mask (> 0.5) outside
+    the fitted face region whose CIELAB colour is within ``delta_e`` of some background sample.
+    Background samples: photo pixels (``valid``) within 6 px of the photo's edge in the crop or of
+    the crop's top and side edges, in the upper 55 % of the crop, and more than 5 cm from the
+    fitted ``silhouette`` (so hair touching the edge is not a sample). Uses neither the mask's
+    classifier nor its trimap. ``img [S, S, 3]`` uint8, others ``[S, S]``."""
+    import cv2
+    from scipy.spatial import cKDTree
+
+    s = img.shape[0]
+    lab = cv2.cvtColor(img.astype(np.float32) / 255.0, cv2.COLOR_RGB2LAB)
+    edge = np.zeros((s, s), bool)
+    edge[:6], edge[:, :6], edge[:, -6:] = True, True, True
+    edge |= valid & ~ndimage.binary_erosion(valid, iterations=6)
+    far = ndimage.distance_transform_edt(silhouette <= 0.5) > 0.05 * px_per_m
+    ref = edge & valid & far
+    ref[int(0.55 * s):] = False
+    m = mask > 0.5
+    test = m & ~face
+    if not ref.any() or not test.any():
+        return 0.0
+    d, _ = cKDTree(lab[ref][::2]).query(lab[test], k=1)
+    return float((d < delta_e).sum() / max(m.sum(), 1))
+
+
+def evaluate_realsets(methods=("auto",), root: Path | None = None) -> list[dict]:
+    """Per real photo (``tracking.realsets.realsets_root()``; tracked set by set): for each matting
+    method the wall-like fraction (:func:`wall_like_fraction`), the mask's share of the crop and the
+    matting time."""
+    from . import matting, pipeline
+    from .realsets import _read, realsets_root
+    from .pipeline import TrackConfig, track_photos
+
+    root = Path(root) if root is not None else realsets_root()
+    rows = []
+    calls = []
+    orig = pipeline.matte_from_head
+
+    def spy(img, sil, ppm, mouth, valid=None, config=None, face_points=None):
+        calls.append((img, sil, ppm, mouth, valid, face_points))
+        return orig(img, sil, ppm, mouth, valid, config, face_points=face_points)
+
+    pipeline.matte_from_head = spy
+    try:
+        for d in sorted(p for p in root.iterdir() if p.is_dir()):
+            paths = sorted(p for p in d.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+            calls.clear()
+            track_photos([_read(p) for p in paths], TrackConfig(), names=[f"{d.name}/{p.name}" for p in paths])
+            for p, (img, sil, ppm, mouth, valid, fp) in zip(paths, calls):
+                face = matting.face_region(fp, img.shape[0])
+                row = {"set": d.name, "photo": p.name}
+                for mth in methods:
+                    t0 = time.perf_counter()
+                    m = matting.matte_from_head(img, sil, ppm, mouth, valid, matting.MattingConfig(method=mth), face_points=fp)
+                    row[f"{mth}_s"] = time.perf_counter() - t0
+                    row[f"{mth}_wall"] = wall_like_fraction(img, m, valid, sil, face, ppm)
+                    row[f"{mth}_area"] = float((m > 0.5).mean())
+                rows.append(row)
+    finally:
+        pipeline.matte_from_head = orig
+    return rows
+
+
 def matting_table(rows: list[dict]) -> str:
     """Markdown: per yaw the means (and the worst view's IoU / leak), then all views."""
     out = ["| yaw | views | IoU mean (min) | leak mean (max) | shadow kept mean (max) | miss mean | alpha MAE | matting s (median) |",
@@ -209,7 +274,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--perturbed", action="store_true",
                    help="instead of tracking: the true head made 15%% larger and turned 15 degrees (evaluate_perturbed)")
     p.add_argument("--json", default=None, help="also write the rows here")
+    p.add_argument("--realsets", action="store_true",
+                   help="instead: the real photo sets (../shared/realsets), per photo the wall-like fraction of each --method (comma-separated)")
     a = p.parse_args(argv)
+    if a.realsets:
+        methods = a.method.split(",")
+        rows = evaluate_realsets(methods)
+        print("| set | photo | " + " | ".join(f"{m} wall-like / area / s" for m in methods) + " |")
+        print("|---|---|" + "---|" * len(methods))
+        for r in rows:
+            print(f"| {r['set']} | {r['photo']} | " + " | ".join(f"{r[m + '_wall']:.3f} / {r[m + '_area']:.2f} / {r[m + '_s']:.2f}" for m in methods) + " |")
+        for m in methods:
+            w = np.array([r[m + "_wall"] for r in rows])
+            print(f"{m}: wall-like mean {w.mean():.3f}, max {w.max():.3f}; matting s median {np.median([r[m + '_s'] for r in rows]):.3f}")
+        if a.json:
+            Path(a.json).write_text(json.dumps(rows, indent=1))
+        return 0
     if a.perturbed:
         rows = evaluate_perturbed(a.subjects, a.first_seed, method=a.method, seed=a.seed)
         how = "true head x1.15, turned 15 degrees"
