@@ -142,3 +142,38 @@ def test_distance_transform_erosion_and_dilation_match_disk_morphology(r):
     m[:, :3] = True  # touching the border: outside counts as background for the erosion
     np.testing.assert_array_equal(_erode(m, r), ndimage.binary_erosion(m, _disk(r)))
     np.testing.assert_array_equal(_dilate(m, r), ndimage.binary_dilation(m, _disk(r)))
+
+
+def test_long_hair_below_the_mouth_is_kept_and_the_shirt_is_not():
+    """Segmentation path, below the hair zone: strands of hair beside the neck (the colour of the
+    hair above the brows) are added to the mask; the shirt next to the neck (the colour of the
+    clothes farther out) is not."""
+    from fastgha_core.tracking.matting import _long_hair, shading_features
+
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[0:S, 0:S]
+    head = _disc(80, 70, 35)
+    neck = (xx >= 65) & (xx < 95) & (yy >= 90)
+    sil = head | neck
+    cap = _disc(80, 70, 40) & (yy < 52)
+    strands = (((xx >= 46) & (xx < 56)) | ((xx >= 104) & (xx < 114))) & (yy >= 55) & (yy < 150)
+    shirt = (yy >= 128) & ~strands & ~neck
+    img = _wall(rng)
+    img[head | neck] = [0.80, 0.58, 0.46]
+    img[cap | strands] = [0.55, 0.42, 0.25]  # light brown hair
+    img[shirt] = [0.10, 0.10, 0.12]  # black shirt
+    img8 = (np.clip(img + rng.normal(0, 0.01, img.shape), 0, 1) * 255).round().astype(np.uint8)
+    person = sil | cap | strands | shirt
+    mouth = 95.0
+    cfg = MattingConfig()
+    hair_zone = _dilate(sil, cfg.hair_m * PX_PER_M) & (yy <= mouth + cfg.hair_below_m * PX_PER_M)
+    zone = hair_zone | _dilate(sil, cfg.edge_m * PX_PER_M) | sil
+    fg = (zone & person) | sil  # what the segmentation path has before the long-hair step
+    ang = np.linspace(0, 2 * np.pi, 17)[:-1]
+    face_pts = np.stack([80 + 22 * np.cos(ang), 78 + 18 * np.sin(ang)], 1)
+    face = face_region(face_pts, S)
+    add = _long_hair(fg, person, sil, hair_zone, zone, face, face_pts, shading_features(img8.reshape(-1, 3)), PX_PER_M, mouth, cfg)
+    low_strands = strands & (yy > mouth + cfg.hair_below_m * PX_PER_M) & ~zone
+    assert low_strands.sum() > 300
+    assert (add & low_strands).sum() / low_strands.sum() > 0.9
+    assert not (add & shirt).any()

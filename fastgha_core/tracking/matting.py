@@ -54,6 +54,7 @@ class MattingConfig:
     core_erode_m: float = 0.01  # sure foreground = the fitted face region (brows to chin) eroded by this much
     hair_m: float = 0.05  # hair may extend this far beyond the skull
     hair_below_m: float = 0.02  # ... down to this far below the mouth centre (landmark 57)
+    long_hair_m: float = 0.15  # segmentation: hair-coloured person pixels near the head down to this far below the mouth (_long_hair)
     edge_m: float = 0.008  # width of the uncertain band elsewhere
     # how uncertain pixels are decided: "segmentation" | "mixture" | "grabcut" (module doc); "auto" =
     # segmentation when MediaPipe is installed, else mixture
@@ -168,6 +169,40 @@ def _dilate(mask: np.ndarray, r: float) -> np.ndarray:
     return ndimage.distance_transform_edt(~mask) <= max(r, 1.0)
 
 
+def _long_hair(fg, person, sil, hair_zone, zone, face, face_points, pix, px_per_m, mouth_row, cfg) -> np.ndarray:
+    """Hair hanging below the hair zone (beside the neck, on the shoulders): person pixels within
+    ``hair_m`` of the silhouette, down to ``long_hair_m`` below the mouth, whose colour the hair
+    model (person pixels of the hair zone above the brows, off the face) explains better than the
+    clothes model (person pixels below the mouth farther than ``hair_m`` from the head), and that
+    touch the mask. ``[S, S]`` bool (empty when either model has too few pixels)."""
+    s = fg.shape[0]
+    rows = np.arange(s)[:, None]
+    brow_row = float(np.min(face_points[:, 1]))
+    near = _dilate(sil, cfg.hair_m * px_per_m)
+    below = (rows > mouth_row + cfg.hair_below_m * px_per_m) & (rows <= mouth_row + cfg.long_hair_m * px_per_m)
+    cand = person & near & below & ~zone
+    hair = fg & hair_zone & (rows < brow_row) & ~face & ~sil
+    clothes = person & ~near & (rows > mouth_row + cfg.hair_below_m * px_per_m)
+    k = cfg.components
+    if not cand.any() or hair.sum() < 20 * k or clothes.sum() < 20 * k:
+        return np.zeros_like(fg)
+    rng = np.random.default_rng(cfg.seed)
+
+    def sample(mask):
+        idx = np.flatnonzero(mask.reshape(-1))
+        return pix[rng.choice(idx, min(cfg.samples, idx.size), replace=False)]
+
+    gh = GaussianMixture(k, seed=cfg.seed).fit(sample(hair))
+    gc = GaussianMixture(k, seed=cfg.seed).fit(sample(clothes))
+    idx = np.flatnonzero(cand.reshape(-1))
+    keep = np.zeros(s * s, dtype=bool)
+    keep[idx] = gh.score(pix[idx]) > gc.score(pix[idx])
+    keep = ndimage.binary_opening(keep.reshape(s, s), _disk(1.5))
+    lab, n = ndimage.label(keep | fg)
+    ids = np.unique(lab[fg])
+    return keep & np.isin(lab, ids[ids > 0])
+
+
 def matte_from_head(
     img: np.ndarray,  # [S, S, 3] uint8 crop
     silhouette: np.ndarray,  # [S, S] coverage of the fitted head
@@ -225,7 +260,10 @@ def matte_from_head(
     if method == "segmentation":
         from .silhouette import person_mask
 
-        fg |= maybe & (person_mask(img) > 0.5)
+        person = (person_mask(img) > 0.5) & valid
+        fg |= maybe & person
+        if cfg.long_hair_m > cfg.hair_below_m and face_points is not None:
+            fg |= _long_hair(fg, person, sil, hair_zone, zone, face_region(face_points, s), face_points, pix, px_per_m, mouth_row, cfg)
     elif maybe.any() and colour_ok:
         # background colour model: everything outside the zone (the crop's wall, floor, studio grey);
         # a likely-head pixel it explains as well as its typical pixels is wall, not head
