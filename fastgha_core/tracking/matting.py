@@ -1,38 +1,42 @@
 """Foreground masks for tracked photos when the user gives none.
 
-The mask is built from the fitted head model (a trimap) and one of three classifiers for the
-uncertain band (``MattingConfig.method``):
+The mask is built from the fitted head model (a trimap whose only sure foreground is the face)
+and one of three classifiers for the rest (``MattingConfig.method``):
 
 - ``"segmentation"`` (default when MediaPipe is installed): MediaPipe's selfie segmentation
-  (``silhouette.person_mask``, the general model shipped in the wheel) > 0.5;
-- ``"mixture"``: RGB Gaussian mixtures of the sure fore/background (numpy EM; step 3 below);
-- ``"grabcut"``: OpenCV's GrabCut initialised with the trimap (sure = GC_FGD / GC_BGD, band =
-  GC_PR_FGD), 5 iterations.
+  (``silhouette.person_mask``, the general model shipped in the wheel) > 0.5, plus long hair
+  below the hair zone when its colour is the hair's and not the clothes' (``_long_hair``);
+- ``"mixture"``: Gaussian mixtures (numpy EM) of colour features that a shadow or a shading ramp
+  hardly changes (``shading_features``), background = everything outside the zone;
+- ``"grabcut"``: OpenCV's GrabCut on the same features, initialised with the trimap and the
+  mixtures' verdict; what the mixtures call wall stays wall.
 
-Compared on the real photo sets (docs/tracking.md): all three reach IoU >= 0.92 on a set with the
-background removed; on the photos against walls the mixture took a wall shadow behind a profile
-and missed dark hair against a dark grey studio wall, GrabCut took a block of wall, the
-segmentation did neither.
+Why the face only: on real photos the fitted ICT head's back of the skull and neck often lie over
+the wall (side views; a skull longer than the person's; a few degrees of yaw error: about 5 cm on a
+phone profile). When the whole eroded silhouette was sure foreground, that wall and the person's
+shadow on it were kept (pale blobs behind the head and beside the neck; docs/tracking.md).
 
 Steps:
 
 1. **Silhouette**: the fitted ICT head (identity + expression + pose, all visible surfaces) is
    rendered into the crop with the CPU mesh rasterizer (``data/meshraster.py``).
-2. **Trimap**: sure foreground = the silhouette eroded by ``erode_m`` (1 cm); hair can only lie
-   within ``hair_m`` (5 cm) of the silhouette and above the mouth (``hair_below_m`` 2 cm below
-   landmark 57's row), elsewhere the band is ``edge_m`` (0.8 cm) wide (ears, cheeks, neck edge);
-   the rest of the photo is sure background. Pixels outside the photo (crop padding) are background.
-3. **Colour model**: one Gaussian mixture (``components`` full-covariance RGB Gaussians, EM in
-   numpy) on sure-foreground pixels and one on sure-background pixels; an uncertain pixel is
-   foreground when its foreground log-likelihood is higher.
-4. **Clean-up**: keep only regions connected to the sure foreground, fill holes, and soften the
-   edge with a Gaussian blur of ``feather_px`` pixels.
+2. **Trimap**: sure foreground (``core``) = the convex hull of the 68 fitted landmarks (brows to
+   chin, ``face_region``) eroded by ``core_erode_m`` (1 cm), inside the silhouette eroded by
+   ``erode_m`` (1 cm); without landmarks, the silhouette eroded by both. The zone where the head may
+   be: hair up to ``hair_m`` (5 cm) outside the silhouette and above the mouth row +
+   ``hair_below_m`` (2 cm; landmark 57), elsewhere a band of ``edge_m`` (0.8 cm) (ears, cheeks,
+   neck edge), and the silhouette itself. The rest of the photo is sure background; pixels outside
+   the photo (crop padding) are background.
+3. **Classifier** for the zone minus the core (above).
+4. **Clean-up**: opening (1.5 px), keep only regions connected to the face, fill holes, and
+   soften the edge with a Gaussian blur of ``feather_px`` pixels.
 
-Limits: hair longer than ``hair_m`` beyond the skull or below the mouth (long hair on the
-shoulders) is cut; hats, hands and glasses frames are treated like hair; a background with the
-colours of skin or hair next to the head leaks into the mask; neck and clothes below the fitted
-mesh are background by design (the synthetic training heads end at the neck). A user mask
-(``<name>_mask.png``) always wins.
+Limits: the neck and clothes below the fitted mesh are background by design (the synthetic
+training heads end at the top of the chest), so shoulders are cut along the fitted silhouette;
+hair longer than ``long_hair_m`` (15 cm) below the mouth, or farther than ``hair_m`` from the head,
+is cut; hats, hands and glasses frames are treated like hair; without MediaPipe, a shirt of the
+wall's colour (grey on grey) is cut and hair tips against a white wall may be lost. A user mask
+(``<name>_mask.png``) always wins. ``matting_eval.py`` measures the masks against known alpha.
 """
 
 from __future__ import annotations
