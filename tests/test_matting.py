@@ -177,3 +177,15 @@ def test_long_hair_below_the_mouth_is_kept_and_the_shirt_is_not():
     assert low_strands.sum() > 300
     assert (add & low_strands).sum() / low_strands.sum() > 0.9
     assert not (add & shirt).any()
+
+
+def test_a_segmentation_that_misses_the_person_falls_back_to_the_colour_models(monkeypatch):
+    """MediaPipe's person mask empty (a drawing, a render, extreme light): the mask is not just
+    the face; the mixture decides, and the wall and shadow stay out."""
+    from fastgha_core.tracking import silhouette
+
+    monkeypatch.setattr(silhouette, "person_mask", lambda img: np.zeros(img.shape[:2], np.float32))
+    img, head, shadow, sil, face, mouth = _scene(4)
+    m = matte_from_head(img, sil, PX_PER_M, mouth, None, MattingConfig(method="segmentation"), face_points=face) > 0.5
+    assert (m & head).sum() / (m | head).sum() > 0.9  # the hair above the face too, not only the face hull
+    assert (m & shadow).sum() / shadow.sum() < 0.05

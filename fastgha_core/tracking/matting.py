@@ -5,7 +5,8 @@ and one of three classifiers for the rest (``MattingConfig.method``):
 
 - ``"segmentation"`` (default when MediaPipe is installed): MediaPipe's selfie segmentation
   (``silhouette.person_mask``, the general model shipped in the wheel) > 0.5, plus long hair
-  below the hair zone when its colour is the hair's and not the clothes' (``_long_hair``);
+  below the hair zone when its colour is the hair's and not the clothes' (``_long_hair``); when
+  it covers less than ``min_person_share`` (half) of the likely head, the mixture decides instead;
 - ``"mixture"``: Gaussian mixtures (numpy EM) of colour features that a shadow or a shading ramp
   hardly changes (``shading_features``), background = everything outside the zone;
 - ``"grabcut"``: OpenCV's GrabCut on the same features, initialised with the trimap and the
@@ -58,6 +59,7 @@ class MattingConfig:
     core_erode_m: float = 0.01  # sure foreground = the fitted face region (brows to chin) eroded by this much
     hair_m: float = 0.05  # hair may extend this far beyond the skull
     hair_below_m: float = 0.02  # ... down to this far below the mouth centre (landmark 57)
+    min_person_share: float = 0.5  # segmentation covering less of the likely head than this: fall back to "mixture"
     long_hair_m: float = 0.15  # segmentation: hair-coloured person pixels near the head down to this far below the mouth (_long_hair)
     edge_m: float = 0.008  # width of the uncertain band elsewhere
     # how uncertain pixels are decided: "segmentation" | "mixture" | "grabcut" (module doc); "auto" =
@@ -261,10 +263,17 @@ def matte_from_head(
         return pix[rng.choice(idx, min(cfg.samples, idx.size), replace=False)]
 
     colour_ok = sure_bg.sum() >= 10 * cfg.components and sil_in.sum() >= 10 * cfg.components
+    person = None
     if method == "segmentation":
         from .silhouette import person_mask
 
         person = (person_mask(img) > 0.5) & valid
+        if (person & sil_in).sum() < cfg.min_person_share * sil_in.sum():
+            # the segmentation missed the person (a drawing, a render, extreme light): colour models instead
+            logger.info("matting: the segmentation covers %.0f%% of the fitted head; using the colour mixture",
+                        100.0 * (person & sil_in).sum() / max(sil_in.sum(), 1))
+            method, person = "mixture", None
+    if person is not None:
         fg |= maybe & person
         if cfg.long_hair_m > cfg.hair_below_m and face_points is not None:
             fg |= _long_hair(fg, person, sil, hair_zone, zone, face_region(face_points, s), face_points, pix, px_per_m, mouth_row, cfg)
