@@ -15,6 +15,7 @@ are numpy/scipy. See ``docs/tracking.md``.
 - ``video.py``    per-frame expression + pose tracking with One-Euro smoothing
 - ``evaluate.py`` synthetic accuracy figures (``python -m fastgha_core.tracking.evaluate``)
 - ``realsets.py`` yaw on the real photo sets (``python -m fastgha_core.tracking.realsets``)
+- ``matting_eval.py`` masks against known alpha (synthetic heads on walls) and a leak score on the real sets
 """
 
 from .pipeline import TrackConfig, TrackedPhotos, track_photos, track_request
