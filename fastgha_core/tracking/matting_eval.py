@@ -278,6 +278,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="instead: the real photo sets (../shared/realsets), per photo the wall-like fraction of each --method (comma-separated)")
     a = p.parse_args(argv)
     if a.realsets:
+        from .realsets import realsets_root
+
+        if not realsets_root().is_dir():
+            print(f"no real photo sets under {realsets_root()}: nothing to evaluate")
+            return 0
         methods = a.method.split(",")
         rows = evaluate_realsets(methods)
         print("| set | photo | " + " | ".join(f"{m} wall-like / area / s" for m in methods) + " |")
