@@ -1,6 +1,7 @@
 """Matting against known alpha: synthetic heads on walls with shading and a soft shadow.
 
-``python -m fastgha_core.tracking.matting_eval [--subjects 6] [--first-seed 1000300] [--method auto] [--json OUT]``
+``python -m fastgha_core.tracking.matting_eval [--subjects 6] [--first-seed 1000300] [--method auto] [--perturbed] [--json OUT]``
+``python -m fastgha_core.tracking.matting_eval --realsets [--method segmentation,mixture,grabcut]``
 
 Each held-out synthetic subject (``data/synthetic.py``: procedural skin, hair shell, lighting) is
 rendered at yaws 0, 35 and 70 degrees (pitch 0, 1 m, 40-degree field of view, 384 x 512 portrait)
@@ -17,6 +18,12 @@ the true, head. The true alpha goes through the same crop, and per view the repo
 - ``miss``: the fraction of the true foreground missing from the mask;
 - ``mae``: mean absolute alpha error over the crop's pixels inside the photo;
 - ``seconds``: time of ``matte_from_head`` for that view.
+
+``--perturbed`` (``evaluate_perturbed``) skips the detector and gives the matting the true head
+made 15 % larger and turned 15 degrees, the way real fits miss (skull too long, yaw off).
+``--realsets`` (``evaluate_realsets``) has no truth: per real photo the share of the mask whose
+colour matches the crop's background edge (``wall_like_fraction``); the sets are read from
+``../shared/realsets`` or ``$FASTGHA_REALSETS`` and never shipped.
 """
 
 from __future__ import annotations
