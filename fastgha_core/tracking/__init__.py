@@ -10,12 +10,13 @@ are numpy/scipy. See ``docs/tracking.md``.
 - ``silhouette.py`` person mask outline as an optional residual for side views
 - ``camera.py``   fitted pose -> head-centric OpenCV ``Cameras``
 - ``crop.py``     square head crop, K adjusted, background padding
-- ``matting.py``  mask: trimap from the fitted head, band decided by segmentation / mixture / GrabCut
+- ``matting.py``  mask: trimap from the fitted head (sure foreground: the face), the rest decided by segmentation / mixture / GrabCut
 - ``pipeline.py`` ``track_photos`` / ``track_request`` (server entry point)
 - ``video.py``    per-frame expression + pose tracking with One-Euro smoothing
 - ``evaluate.py`` synthetic accuracy figures (``python -m fastgha_core.tracking.evaluate``)
 - ``realsets.py`` yaw on the real photo sets (``python -m fastgha_core.tracking.realsets``)
 - ``multiview.py`` relative head poses from SIFT features lifted onto the fitted head (a measurement, not in the fit)
+- ``matting_eval.py`` masks against known alpha (synthetic heads on walls) and a leak score on the real sets
 """
 
 from .pipeline import TrackConfig, TrackedPhotos, track_photos, track_request

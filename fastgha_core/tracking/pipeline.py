@@ -153,8 +153,9 @@ def track_photos(
             Kc = ccam.K[0].double().numpy()
             verts = head.vertices(fit.identity.astype(np.float32), fit.expressions[v].astype(np.float32))
             sil = head_silhouette(verts, faces, fit.rotations[v], fit.translations[v], Kc, S)
-            lm57 = (head.landmarks(verts)[57] @ fit.rotations[v].T + fit.translations[v]) @ Kc.T
-            m = matte_from_head(crop, sil, Kc[0, 0] / fit.translations[v, 2], lm57[1] / lm57[2], valid, cfg.matting)
+            lm = (head.landmarks(verts) @ fit.rotations[v].T + fit.translations[v]) @ Kc.T  # [68, 3] fitted, in the crop
+            lm = lm[:, :2] / lm[:, 2:]
+            m = matte_from_head(crop, sil, Kc[0, 0] / fit.translations[v, 2], lm[57, 1], valid, cfg.matting, face_points=lm)
         crops.append(crop)
         out_masks.append(np.clip(m, 0, 1).astype(np.float32))
         crop_cams.append(ccam)
