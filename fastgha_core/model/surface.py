@@ -48,21 +48,14 @@ class HeadSurface:
     Attributes:
         identity: ``[100]`` ICT identity coefficients (``FitResult.identity``; modes ~ N(0, 1)).
         expressions: ``[V, 53]`` ``ict53`` blendshape weights of each input photo, in [0, 1].
-        transform: ``[4, 4]`` head frame -> world (``scale * R | t``); the identity for tracked
-            photos, whose cameras live in the head frame; a ``prior.HeadFit``'s for a head fitted to
-            an avatar (``from_fit``).
     """
 
     identity: np.ndarray
     expressions: np.ndarray
-    transform: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.identity = np.asarray(self.identity, dtype=np.float32).reshape(-1)
         self.expressions = np.asarray(self.expressions, dtype=np.float32)
-        self.transform = np.eye(4) if self.transform is None else np.asarray(self.transform, dtype=np.float64)
-        if self.transform.shape != (4, 4):
-            raise ValueError(f"HeadSurface: transform must be [4, 4], got {list(self.transform.shape)}")
         if self.expressions.ndim != 2 or self.expressions.shape[1] != 53:
             raise ValueError(f"HeadSurface: expressions must have shape [V, 53] (ict53), got {list(self.expressions.shape)}")
         if self.identity.shape[0] > 100:
@@ -79,17 +72,9 @@ class HeadSurface:
         fit = getattr(tracked, "fit", tracked)
         return HeadSurface(fit.identity, fit.expressions)
 
-    @staticmethod
-    def from_fit(fit, expressions) -> "HeadSurface":
-        """From a ``prior.HeadFit`` / ``PriorBinding`` (identity + transform; e.g. the head the expression
-        prior fitted to an avatar) and the views' ``[V, 53]`` expressions."""
-        ident = fit.identity.detach().cpu().numpy() if hasattr(fit.identity, "detach") else fit.identity
-        T = fit.transform.detach().cpu().numpy() if hasattr(fit.transform, "detach") else fit.transform
-        return HeadSurface(ident, np.asarray(expressions), T)
-
     def subset(self, views) -> "HeadSurface":
         """The surface of the views ``views`` (indices or a bool mask), in that order."""
-        return HeadSurface(self.identity, self.expressions[np.asarray(views)], self.transform)
+        return HeadSurface(self.identity, self.expressions[np.asarray(views)])
 
     def vertices(self, view: int, head=None) -> np.ndarray:
         """Head-frame vertices ``[Nv, 3]`` (metres) of view ``view``'s expression."""
@@ -98,8 +83,7 @@ class HeadSurface:
         head = head or HeadModel.load()
         ident = np.zeros(head.num_identity, np.float32)
         ident[: len(self.identity)] = self.identity[: head.num_identity]
-        v = head.vertices(ident, self.expressions[view]).astype(np.float64)
-        return (v @ self.transform[:3, :3].T + self.transform[:3, 3]).astype(np.float32)
+        return head.vertices(ident, self.expressions[view])
 
     def head_fit(self, basis):
         """The ``model.prior.HeadFit`` of this head at the neutral expression (identity truncated to
@@ -111,8 +95,7 @@ class HeadSurface:
         n = min(k, len(self.identity))
         ident[:n] = self.identity[:n]
         verts = basis.neutral.astype(np.float64) + np.tensordot(ident, basis.identity_basis, axes=1)
-        verts = verts @ self.transform[:3, :3].T + self.transform[:3, 3]
-        return HeadFit(identity=ident, transform=self.transform.copy(), vertices=verts.astype(np.float32), rms=0.0)
+        return HeadFit(identity=ident, transform=np.eye(4), vertices=verts.astype(np.float32), rms=0.0)
 
 
 @dataclass
