@@ -372,5 +372,5 @@ def test_server_without_cameras_tracks_the_exif6_portrait():
     from server.tracking import PhotoTracker
 
     img, _ = decode_image((FIX / "grace_hopper_exif6.jpg").read_bytes(), "grace_hopper_exif6.jpg", 10**7)
-    crops, cams, masks, _ = PhotoTracker().track([img], None, 128)
+    crops, cams, masks, _, _ = PhotoTracker().track([img], None, 128)
     assert crops.shape[0] == 1 and len(cams) == 1 and masks.shape[0] == 1
