@@ -544,8 +544,8 @@ def _lid_skin_colors(points: np.ndarray, M: np.ndarray, means: np.ndarray, color
 def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gaussians | None" = None) -> tuple["Gaussians", PriorBinding]:  # noqa: F821
     """Gated Gaussians of the fitted head, each bound to its own vertex with full weight: the mouth
     interior (teeth, gums/tongue, mouth socket; coloured like the synthetic albedo) and the closed
-    upper eyelids (coloured like the avatar's skin around each eye, ``_lid_skin_colors``; skin grey
-    without ``avatar``). ``features`` are zeros ``[I, num_features]``; the binding's
+    upper eyelids (the part that closes over the eye coloured like the avatar's skin around the eye,
+    ``_lid_skin_colors``, the rest like the avatar where it sits; skin grey without ``avatar``). ``features`` are zeros ``[I, num_features]``; the binding's
     ``group`` says which gate (``gate_factors``) hides each one."""
     from scipy.spatial import cKDTree
 
@@ -564,7 +564,15 @@ def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "G
             am = avatar.means.detach().float().cpu().numpy()
             solid = avatar.opacities.detach().cpu().numpy() > 0.3
             if solid.sum() >= 16:
-                cols[smp] = _lid_skin_colors(pos[smp], M, am[solid], avatar.colors.detach().float().cpu().numpy()[solid])
+                ac = avatar.colors.detach().float().cpu().numpy()[solid]
+                # lid points that close over the eye (they travel > 6 mm) take the skin around the
+                # eye; the rest of the moving lid (towards the brow) keeps the avatar's colour where it sits
+                blink = np.flatnonzero(basis.gates[1:].sum(0) > 0)  # the lid gates' shapes (eyeBlink_L/R)
+                travel = np.linalg.norm(basis.expression_basis[blink][:, ids[smp]], axis=-1).max(0) if len(blink) else np.zeros(int(smp.sum()))
+                over_eye = travel > 0.006
+                _, nn = cKDTree(am[solid]).query(pos[smp], k=8)
+                own = np.median(ac[nn], axis=1)
+                cols[smp] = np.where(over_eye[:, None], _lid_skin_colors(pos[smp], M, am[solid], ac), own)
     g = Gaussians(
         means=torch.from_numpy(pos),
         quats=torch.tensor([1.0, 0.0, 0.0, 0.0]).expand(n, 4).contiguous(),
