@@ -10,6 +10,11 @@ expressions (uniform in [0, 0.6] per blendshape, so the mouth and lids are often
 reported: median ms per frame, frames per second, the ratio B/A of medians, and the deform and
 raster medians of each.
 
+``fastgha_core`` is imported before torch, as the server does, so that its OpenMP default
+(``GOMP_SPINCOUNT``, ``fastgha_core.perf``) reaches torch's runtime; until 2026-11-29 the script
+imported torch first, and idle OpenMP threads then spun for longer after each parallel region.
+``bench/prior_frame_profile.py`` splits the same frames into stages.
+
     python bench/prior_frame_ab.py --rounds 40 --json out/prior_ab.json
 """
 
@@ -34,6 +39,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     sys.path.insert(0, str(REPO))
+    import fastgha_core  # noqa: F401  (sets the OpenMP defaults before torch is imported, as the server does)
     import numpy as np
     import torch
     from PIL import Image

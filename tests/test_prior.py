@@ -202,6 +202,54 @@ def test_animate_with_the_prior(model_and_avatar):
     torch.testing.assert_close(both[1].means, opened.means)
 
 
+def test_animate_frame_path_matches_the_plain_path(model_and_avatar):
+    """``animate`` on the CPU with one expression takes ``PriorRuntime.frame`` (one numba pass):
+    the same Gaussians as the plain path (``_combine`` of the sparse displacement, the MLP residual
+    and the per-Gaussian gate), positions to float32 rounding, colours and opacities exactly; it may
+    leave out more trailing gated Gaussians (those under the rasterizer's ALPHA_MIN), and the images
+    agree. Inference only (``animate`` runs without autograd); training keeps the plain path."""
+    import copy
+
+    from fastgha_core.cameras import Cameras
+    from fastgha_core.model.fastgha import _combine
+    from fastgha_core.render import render
+    from fastgha_core.render.projection import ALPHA_MIN
+
+    model0, avatar, n_rec = model_and_avatar
+    model = copy.deepcopy(model0)
+    with torch.no_grad():  # a residual that moves and recolours (and clamps some colours)
+        torch.manual_seed(1)
+        model.deform.out.weight.normal_(0.0, 0.02)
+        model.deform.out.bias.copy_(torch.tensor([0.0, 0.001, 0.0, 0.45, -0.65, 0.0]))  # colours are 0.6: both clamps
+    names = HeadModel.load().expression_names
+    one = lambda **w: torch.tensor([w.get(n, 0.0) for n in names])  # noqa: E731
+    faint_lid = one(jawOpen=1.0, eyeBlink_L=1.0, eyeBlink_R=0.265)  # right lid's gate ~0.003: 0.9 * gate < 1/255
+    zs = [torch.zeros(53), one(jawOpen=1.0), one(eyeBlink_L=1.0), one(eyeBlink_L=1.0, eyeBlink_R=1.0), faint_lid]
+    zs += [torch.rand(53, generator=torch.Generator().manual_seed(k)) * 0.6 for k in range(3)]
+    cam = Cameras.look_at((0.0, 0.0, 0.6), (0.0, 0.0, 0.0), fov_deg=30.0, width=64, height=64)
+    g = avatar.gaussians
+    for z in zs:
+        fast = model.animate(avatar, z)
+        rt = avatar.prior_runtime
+        with torch.inference_mode():
+            dxyz, drgb = model.deform.forward_split(model._deform_partial(avatar), z)
+            plain = _combine(g, dxyz, drgb, rt.displacement(z), avatar.num_interior, model._gate(z, rt), trim=True)
+        n = len(fast)
+        assert n_rec <= n <= len(plain)
+        torch.testing.assert_close(fast.means, plain.means[:n], rtol=0, atol=2e-7)
+        for k in ("colors", "opacities", "quats", "scales", "features"):
+            assert torch.equal(getattr(fast, k), getattr(plain, k)[:n]), k
+        assert torch.all(plain.opacities[n:] < ALPHA_MIN)
+        assert float(dxyz.abs().max()) > 1e-4 and (plain.colors[:n_rec] == 0).any() and (plain.colors[:n_rec] == 1).any()
+        with torch.no_grad():
+            a, b = render(fast, cam, background=(1.0, 1.0, 1.0)), render(plain, cam, background=(1.0, 1.0, 1.0))
+        torch.testing.assert_close(a.rgb, b.rgb, rtol=0, atol=1e-5)
+        if z is faint_lid:  # the plain path keeps the faint right lid (its gate is not 0), the frame path not
+            assert n < len(plain) == len(g) and plain.opacities[-1] > 0
+    with pytest.raises(ValueError, match="float32 CPU tensors"):
+        avatar.prior_runtime.frame(g.to(dtype=torch.float64), avatar.num_interior, dxyz, drgb, zs[0])
+
+
 def test_avatar_file_and_ply_keep_the_prior_and_the_mouth(model_and_avatar, tmp_path):
     from fastgha_core.io import load_ply
     from fastgha_core.model.avatar import CanonicalAvatar

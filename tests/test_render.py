@@ -272,3 +272,58 @@ def test_cpu_float32_gradient_path_can_be_turned_off(monkeypatch):
     monkeypatch.setenv("FASTGHA_RASTER_FAST", "0")
     slow = run(g, cams, "cpu")
     assert_same(fast, slow, rtol=2e-4, atol=2e-4)
+
+
+def _wall_scene() -> tuple[Gaussians, Cameras]:
+    """Four layers of near-opaque splats over the left half of a 64x48 image (every pixel there stops)
+    and small splats behind, over the whole image: behind the wall only, straddling its edge (inside
+    one tile row) and in the open."""
+    g = torch.Generator().manual_seed(21)
+    xs, ys = torch.meshgrid(torch.linspace(-0.24, -0.005, 40), torch.linspace(-0.2, 0.2, 36), indexing="ij")
+    wall = torch.stack([xs.flatten(), ys.flatten(), torch.zeros(xs.numel())], -1)
+    wall = torch.cat([wall + torch.tensor([0.0, 0.0, -0.005 * k]) for k in range(4)])
+    n_w, n_b = len(wall), 80
+    behind = torch.cat([torch.rand(n_b, 2, generator=g) * torch.tensor([0.5, 0.4]) - torch.tensor([0.25, 0.2]), torch.full((n_b, 1), -0.1)], -1)
+    means = torch.cat([wall, behind])
+    n = len(means)
+    scales = torch.cat([torch.full((n_w, 3), 0.01), torch.rand(n_b, 1, generator=g).expand(n_b, 3) * 0.008 + 0.002])
+    opac = torch.cat([torch.full((n_w,), 1.0), torch.rand(n_b, generator=g) * 0.8 + 0.2])
+    quats = torch.tensor([1.0, 0.0, 0.0, 0.0]).expand(n, 4).contiguous()
+    cams = Cameras.look_at((0.0, 0.0, 1.0), (0.0, 0.0, 0.0), fov_deg=30.0, width=64, height=48)
+    return Gaussians(means, quats, scales, opac, torch.rand(n, 3, generator=g)), cams
+
+
+def test_fast_path_skips_rows_only_where_no_pixel_of_the_splat_is_live():
+    """The no-gradient kernel skips a tile row when none of the live pixels lies in a splat's box
+    columns: pixels that stopped behind an opaque wall, next to live ones in the same row. Same image
+    as the dense reference."""
+    g, cams = _wall_scene()
+    with torch.no_grad():
+        fast = render(g, cams, background=(0.3, 0.6, 0.9), backend="cpu")
+        ref = render(g, cams, background=(0.3, 0.6, 0.9), backend="reference")
+    left, right = ref.alpha[0, 0, 12:36, 14:32], ref.alpha[0, 0, 8:40, 38:56]
+    assert (left > 0.995).all()  # the wall stops every pixel there
+    assert (right < 0.999).any() and (right > 0.1).any()  # behind splats show in the open half
+    for name in ("rgb", "alpha", "depth"):
+        torch.testing.assert_close(getattr(fast, name), getattr(ref, name), rtol=1e-4, atol=2e-5, msg=name)
+
+
+def test_gaussians_below_the_alpha_threshold_are_not_projected():
+    """``project_cpu(..., opacities)`` skips Gaussians the compositing would skip anyway: they get no
+    radius and no tiles, the others are projected as before, and the image is bit-identical to the
+    one rendered without those Gaussians."""
+    from fastgha_core.render.cpu_backend import project_cpu
+
+    g, cams = random_scene(13, n=300, dtype=torch.float32), cameras(64, 48, torch.float32)
+    faint = torch.arange(len(g)) % 3 == 0
+    g = g.replace(opacities=torch.where(faint, torch.rand(len(g)) * ALPHA_MIN * 0.999, g.opacities))
+    a, ra = project_cpu(g.means, g.quats, g.scales, cams.K, cams.w2c, cams.width, cams.height, g.opacities)
+    b, rb = project_cpu(g.means, g.quats, g.scales, cams.K, cams.w2c, cams.width, cams.height)
+    assert (a.radii[:, faint] == 0).all() and (ra[:, faint] == 0).all() and (b.radii[:, faint] > 0).any()
+    assert torch.equal(a.radii[:, ~faint], b.radii[:, ~faint]) and torch.equal(ra[:, ~faint], rb[:, ~faint])
+    assert torch.equal(a.means2d[:, ~faint], b.means2d[:, ~faint]) and torch.equal(a.conics[:, ~faint], b.conics[:, ~faint])
+    with torch.no_grad():
+        with_faint = render(g, cams, background=(1.0, 1.0, 1.0), backend="cpu")
+        without = render(g[~faint], cams, background=(1.0, 1.0, 1.0), backend="cpu")
+    for name in ("rgb", "alpha", "depth"):
+        assert torch.equal(getattr(with_faint, name), getattr(without, name)), name

@@ -539,7 +539,9 @@ class FastGHA(nn.Module):
         binding gets one first, see ``attach_prior``); ``prior=False`` leaves it out (an ablation).
         Trailing mouth-interior / eyelid Gaussians that the expression keeps hidden are left out of
         the result, so it may hold fewer Gaussians than the avatar (never fewer than
-        ``avatar.num_reconstructed``).
+        ``avatar.num_reconstructed``). One expression on the CPU in float32 (the server's frame) takes
+        ``PriorRuntime.frame``: the same Gaussians in one numba pass, leaving out trailing gated runs
+        whose opacity is below the rasterizer's ``ALPHA_MIN`` (the image is the same).
         """
         if avatar.expression_space != self.config.expression_space:
             raise ValueError(
@@ -571,6 +573,8 @@ class FastGHA(nn.Module):
             if rt is None or rt.n != len(g) or rt.basis_u.device != dev:
                 with torch.inference_mode(False):
                     rt = avatar.prior_runtime = self._runtime(avatar.prior.to(dev))
+            if prior and z.ndim == 1 and dev.type == "cpu" and g.means.dtype == torch.float32:
+                return rt.frame(g, n_int, dxyz, drgb, z)  # one numba pass, the same Gaussians as below
             if prior:
                 prior_d = rt.displacement(z)  # [N, 3] or [B, N, 3]
             gate = self._gate(z, rt)

@@ -606,10 +606,15 @@ def opacity_factors(z: Tensor, basis: HeadBasis, index: Tensor) -> Tensor:
     """Per-Gaussian opacity factors ``[N]`` (``[B, N]``) for ``z [E]`` (``[B, E]``); ``index [N]`` =
     ``binding.groups() + 1``. Slot 0 = 1 (no gate), slots 1..G = the gates (interior Gaussians appear),
     slots G+1.. = 1 - gate k (reconstructed Gaussians that hide, k = 1..)."""
-    f = gate_factors(z, torch.as_tensor(basis.gates, device=z.device, dtype=z.dtype), torch.as_tensor(basis.gate_ranges, device=z.device, dtype=z.dtype))
+    gates = torch.as_tensor(basis.gates, device=z.device, dtype=z.dtype)
+    return factor_table(z, gates, torch.as_tensor(basis.gate_ranges, device=z.device, dtype=z.dtype))[..., index]
+
+
+def factor_table(z: Tensor, gates: Tensor, ranges: Tensor) -> Tensor:
+    """The opacity factor of each slot of ``opacity_factors``: ``z [E]`` (``[B, E]``) -> ``[2G]`` (``[B, 2G]``)."""
+    f = gate_factors(z, gates, ranges)
     one = torch.ones_like(f[..., :1])
-    table = torch.cat([one, f, 1.0 - f[..., 1:]], dim=-1)  # [G + 1 + (G - 1)]
-    return table[..., index]
+    return torch.cat([one, f, 1.0 - f[..., 1:]], dim=-1)  # [G + 1 + (G - 1)]
 
 
 def gate_factors(z: Tensor, gates: Tensor, ranges: Tensor) -> Tensor:
@@ -657,7 +662,8 @@ class PriorRuntime:
     avatars); ``local [N*3]`` indexes them (slot 0 = a zero row for corners that never move and
     Gaussians with no weight); ``coef [N, 3, 1]`` = barycentric * fade weight; ``M [3, 3]`` = the
     fit's scale * rotation, applied after the gather. ``displacement(z [E])`` -> ``[N, 3]``;
-    ``z [B, E]`` -> ``[B, N, 3]``.
+    ``z [B, E]`` -> ``[B, N, 3]``. ``frame`` is the server's per-frame path (one expression, CPU):
+    it reads a per-avatar copy of the used slots (``compact``) and writes the deformed Gaussians.
     """
 
     def __init__(self, binding: PriorBinding, basis: HeadBasis, device=None):
@@ -671,19 +677,50 @@ class PriorRuntime:
         self.M = binding.transform[:3, :3].float().to(dev)  # [3, 3]
         self.coef = (binding.bary * binding.weight[:, None]).float().to(dev)[..., None]  # [N, 3, 1]
         self.n = len(binding)
-        # the same gather-and-weight as one sparse [N, U] matrix (3 entries a row): one sparse product
-        # per frame instead of an [N, 3, 3] gather, multiply and sum (1.6 -> ~0.4 ms for 37k Gaussians)
-        u = self.basis_u.shape[1] // 3
-        with warnings.catch_warnings():  # torch marks CSR tensors "beta"; this one is built valid by construction
-            warnings.simplefilter("ignore", UserWarning)
-            self.W = torch.sparse_csr_tensor(
-                torch.arange(0, 3 * self.n + 1, 3, dtype=torch.int64), self.local.cpu(), self.coef.reshape(-1).cpu(),
-                size=(self.n, u), check_invariants=False,
-            ).to(dev)  # [N, U]
+        self._W: Tensor | None = None  # built on first use by displacement()
+        self._compact: tuple[Tensor, Tensor] | None = None  # built on first use by frame()
         grp = binding.groups()
         self.gated = bool((grp >= 0).any())
         self.group_index = (grp + 1).to(dev)  # [N] into opacity_factors' table
         self.basis = basis
+        # for frame(): the gates as tensors, the slots [N, 3], weights [N, 3] and table index [N] int8
+        self.gates = torch.as_tensor(basis.gates, dtype=torch.float32).to(dev)  # [G, E]
+        self.gate_ranges = torch.as_tensor(basis.gate_ranges, dtype=torch.float32).to(dev)  # [G, 2]
+        self.coef3 = self.coef[..., 0].contiguous()  # [N, 3]
+        self.group_index8 = self.group_index.to(torch.int8)
+        # runs of one gate group among the Gaussians, from the last: (start, end, table slot)
+        gi = self.group_index.cpu().numpy()
+        cuts = np.flatnonzero(np.diff(gi)) + 1
+        starts, ends = np.concatenate([[0], cuts]), np.concatenate([cuts, [self.n]])
+        self.runs = [(int(a), int(b), int(gi[a])) for a, b in zip(starts, ends)][::-1]
+        self._run_max: tuple | None = None  # (opacities tensor, [max opacity per run]) of the last frame()
+
+    @property
+    def W(self) -> Tensor:
+        """The gather-and-weight as one sparse ``[N, U]`` CSR matrix (3 entries a row): one sparse product
+        per frame instead of an ``[N, 3, 3]`` gather, multiply and sum (1.6 -> ~0.4 ms for 37k Gaussians)."""
+        if self._W is None:
+            u = self.basis_u.shape[1] // 3
+            with warnings.catch_warnings():  # torch marks CSR tensors "beta"; this one is built valid by construction
+                warnings.simplefilter("ignore", UserWarning)
+                self._W = torch.sparse_csr_tensor(
+                    torch.arange(0, 3 * self.n + 1, 3, dtype=torch.int64), self.local.cpu(), self.coef.reshape(-1).cpu(),
+                    size=(self.n, u), check_invariants=False,
+                ).to(self.basis_u.device)  # [N, U]
+        return self._W
+
+    @property
+    def compact(self) -> tuple[Tensor, Tensor]:
+        """``(basis [E, Uc*3], slots [N, 3] int32)``: the blendshapes of only the ``Uc`` slots this binding
+        uses, already in the fit's frame (``M`` applied), and each Gaussian's corners as indices into them.
+        What ``frame`` reads per frame: for the shipped ``tiny`` avatar of the sample 11.3k of 19k
+        slots, 7.2 of 12.1 MB (the shared basis is read from memory, not cache, after the MLP)."""
+        if self._compact is None:
+            used, inv = torch.unique(self.local, return_inverse=True)
+            e = self.basis_u.shape[0]
+            bc = (self.basis_u.view(e, -1, 3)[:, used] @ self.M.T).reshape(e, -1).contiguous()  # [E, Uc*3]
+            self._compact = (bc, inv.view(self.n, 3).to(torch.int32).contiguous())
+        return self._compact
 
     def displacement(self, z: Tensor) -> Tensor:
         z = z.to(self.basis_u.dtype)
@@ -697,6 +734,71 @@ class PriorRuntime:
         du = (z @ self.basis_u).view(b, -1, 3) @ self.M.T  # [B, U, 3]
         out = self.W @ du.permute(1, 0, 2).reshape(du.shape[1], 3 * b)  # [N, B*3]
         return out.view(self.n, b, 3).permute(1, 0, 2)  # [B, N, 3]
+
+    def factor_table(self, z: Tensor) -> Tensor:
+        """The opacity factor of each gate slot for ``z [E]`` -> ``[2G]`` (``opacity_factors`` is it at ``group_index``)."""
+        return factor_table(z.to(self.gates.dtype), self.gates, self.gate_ranges)
+
+    def frame(self, g, n_int: int, dxyz: Tensor, drgb: Tensor, z: Tensor):
+        """One frame on the CPU without gradients: canonical ``g`` (N Gaussians, the last ``n_int`` the
+        mouth interior / eyelids), the MLP's ``dxyz``, ``drgb [N - n_int, 3]`` and ``z [E]`` -> the
+        deformed ``Gaussians``.
+
+        The same Gaussians as the plain path ``fastgha._combine(g, dxyz, drgb, displacement(z), n_int,
+        opacity_factors(z), trim=True)`` (positions to float32 rounding, colours and opacities exactly),
+        from one numba pass (``prior_kernels.prior_frame``), except for which hidden Gaussians are left
+        out: a trailing run of one gate group is dropped when every gated opacity in it is below the
+        rasterizer's ``ALPHA_MIN`` (the rasterizer skips such splats, so the image is the same), where
+        the plain path drops trailing ones only at a gate of exactly 0. ``quats``, ``scales`` and
+        ``features`` of the result are views of ``g``'s.
+        Raises:
+            ValueError: tensors not float32 on the CPU, or shapes that do not match the binding.
+        """
+        from ..gaussians import Gaussians
+        from ..render.projection import ALPHA_MIN
+        from .prior_kernels import prior_frame
+
+        n, n_rec = len(g), len(g) - n_int
+        if n != self.n or dxyz.shape != (n_rec, 3) or drgb.shape != (n_rec, 3) or z.shape != (self.basis_u.shape[0],):
+            raise ValueError(
+                f"PriorRuntime.frame: expected {self.n} Gaussians, dxyz/drgb [{n_rec}, 3] and z [{self.basis_u.shape[0]}], "
+                f"got {n}, {list(dxyz.shape)}, {list(drgb.shape)} and {list(z.shape)}"
+            )
+        ts = (g.means, g.colors, g.opacities, dxyz, drgb, z, self.basis_u)
+        if any(t.device.type != "cpu" or t.dtype != torch.float32 for t in ts):
+            raise ValueError("PriorRuntime.frame: expects float32 CPU tensors, got " + ", ".join(f"{t.dtype} on {t.device}" for t in ts))
+        table = self.factor_table(z).numpy()  # [2G] float32
+        if self._run_max is None or self._run_max[0] is not g.opacities:
+            op = g.opacities
+            self._run_max = (op, [np.float32(op[a:b].max()) if b > a else np.float32(0) for a, b, _ in self.runs])
+        end = n
+        for (a, b, slot), omax in zip(self.runs, self._run_max[1]):
+            # the rasterizer keeps a splat when float(opacity) >= ALPHA_MIN; float32 products are monotonic
+            if a < n_rec or slot == 0 or not (float(omax * table[slot]) < ALPHA_MIN):
+                break
+            end = a
+        basis_c, slots = self.compact
+        nz = torch.nonzero(z).flatten()
+        d = z[nz] @ basis_c[nz] if len(nz) * 4 < len(z) else z @ basis_c  # [Uc*3], the fit's frame
+        out_means, out_colors, out_op = torch.empty(end, 3), torch.empty(end, 3), torch.empty(end)
+        import numba
+
+        from ..render.cpu_backend import num_threads
+
+        prev = numba.get_num_threads()
+        numba.set_num_threads(num_threads())
+        try:
+            prior_frame(
+                g.means.numpy(), g.colors.numpy(), g.opacities.numpy(), dxyz.numpy(), drgb.numpy(), d.view(-1, 3).numpy(),
+                slots.numpy(), self.coef3.numpy(), self.group_index8.numpy(), table, n_rec,
+                out_means.numpy(), out_colors.numpy(), out_op.numpy(),
+            )
+        finally:
+            numba.set_num_threads(prev)
+        return Gaussians(
+            means=out_means, quats=g.quats[:end], scales=g.scales[:end], opacities=out_op, colors=out_colors,
+            features=None if g.features is None else g.features[:end],
+        )
 
     def displacement_reference(self, z: Tensor) -> Tensor:
         """The plain gather-weight-sum that ``displacement`` computes with one sparse product (tests)."""

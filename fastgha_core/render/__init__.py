@@ -133,7 +133,7 @@ def render(
     if name == "cpu" and not needs_grad:
         from .cpu_backend import project_cpu  # numba fast path, same maths
 
-        proj, rects = project_cpu(g.means, g.quats, g.scales, cams.K, cams.w2c, width, height)
+        proj, rects = project_cpu(g.means, g.quats, g.scales, cams.K, cams.w2c, width, height, g.opacities)
     else:
         proj = project_gaussians(g.means, g.quats, g.scales, cams.K, cams.w2c, width, height)
     values = torch.cat([g.colors.expand(C, -1, 3), proj.depths[..., None]], dim=-1)  # [C, N, 4]

@@ -58,10 +58,13 @@ def project_cpu(
     w2c: Tensor,  # [C, 4, 4]
     width: int,
     height: int,
+    opacities: Tensor | None = None,  # [N]
 ) -> tuple[Projected, Tensor]:
     """``projection.project_gaussians`` + ``tile_rects`` in one numba pass, without gradients.
 
-    Returns the projection and the tile rects ``[C, N, 4]``.
+    With ``opacities``, Gaussians below ``ALPHA_MIN`` (which compositing skips at every pixel) are
+    not projected: their radius is 0, their tile rect empty and their other outputs 0, so the
+    rendered image is the same. Returns the projection and the tile rects ``[C, N, 4]``.
     """
     C, N = K.shape[0], means.shape[0]
     dtype = means.dtype
@@ -73,6 +76,7 @@ def project_cpu(
     _K.project_forward(
         _np(means), _np(quats), _np(scales), _np(K).astype("float64"), _np(w2c).astype("float64"),
         width, height, NEAR_PLANE, EPS2D, m2d.numpy(), conic.numpy(), depth.numpy(), radii.numpy(), rects.numpy(),
+        np.zeros(0, np.float32) if opacities is None else _np(opacities if opacities.dtype == torch.float64 else opacities.float()),
     )
     return Projected(m2d, conic, depth, radii), rects
 

@@ -340,10 +340,12 @@ def reduce_grads(offsets, ids, isect_g, C, N, n_chunks):
 
 
 @njit(parallel=True, cache=True, fastmath=False)
-def project_forward(means, quats, scales, K, w2c, width, height, near, eps2d, out_m2d, out_conic, out_depth, out_radii, out_rect):
+def project_forward(means, quats, scales, K, w2c, width, height, near, eps2d, out_m2d, out_conic, out_depth, out_radii, out_rect, opac):
     """No-gradient projection, the same maths as ``projection.project_gaussians`` + ``tile_rects``.
 
-    Args: means ``[N, 3]``, quats ``[N, 4]``, scales ``[N, 3]``, K ``[C, 3, 3]``, w2c ``[C, 4, 4]``.
+    Args: means ``[N, 3]``, quats ``[N, 4]``, scales ``[N, 3]``, K ``[C, 3, 3]``, w2c ``[C, 4, 4]``;
+    opac ``[N]`` or ``[0]``: when given, a Gaussian with opacity below ``ALPHA_MIN`` (which the
+    compositing skips everywhere) is not projected: its outputs are zeros (radius 0, empty rect).
     Writes: ``out_m2d [C, N, 2]``, ``out_conic [C, N, 3]``, ``out_depth [C, N]``,
     ``out_radii [C, N]`` int32, ``out_rect [C, N, 4]`` int64.
     """
@@ -351,7 +353,19 @@ def project_forward(means, quats, scales, K, w2c, width, height, near, eps2d, ou
     C = K.shape[0]
     tw = (width + _TS - 1) // _TS
     th = (height + _TS - 1) // _TS
+    skip_faint = opac.shape[0] > 0
     for n in prange(N):
+        if skip_faint and not (float(opac[n]) >= ALPHA_MIN):
+            for c in range(C):
+                out_radii[c, n] = 0
+                out_depth[c, n] = 0.0
+                for q in range(4):
+                    out_rect[c, n, q] = 0
+                for q in range(2):
+                    out_m2d[c, n, q] = 0.0
+                for q in range(3):
+                    out_conic[c, n, q] = 0.0
+            continue
         qw, qx, qy, qz = float(quats[n, 0]), float(quats[n, 1]), float(quats[n, 2]), float(quats[n, 3])
         qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
         qn = max(qn, 1e-12)
@@ -466,6 +480,11 @@ def project_forward(means, quats, scales, K, w2c, width, height, near, eps2d, ou
 #   and the pixel box where alpha >= ALPHA_MIN is possible is computed once per splat;
 # - the compositing inner loop runs over whole 16-pixel tile rows without branches, with a
 #   polynomial exp (relative error < 1e-6), so LLVM turns it into SIMD code;
+# - each tile row keeps a bit mask of its live pixels, and a splat skips a row none of whose live
+#   pixels lies in its box columns (e.g. splats behind a surface whose pixels stopped, in rows that
+#   are still live elsewhere): exact, since outside its box a splat's alpha is below ALPHA_MIN;
+# - the record of the splat four places ahead in a tile's list is loaded early, so its cache miss
+#   overlaps the current splat's rows (composite -10 % at 256² on served frames, same output);
 # - no per-pixel state for the backward pass is kept.
 # ---------------------------------------------------------------------------------------------
 
@@ -663,20 +682,30 @@ def _composite_px(S, jj, dx, hA, cy, by, o, v0, v1, v2, v3):
 # pixel centre is ``xb + q`` (exact in float32), the same value as ``float32(x) + 0.5``.
 @njit(cache=True, fastmath=False, inline="always")
 def _composite_row8(S, lo, xb, mx, hA, cy, by, o, v0, v1, v2, v3):
-    """Columns ``[lo, lo + 8)`` of a tile row; ``xb`` = centre of column ``lo``. Returns pixels stopped."""
+    """Columns ``[lo, lo + 8)`` of a tile row; ``xb`` = centre of column ``lo``. Returns the bit mask
+    of the columns it stopped (bit ``lo + q`` for column ``lo + q``)."""
     stopped = np.int32(0)
     for q in range(8):
-        stopped += _composite_px(S, lo + q, mx - (xb + _F32(q)), hA, cy, by, o, v0, v1, v2, v3)
-    return stopped
+        stopped |= _composite_px(S, lo + q, mx - (xb + _F32(q)), hA, cy, by, o, v0, v1, v2, v3) << q
+    return stopped << lo
 
 
 @njit(cache=True, fastmath=False, inline="always")
 def _composite_row16(S, xb, mx, hA, cy, by, o, v0, v1, v2, v3):
-    """All 16 columns of a tile row; ``xb`` = centre of column 0. Returns pixels stopped."""
+    """All 16 columns of a tile row; ``xb`` = centre of column 0. Returns the bit mask of the columns it stopped."""
     stopped = np.int32(0)
     for q in range(16):
-        stopped += _composite_px(S, q, mx - (xb + _F32(q)), hA, cy, by, o, v0, v1, v2, v3)
+        stopped |= _composite_px(S, q, mx - (xb + _F32(q)), hA, cy, by, o, v0, v1, v2, v3) << q
     return stopped
+
+
+@njit(cache=True, fastmath=False, inline="always")
+def _popcount16(m):
+    """Set bits of a 16-bit mask."""
+    m = m - ((m >> 1) & 0x5555)
+    m = (m & 0x3333) + ((m >> 2) & 0x3333)
+    m = (m + (m >> 4)) & 0x0F0F
+    return (m + (m >> 8)) & 0x1F
 
 
 @njit(parallel=True, cache=True, fastmath=False)
@@ -701,17 +730,23 @@ def raster_forward_fast(rec, offsets, ids, width, height, tw, n_chunks, out_acc,
         # outside the image), acc rgb+depth. One array (not six) so LLVM can prove no aliasing
         # and vectorise the row loop.
         S = np.zeros((_TS, 6, _TS), np.float32)
-        rowlive = np.zeros(_TS, np.int32)  # live pixels per row (rows with none are skipped)
+        # live columns per row as a bit mask: a row none of whose live pixels lies in a splat's box
+        # columns is skipped (outside its box a splat's alpha is below ALPHA_MIN: nothing to do)
+        rowmask = np.zeros(_TS, np.int32)
         n_live = 0
         for i in range(y0, y1):
             for jj in range(_TS):
                 S[i - y0, 0, jj] = _ONE
             for j in range(x0, x1):
                 S[i - y0, 1, j - x0] = _ONE
-            rowlive[i - y0] = x1 - x0
+            rowmask[i - y0] = (1 << (x1 - x0)) - 1
             n_live += x1 - x0
-        for kk in range(offsets[t], offsets[t + 1]):
+        k_end = offsets[t + 1]
+        touch = _ZERO
+        for kk in range(offsets[t], k_end):
             r = ids[kk]
+            # load the record four splats ahead now: its cache miss then overlaps this splat's rows
+            touch += rec[ids[min(kk + 4, k_end - 1)], 0]
             bx0 = int(rec[r, R_BOX + 0])
             bx1 = int(rec[r, R_BOX + 1])
             iy0 = max(int(rec[r, R_BOX + 2]), y0)
@@ -733,18 +768,22 @@ def raster_forward_fast(rec, offsets, ids, width, height, tw, n_chunks, out_acc,
             narrow = c1 - c0 <= _TS // 2  # one 8-column window holds the box
             lo = min(c0, _TS // 2) if narrow else 0
             xb = _F32(x0 + lo) + _HALF
+            boxmask = ((1 << c1) - 1) ^ ((1 << c0) - 1)  # columns [c0, c1)
             for i in range(iy0, iy1):
-                if rowlive[i - y0] == 0:
+                if (rowmask[i - y0] & boxmask) == 0:
                     continue
                 dy = my - (_F32(i) + _HALF)
                 if narrow:
                     st = _composite_row8(S[i - y0], lo, xb, mx, hA, hC * dy * dy, B * dy, o, v0, v1, v2, v3)
                 else:
                     st = _composite_row16(S[i - y0], xb, mx, hA, hC * dy * dy, B * dy, o, v0, v1, v2, v3)
-                rowlive[i - y0] -= st
-                n_live -= st
+                if st:
+                    n_live -= _popcount16(st)
+                    rowmask[i - y0] &= ~st
             if n_live == 0:
                 break
+        if touch != touch:  # never (the loads above only warm the cache); keeps them from being dropped
+            out_T[y0, x0] = touch
         for i in range(y0, y1):
             for j in range(x0, x1):
                 jj = j - x0
