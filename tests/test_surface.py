@@ -218,3 +218,69 @@ def test_track_then_reconstruct_uses_the_tracked_head(tmp_path, capsys):
     (req / "expressions.json").unlink()
     assert main(["reconstruct", "--input", str(req), "--out", str(tmp_path / "c.safetensors")]) == 2
     assert "needs expressions.json" in capsys.readouterr().err
+
+
+def test_surface_discs_are_tangent_and_cover_a_side_view_seen_from_the_front(surface):
+    """A side photo's Gaussians, seen from the front, cover the skin they came from: as discs tangent
+    to the head they leave no gaps between the photo's rows (the network's camera-facing Gaussians did:
+    horizontal stripes across real-photo avatars)."""
+    from fastgha_core.config import get_preset
+    from fastgha_core.model.gaussian_head import SURFEL_SCALE, GaussianHead
+    from fastgha_core.render import render
+
+    head = GaussianHead(get_preset("tiny").gaussians)
+    side, front = _cameras([60.0], size=64), _cameras([0.0], size=128)
+    sd = surface_ray_depth(surface.subset([0]), side)
+    maps = torch.zeros(1, 1, head.layout.channels, 64, 64)
+    maps[:, :, head.layout.opacity] = 4.0  # opaque
+    maps[:, :, head.layout.scale] = -1.61  # 0.5 pixel footprints: what the shipped model predicts on real photos (0.3-0.7)
+    images = torch.full((1, 1, 3, 64, 64), 0.4)
+    plain = head(maps, side[None], images, ray_depth=sd.t[None])[0]
+    discs = head(maps, side[None], images, ray_depth=sd.t[None], surface_normals=sd.normals[None])[0]
+    hit = sd.hit.reshape(-1)
+    # tangent: each disc's thin axis is its pixel's surface normal; the radius follows the footprint
+    from fastgha_core.render.projection import quat_to_rotmat as quaternion_to_matrix
+
+    R = quaternion_to_matrix(discs.quats[hit])
+    assert torch.allclose(R[..., 2], sd.normals.reshape(-1, 3)[hit], atol=1e-4)
+    s = discs.scales[hit]
+    assert torch.all(s[:, 2] < 0.2 * s[:, 0]) and torch.allclose(s[:, 0], s[:, 1])
+    t = sd.t.reshape(-1)[hit]
+    f = float(side.K[0, 0, 0])
+    assert torch.all(s[:, 0] >= SURFEL_SCALE * t / f - 1e-7) and torch.all(s[:, 0] <= SURFEL_SCALE * t / f / 0.2**0.5 + 1e-7)
+    assert torch.equal(discs.quats[~hit], plain.quats[~hit]) and torch.equal(discs.scales[~hit], plain.scales[~hit])
+    # from the front, inside the part of the head the side view sees, the discs leave (almost) no holes
+    on = hit & (plain.opacities > 0.5)
+    a_plain = render(plain[on], front, background=(1.0, 1.0, 1.0)).alpha[0, 0]
+    a_disc = render(discs[on], front, background=(1.0, 1.0, 1.0)).alpha[0, 0]
+    region = torch.from_numpy(binary_erode(a_disc.numpy() > 0.05, 4))
+    assert int(region.sum()) > 300
+    assert float((a_disc[region] > 0.5).float().mean()) > 0.97
+    assert float((a_plain[region] > 0.5).float().mean()) < float((a_disc[region] > 0.5).float().mean()) - 0.05
+
+
+def binary_erode(mask, n):
+    from scipy.ndimage import binary_erosion
+
+    return binary_erosion(mask, iterations=n)
+
+
+def test_each_patch_of_skin_keeps_the_views_that_see_it_best(surface):
+    from fastgha_core.model.surface import best_view_weight
+
+    cams = _cameras([0.0, 70.0])
+    sd = surface_ray_depth(surface.subset([0, 0]), cams)
+    w = best_view_weight(sd, cams)
+    head = HeadModel.load()
+    c = cams.flatten()
+    tip = torch.from_numpy(surface.vertices(0, head)[head.landmarks68[30]]).double()  # nose tip: faces view 0
+    x = c.R[0].double() @ tip + c.t[0].double()
+    u, v = ((c.K[0].double() @ x)[:2] / x[2]).long().tolist()
+    assert float(w[0, v, u]) == 1.0
+    # view 1 (70 degrees) sees the front of the face (normals within 20 degrees of +z) at a grazing
+    # angle, and view 0 head-on: view 1's Gaussians there fade
+    front = sd.hit[1] & (sd.normals[1][..., 2] > np.cos(np.radians(20)))
+    assert int(front.sum()) > 20 and float(w[1][front].mean()) < 0.1
+    # ... and where only view 1 sees the skin head-on (the side of the head), view 1 keeps it
+    assert float(w[1][sd.hit[1]].max()) == 1.0 and float((w[1][sd.hit[1]] == 1.0).float().mean()) > 0.3
+    assert torch.all(w[~sd.hit] == 1.0) and torch.all((w >= 0) & (w <= 1))
