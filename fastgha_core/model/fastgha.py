@@ -188,7 +188,7 @@ class FastGHA(nn.Module):
         return out
 
     # ------------------------------------------------------------ reconstruction
-    def forward_gaussians(self, images: Tensor, cameras: Cameras, ray_depth: Tensor | None = None, surface_normals: Tensor | None = None) -> list[Gaussians]:
+    def forward_gaussians(self, images: Tensor, cameras: Cameras, ray_depth: Tensor | None = None) -> list[Gaussians]:
         """Canonical Gaussians per sample.
 
         Args:
@@ -196,8 +196,6 @@ class FastGHA(nn.Module):
             cameras: batch ``[B, V]`` describing the ``W x H`` images.
             ray_depth: optional ``[B, V, H, W]`` distances (metres) along each pixel's ray that replace
                 the predicted depth (``model/surface.py``).
-            surface_normals: optional ``[B, V, H, W, 3]`` unit world normals (zero = none): those pixels'
-                Gaussians become discs tangent to the surface (``model/gaussian_head.py``).
         Returns:
             ``B`` canonical ``Gaussians`` of ``V*H*W`` points with features.
         """
@@ -220,7 +218,7 @@ class FastGHA(nn.Module):
         tokens = torch.cat([f_dino, f_enc.to(f_dino.dtype), p_cam.to(f_dino.dtype)], dim=2)
         x = self.transformer(tokens)  # [B, V, D, H/8, W/8]
         maps = self.decoder(x)  # [B, V, 12+F, H, W]
-        return self.head(maps, cameras, images, ray_depth, surface_normals)
+        return self.head(maps, cameras, images, ray_depth)
 
     def forward(self, images: Tensor, K: Tensor, w2c: Tensor, expression: Tensor, input_expressions: Tensor | None = None) -> FastGHAOutput:
         """Training forward.
@@ -477,17 +475,11 @@ class FastGHA(nn.Module):
                     head_fit = surface.head_fit(self.head_basis())
         dev = self.device
         g = self.forward_gaussians(
-            images.to(dev, torch.float32)[None],
-            cameras.to(dev, torch.float32)[None],
-            None if ray_depth is None else ray_depth.to(dev),
-            None if surface is None else sd.normals[None].to(dev),
+            images.to(dev, torch.float32)[None], cameras.to(dev, torch.float32)[None], None if ray_depth is None else ray_depth.to(dev)
         )[0]
         view_index = torch.arange(v, device=dev).repeat_interleave(len(g) // v)  # Gaussians are V*S*S, view-major
-        if surface is not None:  # off the head next to the face is air; on it, each patch from the views that see it best
-            from .surface import best_view_weight
-
-            keep_w = (~sd.beyond_face).float() * best_view_weight(sd, cameras)
-            g = g.replace(opacities=g.opacities * keep_w.reshape(-1).to(dev, g.opacities.dtype))
+        if surface is not None:  # off the head next to the face is air: drop what a matte left there
+            g = g.replace(opacities=g.opacities * (~sd.beyond_face).reshape(-1).to(dev, g.opacities.dtype))
         thr = self.config.gaussians.prune_opacity
         if thr > 0:
             keep = g.opacities >= thr

@@ -8,11 +8,6 @@ map ``[12+F, H, W]``:
   sphere around the camera through the origin, and the parameterisation works for any camera
   distance. The Gaussian centre is ``origin + t * direction`` (``Cameras.pixel_rays``). A given
   ``ray_depth [B, V, H, W]`` replaces ``t`` (the tracked head surface, ``model/surface.py``).
-- with ``surface_normals [B, V, H, W, 3]`` (unit, world; zero = none), a pixel on the surface gets a
-  flat disc tangent to it instead of the predicted rotation and scale: radius
-  ``SURFEL_SCALE * footprint / sqrt(max(cos, 0.2))`` (``cos`` between the normal and the ray back to
-  the camera, so a grazing pixel's longer patch of skin stays covered), thickness
-  ``SURFEL_THICKNESS`` times that.
 - rgb 3: sigmoid; with ``rgb_residual`` the raw value is a residual on the logit of the map
   pixel's own input colour, ``sigmoid(raw + logit(clamp(image, 0.01, 0.99)))``.
 - quat 4: wxyz in the *camera* frame, ``normalize(raw + (1, 0, 0, 0))`` (identity at zero), rotated to
@@ -45,8 +40,6 @@ from ..gaussians import Gaussians
 
 __all__ = ["GaussianLayout", "GaussianHead", "foreground_weight", "matrix_to_quaternion", "quaternion_multiply"]
 
-SURFEL_SCALE = 0.8  # disc radius (1 sigma) in pixel footprints, for Gaussians on a given surface
-SURFEL_THICKNESS = 0.15  # disc thickness relative to its radius
 FOREGROUND_SOFTNESS = 0.03  # colour distance from the background at which a pixel counts as fully foreground
 
 
@@ -117,20 +110,6 @@ def matrix_to_quaternion(R: Tensor) -> Tensor:
     return torch.where(q[..., :1] < 0, -q, q)
 
 
-def _surface_discs(normals: Tensor, dirs: Tensor, footprint: Tensor, quats: Tensor, scales: Tensor) -> tuple[Tensor, Tensor]:
-    """Tangent discs where ``normals [..., 3]`` is non-zero (module doc); ``dirs [..., 3]`` unit rays,
-    ``footprint [..., 1]`` metres per pixel; other pixels keep ``quats [..., 4]`` / ``scales [..., 3]``."""
-    on = normals.norm(dim=-1, keepdim=True) > 0.5
-    n = F.normalize(torch.where(on, normals, torch.zeros_like(normals).index_fill_(-1, torch.tensor([2], device=normals.device), 1.0)), dim=-1)
-    ref = torch.where(n[..., 1:2].abs() < 0.9, n.new_tensor([0.0, 1.0, 0.0]), n.new_tensor([1.0, 0.0, 0.0]))
-    a = F.normalize(torch.cross(ref.expand_as(n), n, dim=-1), dim=-1)
-    rot = torch.stack([a, torch.cross(n, a, dim=-1), n], dim=-1)  # columns: tangent, tangent, normal
-    cos = (-(n * dirs).sum(-1, keepdim=True)).clamp(0.2, 1.0)
-    r = SURFEL_SCALE * footprint / cos.sqrt()
-    disc = torch.cat([r, r, SURFEL_THICKNESS * r], dim=-1)
-    return torch.where(on, matrix_to_quaternion(rot), quats), torch.where(on, disc, scales)
-
-
 class GaussianHead:
     """Stateless: ``GaussianHead(cfg)(maps [B, V, 12+F, H, W], cameras [B, V], images) -> list[Gaussians]``."""
 
@@ -138,21 +117,16 @@ class GaussianHead:
         self.cfg = cfg
         self.layout = GaussianLayout(cfg.feature_dim)
 
-    def __call__(
-        self, maps: Tensor, cameras: Cameras, images: Tensor | None = None, ray_depth: Tensor | None = None, surface_normals: Tensor | None = None
-    ) -> list[Gaussians]:
+    def __call__(self, maps: Tensor, cameras: Cameras, images: Tensor | None = None, ray_depth: Tensor | None = None) -> list[Gaussians]:
         """Raw maps ``[B, V, 12+F, H, W]`` (any float dtype) -> float32 Gaussians, computed without autocast.
 
         ``images [B, V, 3, H, W]`` (the inputs, at the maps' size) are required when ``cfg.rgb_residual``.
-        ``ray_depth [B, V, H, W]`` (metres along each pixel's ray), when given, replaces the predicted depth;
-        ``surface_normals [B, V, H, W, 3]`` make the pixels with a non-zero normal surface discs (module doc).
+        ``ray_depth [B, V, H, W]`` (metres along each pixel's ray), when given, replaces the predicted depth.
         """
         with torch.autocast(device_type=maps.device.type, enabled=False):
-            return self._activate(maps.float(), cameras, images, ray_depth, surface_normals)
+            return self._activate(maps.float(), cameras, images, ray_depth)
 
-    def _activate(
-        self, maps: Tensor, cameras: Cameras, images: Tensor | None = None, ray_depth: Tensor | None = None, surface_normals: Tensor | None = None
-    ) -> list[Gaussians]:
+    def _activate(self, maps: Tensor, cameras: Cameras, images: Tensor | None = None, ray_depth: Tensor | None = None) -> list[Gaussians]:
         lay = self.layout
         if maps.ndim != 5 or maps.shape[2] != lay.channels:
             raise ValueError(f"GaussianHead: maps must have shape [B, V, {lay.channels}, H, W], got {list(maps.shape)}")
@@ -179,10 +153,6 @@ class GaussianHead:
         q_cam = F.normalize(q_cam, dim=-1, eps=1e-8)  # [B, V, H, W, 4]
         q_c2w = matrix_to_quaternion(cams.c2w[..., :3, :3])[..., None, None, :]  # [B, V, 1, 1, 4]
         quats = F.normalize(quaternion_multiply(q_c2w.expand_as(q_cam), q_cam), dim=-1)
-        if surface_normals is not None:
-            if tuple(surface_normals.shape) != (b, v, h, w, 3):
-                raise ValueError(f"GaussianHead: surface_normals must have shape [{b}, {v}, {h}, {w}, 3], got {list(surface_normals.shape)}")
-            quats, scales = _surface_discs(surface_normals.to(maps), dirs, t / focal, quats, scales)
 
         raw_rgb = x[..., lay.rgb]  # [B, V, H, W, 3]
         if self.cfg.rgb_residual:

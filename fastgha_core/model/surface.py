@@ -17,10 +17,6 @@ Per pixel of each input view (``surface_ray_depth``):
 - elsewhere (hair beyond the skull, neck, shoulders, background), the distance of the nearest hit
   pixel (a Euclidean distance transform), so those Gaussians form a continuous shell around the head
   instead of a second layer at the network's guess;
-- on the head, each Gaussian becomes a flat disc tangent to the surface (``SurfaceDepth.normals``,
-  ``GaussianHead``'s ``surface_normals``), wide enough to cover its pixel's patch of skin: the
-  network's Gaussians face their own camera, so a side photo's, seen from the front, left gaps
-  between its rows (horizontal stripes across the face, seen on the real sets);
 - except pixels off the head, above the chin, whose nearest head pixel is on the face's midline
   (nose, lips, chin, forehead centre): in front of a profile's nose there is only air, and what a matte leaves there
   (wall, shadow) would be laid along the nose as a white streak (seen on the real sets);
@@ -38,16 +34,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from ..cameras import Cameras
 
-__all__ = ["HeadSurface", "SurfaceDepth", "surface_ray_depth", "face_vertex_mask", "best_view_weight", "BEST_VIEW"]
-
-# A Gaussian on the head is kept where its own view sees that skin nearly as head-on as the best
-# view does: cos_own / max_j cos_j fades from 0 at BEST_VIEW[0] to 1 at BEST_VIEW[1].
-BEST_VIEW = (0.7, 0.9)
+__all__ = ["HeadSurface", "SurfaceDepth", "surface_ray_depth", "face_vertex_mask"]
 
 
 @dataclass
@@ -114,7 +105,6 @@ class SurfaceDepth:
     t: Tensor  # [V, H, W] float32 metres along each pixel's unit ray
     hit: Tensor  # [V, H, W] bool: the pixel's own ray hits the head
     beyond_face: Tensor  # [V, H, W] bool: off the head, next to the face's outline (air: no Gaussian)
-    normals: Tensor  # [V, H, W, 3] float32 unit surface normals (world frame) where ``hit``, zeros elsewhere
 
 
 def face_vertex_mask(head) -> np.ndarray:
@@ -153,20 +143,17 @@ def surface_ray_depth(surface: HeadSurface, cameras: Cameras) -> SurfaceDepth:
         raise ValueError(f"surface_ray_depth: {len(surface)} surface views but {v} cameras")
     head = HeadModel.load()
     faces = head.visible_faces(eyelashes=False)
-    fmask = face_vertex_mask(head).astype(np.float32)
+    attrs = np.stack([np.ones(head.num_vertices), face_vertex_mask(head)], axis=1).astype(np.float32)
     w, h = cams.width, cams.height
     u, r = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
     out = np.empty((v, h, w), np.float32)
     hits = np.empty((v, h, w), bool)
     beyond = np.empty((v, h, w), bool)
-    normals = np.zeros((v, h, w, 3), np.float32)
     for i in range(v):
         w2c = cams.w2c[i].double().numpy()
         K = cams.K[i].double().numpy()
-        verts = surface.vertices(i, head).astype(np.float64)
-        pts = verts @ w2c[:3, :3].T + w2c[:3, 3]
-        attrs = np.concatenate([np.ones((len(pts), 1)), fmask[:, None], head.vertex_normals(verts, faces)], axis=1)
-        m = render_mesh(pts.astype(np.float32), faces, attrs.astype(np.float32), K, w, h, supersample=1)
+        pts = surface.vertices(i, head).astype(np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
+        m = render_mesh(pts.astype(np.float32), faces, attrs, K, w, h, supersample=1)
         covered = (m.alpha > 0.99) & (m.depth > 0)
         hit = binary_erosion(covered, iterations=1)
         if not hit.any():
@@ -180,31 +167,4 @@ def surface_ray_depth(surface: HeadSurface, cameras: Cameras) -> SurfaceDepth:
         chin = pts[head.landmarks68[8]]  # below the chin the neck and chest continue the head
         chin_row = float(K[1, 1] * chin[1] / chin[2] + K[1, 2])
         beyond[i] = ~covered & (dist > 1.5) & face[iy, ix] & (r < chin_row)
-        n = m.color[..., 2:5]
-        normals[i][hit] = n[hit] / np.maximum(np.linalg.norm(n[hit], axis=-1, keepdims=True), 1e-9)
-    return SurfaceDepth(torch.from_numpy(out), torch.from_numpy(hits), torch.from_numpy(beyond), torch.from_numpy(normals))
-
-
-def best_view_weight(depth: SurfaceDepth, cameras: Cameras, ramp: tuple[float, float] | None = None) -> Tensor:
-    """Opacity factors ``[V, H, W]``: on the head, how close each pixel's view comes to the view that
-    sees its point of skin most head-on (``cos`` of normal and direction to each camera centre,
-    occlusion ignored): ``smoothstep((cos_own / max_j cos_j - ramp[0]) / (ramp[1] - ramp[0]))``,
-    ``ramp`` defaulting to ``BEST_VIEW``; 1 off the head.
-
-    Why: on the surface every view's Gaussians land on the same skin, and tracking leaves each photo
-    registered a few millimetres differently, so blending all of them ghosts the eyes and mouth. Each
-    patch of skin then takes its texture from the photos that see it best.
-    """
-    lo, hi = BEST_VIEW if ramp is None else ramp
-    cams = cameras.flatten()
-    v, h, w = depth.t.shape
-    origins, dirs = cams.pixel_rays(h, w)  # [V, H, W, 3]
-    pts = origins + depth.t[..., None] * dirs
-    centres = cams.centers  # [V, 3]
-    to_cam = F.normalize(centres[:, None, None, None, :] - pts[None], dim=-1)  # [V_cam, V, H, W, 3]
-    cos = (to_cam * depth.normals[None]).sum(-1)  # [V_cam, V, H, W]
-    own = cos[torch.arange(v), torch.arange(v)]  # [V, H, W]
-    best = cos.amax(0).clamp_min(1e-6)
-    x = ((own / best - lo) / (hi - lo)).clamp(0.0, 1.0)
-    wgt = x * x * (3.0 - 2.0 * x)
-    return torch.where(depth.hit, wgt, torch.ones_like(wgt))
+    return SurfaceDepth(torch.from_numpy(out), torch.from_numpy(hits), torch.from_numpy(beyond))
