@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 
 from server_process import API_KEY, SAMPLE_NAME, ServerProcess, make_model_dir, make_sample_dir
+from extras import needs_faces
 
 CHROMIUM = "/usr/bin/chromium"
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
@@ -164,14 +165,6 @@ def test_demo_reports_a_refused_api_key(page):
 
 
 # ---------------------------------------------------------------- photos alone, progress, the queue, page nits
-def _faces_installed() -> bool:
-    try:
-        from fastgha_core.tracking.faces import load_face_detector
-
-        load_face_detector()
-        return True
-    except ImportError:
-        return False
 
 
 def _portrait() -> bytes:
@@ -208,7 +201,7 @@ def _hold_places(server, n: int) -> list:
     return socks
 
 
-@pytest.mark.skipif(not _faces_installed(), reason="needs the 'faces' extra (dlib-bin, face-recognition-models)")
+@needs_faces
 def test_demo_creates_an_avatar_from_one_photo_alone_and_shows_progress(page, server):
     import httpx
 

@@ -25,6 +25,7 @@ from client_demo.client import CreationError, FastGHAClient, ServerBusy
 from server.errors import ApiError
 from server.jobs import STAGES, CreationRequest, Job, Photo, decode_photo, probe_request, safe_filename
 from server_process import SAMPLE_NAME, ServerProcess, make_model_dir, make_sample_dir
+from extras import needs_faces
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -155,17 +156,8 @@ def test_job_progress_is_monotonic_over_its_stages():
 
 
 # ---------------------------------------------------------------- end to end
-def _faces_installed() -> bool:
-    try:
-        from fastgha_core.tracking.faces import load_face_detector
-
-        load_face_detector()
-        return True
-    except ImportError:
-        return False
 
 
-needs_faces = pytest.mark.skipif(not _faces_installed(), reason="needs the 'faces' extra (dlib-bin, face-recognition-models)")
 
 
 def _portrait() -> bytes:

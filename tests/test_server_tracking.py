@@ -20,21 +20,13 @@ from PIL import Image
 from server.errors import ApiError
 from server.tracking import PhotoTracker
 from server_process import API_KEY, ServerProcess, make_model_dir
+from extras import needs_faces
 
 pytestmark = pytest.mark.timeout(300)
 
 
-def _faces_installed() -> bool:
-    try:
-        from fastgha_core.tracking.faces import load_face_detector
-
-        load_face_detector()
-        return True
-    except ImportError:
-        return False
 
 
-needs_faces = pytest.mark.skipif(not _faces_installed(), reason="needs the 'faces' extra (dlib-bin, face-recognition-models)")
 
 
 def _png(arr: np.ndarray) -> bytes:

@@ -10,6 +10,7 @@ from fastgha_core.data.headmodel import HeadModel
 from fastgha_core.model.surface import HeadSurface, surface_ray_depth
 from fastgha_core.tracking.camera import pose_to_cameras
 from fastgha_core.tracking.fit import FRONTAL_R, default_intrinsics, rodrigues
+from extras import needs_faces
 
 
 def _cameras(yaws_deg, size=128, dist=0.6):
@@ -182,17 +183,9 @@ def test_reconstruct_on_a_surface_binds_the_prior_to_it(surface):
         model.reconstruct(imgs, cams, surface=surface.subset([0, 1]))
 
 
-def _faces_installed() -> bool:
-    try:
-        from fastgha_core.tracking.faces import load_face_detector
-
-        load_face_detector()
-        return True
-    except ImportError:
-        return False
 
 
-@pytest.mark.skipif(not _faces_installed(), reason="needs the 'faces' extra (mediapipe, dlib)")
+@needs_faces
 def test_track_then_reconstruct_uses_the_tracked_head(tmp_path, capsys):
     """`fastgha track` writes head.json; `fastgha reconstruct` binds to that head (not with --no-surface)."""
     import json
