@@ -396,5 +396,7 @@ def test_closed_lids_take_the_skin_colour_not_the_dark_eye_or_brow():
     for dy, c in ((0.012, [0.1, 0.08, 0.07]), (0.004, skin), (0.0, [0.05, 0.05, 0.05]), (-0.006, [0.1, 0.1, 0.1]), (-0.014, skin)):
         pts.append(rng.normal([0.0, dy, 0.0], 0.0015, (40, 3)))  # brow, crease skin, eye, lashes, under-eye skin
         cols.append(np.tile(c, (40, 1)))
-    got = _lid_skin_colors(lid, np.eye(3), np.concatenate(pts).astype(np.float32), np.concatenate(cols).astype(np.float32))
+    from scipy.spatial import cKDTree
+
+    got = _lid_skin_colors(lid, np.eye(3), cKDTree(np.concatenate(pts).astype(np.float32)), np.concatenate(cols).astype(np.float32))
     assert np.allclose(got[0], skin, atol=0.02), got

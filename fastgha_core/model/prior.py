@@ -521,18 +521,15 @@ def bind(points: np.ndarray | Tensor, fit: HeadFit, basis: HeadBasis, fade: tupl
     )
 
 
-def _lid_skin_colors(points: np.ndarray, M: np.ndarray, means: np.ndarray, colors: np.ndarray, k: int = 16) -> np.ndarray:
+def _lid_skin_colors(points: np.ndarray, M: np.ndarray, tree, colors: np.ndarray, k: int = 16) -> np.ndarray:
     """Skin colour ``[P, 3]`` for closed-eyelid points ``[P, 3]`` from an avatar's Gaussians
-    (``means``/``colors [N, 3]``, solid ones): the ``k`` nearest Gaussians to the lid crease (6 mm above
+    (``tree``: a ``scipy.spatial.cKDTree`` of their centres, ``colors [N, 3]``; solid ones): the ``k`` nearest Gaussians to the lid crease (6 mm above
     each point) and to the skin under the eye (14 mm below), and of those 2k the median of the brighter
     half. Only skin is that bright there: eyebrows, lashes, the iris and a reconstruction's doubled
     dark eye all sit in those neighbourhoods and, with a plain median, made a closed lid look like dark
     glasses (issue 16, real photo sets). ``M [3, 3]``: the head fit's linear part (its up axis)."""
-    from scipy.spatial import cKDTree
-
     up = M[:, 1] / max(np.linalg.norm(M[:, 1]), 1e-9)
     fwd = M[:, 2] / max(np.linalg.norm(M[:, 2]), 1e-9)
-    tree = cKDTree(means)
     _, above = tree.query(points + (0.006 * up + 0.002 * fwd).astype(np.float32), k=k)
     _, below = tree.query(points + (-0.014 * up + 0.004 * fwd).astype(np.float32), k=k)
     c = colors[np.concatenate([above, below], axis=1)]  # [P, 2k, 3]
@@ -545,8 +542,9 @@ def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "G
     """Gated Gaussians of the fitted head, each bound to its own vertex with full weight: the mouth
     interior (teeth, gums/tongue, mouth socket; coloured like the synthetic albedo) and the closed
     upper eyelids (the part that closes over the eye coloured like the avatar's skin around the eye,
-    ``_lid_skin_colors``, the rest like the avatar where it sits; skin grey without ``avatar``). ``features`` are zeros ``[I, num_features]``; the binding's
-    ``group`` says which gate (``gate_factors``) hides each one."""
+    ``_lid_skin_colors``, the rest like the avatar where it sits; skin grey without ``avatar``).
+    ``features`` are zeros ``[I, num_features]``; the binding's ``group`` says which gate
+    (``gate_factors``) hides each one."""
     from scipy.spatial import cKDTree
 
     from ..gaussians import Gaussians
@@ -570,9 +568,13 @@ def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "G
                 blink = np.flatnonzero(basis.gates[1:].sum(0) > 0)  # the lid gates' shapes (eyeBlink_L/R)
                 travel = np.linalg.norm(basis.expression_basis[blink][:, ids[smp]], axis=-1).max(0) if len(blink) else np.zeros(int(smp.sum()))
                 over_eye = travel > 0.006
-                _, nn = cKDTree(am[solid]).query(pos[smp], k=8)
-                own = np.median(ac[nn], axis=1)
-                cols[smp] = np.where(over_eye[:, None], _lid_skin_colors(pos[smp], M, am[solid], ac), own)
+                tree = cKDTree(am[solid])
+                lid = pos[smp]
+                _, nn = tree.query(lid[~over_eye], k=8)
+                lid_cols = np.empty_like(lid)
+                lid_cols[~over_eye] = np.median(ac[nn], axis=1)
+                lid_cols[over_eye] = _lid_skin_colors(lid[over_eye], M, tree, ac)
+                cols[smp] = lid_cols
     g = Gaussians(
         means=torch.from_numpy(pos),
         quats=torch.tensor([1.0, 0.0, 0.0, 0.0]).expand(n, 4).contiguous(),
