@@ -21,7 +21,6 @@ imported torch first, and idle OpenMP threads then spun for longer after each pa
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import statistics
 import sys
@@ -40,25 +39,16 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     sys.path.insert(0, str(REPO))
     import fastgha_core  # noqa: F401  (sets the OpenMP defaults before torch is imported, as the server does)
-    import numpy as np
     import torch
-    from PIL import Image
 
-    from fastgha_core.cameras import load_request_folder
-    from fastgha_core.model.fastgha import load_model
+    from _prior_ab import prior_on_off
     from server.frames import FrameRenderer
 
-    model_a = load_model(args.model)
-    if not model_a.config.deform.prior:
-        print("the model has no expression prior: nothing to compare")
+    try:
+        model_a, model_b, av_a, av_b = prior_on_off(args.model)
+    except ValueError as e:
+        print(e)
         return 1
-    model_b = copy.deepcopy(model_a)
-    model_b.config.deform.prior = False
-    folder = REPO / "fastgha_core" / "assets" / "samples" / "synth_1000001" / "request"
-    paths, cams = load_request_folder(folder)
-    imgs = [torch.from_numpy(np.array(Image.open(p).convert("RGB"))).permute(2, 0, 1) for p in paths[:4]]
-    x, c = model_a.prepare(imgs, cams[:4])
-    av_a, av_b = model_a.reconstruct(x, c), model_b.reconstruct(x, c)
     ra, rb = FrameRenderer(model_a, "cpu"), FrameRenderer(model_b, "cpu")
     g = torch.Generator().manual_seed(0)
     out = {"model": args.model, "gaussians_a": len(av_a), "gaussians_b": len(av_b), "threads": torch.get_num_threads(), "sizes": {}}

@@ -20,7 +20,6 @@ rasterizer, the splats it composited and the (tile, splat) pairs (medians).
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import statistics
 import sys
@@ -43,32 +42,22 @@ def main(argv=None) -> int:
     sys.path.insert(0, str(REPO))
     import fastgha_core  # noqa: F401  (sets the OpenMP defaults before torch is imported, as the server does)
     import numba
-    import numpy as np
     import torch
-    from PIL import Image
 
-    from fastgha_core.cameras import load_request_folder
+    from _prior_ab import prior_on_off
     from fastgha_core.constants import BACKGROUND_RGB
-    from fastgha_core.model.fastgha import load_model
     from fastgha_core.render import _background, _finish
     from fastgha_core.render.cpu_backend import num_threads, project_cpu, rasterize_fast
     from server.frames import FrameRenderer
     from server.imaging import encode_jpeg, frame_to_uint8
 
-    model_a = load_model(args.model)
     if args.threads:
         import os
 
         os.environ["FASTGHA_NUMBA_THREADS"] = str(args.threads)
         numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))  # restored after each render
         torch.set_num_threads(args.threads)  # after numba: starting numba's OpenMP pool resets torch's count
-    model_b = copy.deepcopy(model_a)
-    model_b.config.deform.prior = False
-    folder = REPO / "fastgha_core" / "assets" / "samples" / "synth_1000001" / "request"
-    paths, cams = load_request_folder(folder)
-    imgs = [torch.from_numpy(np.array(Image.open(p).convert("RGB"))).permute(2, 0, 1) for p in paths[:4]]
-    x, c = model_a.prepare(imgs, cams[:4])
-    av_a, av_b = model_a.reconstruct(x, c), model_b.reconstruct(x, c)
+    model_a, model_b, av_a, av_b = prior_on_off(args.model)
     cam = FrameRenderer(model_a, "cpu").default_camera.resize(args.size, args.size).flatten()
     w, h = cam.width, cam.height
     bg = _background(BACKGROUND_RGB, 1, torch.float32, torch.device("cpu"))
