@@ -93,13 +93,9 @@ def _load(ctx: ServerContext) -> None:
         _compile_deformation(ctx)
     else:
         log.info("deformation MLP: %s, eager (FASTGHA_COMPILE=%s)", "bf16" if bf16 else "fp32", s.compile)
-    # animate() caches an [N, hidden] first-layer term on each avatar: count it in the budget
-    hidden = int(getattr(getattr(ctx.model.config, "deform", None), "hidden_size", 0))
-
-    def nbytes(avatar) -> int:
-        return int(avatar.nbytes) + len(avatar.gaussians) * hidden * 4
-
-    ctx.store = AvatarStore(s.data_dir, s.cache_max_bytes, s.avatar_ttl_seconds, load_fn=CanonicalAvatar.load, nbytes_fn=nbytes)
+    # the budget counts what an avatar holds once it streams: Gaussians, prior binding, the MLP's cached
+    # first layer and the prior's per-frame basis (FastGHA.serving_nbytes)
+    ctx.store = AvatarStore(s.data_dir, s.cache_max_bytes, s.avatar_ttl_seconds, load_fn=CanonicalAvatar.load, nbytes_fn=ctx.model.serving_nbytes)
     ctx.metrics.bind_cache(lambda: ctx.store.cached_count, lambda: ctx.store.cached_bytes)
     if s.warmup:
         step("warmup", f"warming up: one reconstruction and {s.warmup_frames} frames")

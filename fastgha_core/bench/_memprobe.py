@@ -33,20 +33,19 @@ def main(argv: list[str]) -> int:
 
     name, counts = argv[0], sorted(int(a) for a in argv[1:])
     model = bench_model(name)
-    hidden = int(model.config.deform.hidden_size)
     renderer = FrameRenderer(model, "cpu")
     base = bench_avatar(model, 4)
     expr = model.expression_space.neutral()
     renderer.render(base, expr, renderer.default_camera, 85)  # allocator and kernels warm
     out = {"model": name, "rss_model_mib": _rss_mib(), "gaussians": len(base), "rows": []}
     with tempfile.TemporaryDirectory() as tmp:
-        store = AvatarStore(tmp, 1 << 40, 0, load_fn=CanonicalAvatar.load, nbytes_fn=lambda a: int(a.nbytes) + len(a) * hidden * 4)
+        store = AvatarStore(tmp, 1 << 40, 0, load_fn=CanonicalAvatar.load, nbytes_fn=model.serving_nbytes)
         n = 0
         for target in counts:
             while n < target:
                 g = base.gaussians
                 av = CanonicalAvatar(g.replace(**{k: getattr(g, k).clone() for k in ("means", "quats", "scales", "opacities", "colors", "features")}),
-                                     base.model_name, base.expression_space)
+                                     base.model_name, base.expression_space, base.prior, base.num_interior)
                 store.put(f"benchavatar{n:011d}", av, {"model": name})
                 renderer.render(av, expr, renderer.default_camera, 85)  # fills the deform cache
                 n += 1

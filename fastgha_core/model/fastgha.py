@@ -507,6 +507,23 @@ class FastGHA(nn.Module):
             avatar.deform_cache, avatar.deform_cache_owner = cache, id(self.deform)
         return cache
 
+    def serving_nbytes(self, avatar: CanonicalAvatar) -> int:
+        """Bytes ``avatar`` holds once this model has animated it: its Gaussians, its prior binding, the
+        deformation MLP's cached first layer (``[N_reconstructed, H]`` float32) and the binding's
+        per-frame runtime on this model's device (``PriorRuntime.estimate_nbytes``). What
+        the server's avatar budget counts; an avatar without a binding counts none (it gets one on its
+        first frame). Computed from the sizes, without building the caches.
+        """
+        n = len(avatar.gaussians)
+        total = int(avatar.nbytes) + avatar.num_reconstructed * int(self.config.deform.hidden_size) * 4
+        if avatar.prior is not None:
+            total += sum(t.numel() * t.element_size() for t in vars(avatar.prior).values() if isinstance(t, Tensor))
+            if self.config.deform.prior and len(avatar.prior) == n:
+                from .prior import PriorRuntime
+
+                total += PriorRuntime.estimate_nbytes(avatar.prior, self.head_basis(), self.device.type)
+        return total
+
     def compile_deformation(self, bf16: bool = False, cuda_graphs: bool = False) -> float:
         """``torch.compile`` the per-frame deformation layers and compile them now, with one dummy call in
         the mode ``animate(bf16=bf16)`` uses. Returns the seconds it took; on failure (no C++ compiler

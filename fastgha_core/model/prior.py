@@ -697,6 +697,27 @@ class PriorRuntime:
         self.runs = [(int(a), int(b), int(gi[a])) for a, b in zip(starts, ends)][::-1]
         self._run_max: tuple | None = None  # (opacities tensor, [max opacity per run]) of the last frame()
 
+    @staticmethod
+    def estimate_nbytes(binding: PriorBinding, basis: HeadBasis, device: str = "cpu") -> int:
+        """Bytes a runtime of ``binding`` on ``device`` holds once it has animated a frame: its own
+        tensors (the basis shared by every avatar, ``basis_u``, is not counted). On the CPU, the path of
+        ``frame`` (per-Gaussian slots and weights, the ``compact`` basis of the ``Uc`` slots the binding
+        uses, ``[E, Uc*3]`` float32, and the last frame's opacity reference); elsewhere the path of
+        ``displacement`` (the sparse ``W``, its own copy of the slots and weights there). Used by the
+        server's avatar budget, where the compact basis is most of it (7.2 MB for the shipped sample's
+        avatar, against 6.9 MB of Gaussians).
+        """
+        n, e = len(binding), basis.num_expression
+        ids = binding.vertex_ids.cpu().numpy()
+        local = np.where(_moving_vertices(basis)[ids], ids + 1, 0)
+        local[(binding.weight.cpu().numpy() <= 0)] = 0
+        used = len(np.unique(local))
+        g = len(basis.gates)
+        own = n * 3 * 8 + n * 3 * 4 + n * 8 + n + g * e * 4 + g * 2 * 4  # local, coef (= coef3), group index int64 + int8, gates
+        if torch.device(device).type == "cpu":
+            return own + e * used * 3 * 4 + n * 3 * 4 + n * 4  # compact basis and slots, the opacity reference
+        return own + (n + 1) * 8 + n * 3 * 8 + n * 3 * 4  # W: CSR rows, columns, values
+
     @property
     def W(self) -> Tensor:
         """The gather-and-weight as one sparse ``[N, U]`` CSR matrix (3 entries a row): one sparse product
