@@ -485,3 +485,41 @@ def test_a_blink_closes_the_eye_in_a_render():
         assert top_closed > 0.8 * skin_l, ("the closed lid should cover the upper half with skin", top_closed, skin_l)
         low = prof["eyeBlink"]
         assert int(low.argmin()) >= yc and low.min() < 0.6 * skin_l, ("a dark lash line below the eye's middle", low.round(2).tolist(), yc)
+
+
+def test_open_mouth_teeth_end_where_the_teeth_end():
+    """Rendered from the front with ``jawOpen`` = 1, the upper teeth Gaussians cover (alpha > 0.3) at
+    most 3 mm past the lowest upper-teeth vertex (2 mm splats reached 4.8 mm): they drew a white band under the upper lip
+    that dlib took for the inner lip (issue 16)."""
+    from fastgha_core.cameras import Cameras
+    from fastgha_core.data.appearance import head_regions
+    from fastgha_core.model.prior import generic_fit, opacity_factors
+    from fastgha_core.render import render
+
+    basis = load_basis("ict53")
+    hm = HeadModel.load()
+    fit = generic_fit(basis)
+    gi, bi = mouth_interior(fit, basis, 4)
+    z = torch.zeros(hm.num_expression)
+    z[hm.expression_names.index("jawOpen")] = 1.0
+    rt = PriorRuntime(bi, basis)
+    ids = basis.interior_vertices
+    jaw = np.linalg.norm(basis.expression_basis[hm.expression_names.index("jawOpen")][ids], axis=1)
+    upper = torch.from_numpy(np.flatnonzero((head_regions(hm).teeth[ids] > 0) & (jaw < 0.005)))  # upper teeth
+    assert len(upper) > 100
+    g = gi[upper]
+    g = g.replace(means=g.means + rt.displacement(z)[upper], opacities=g.opacities * opacity_factors(z, basis, rt.group_index)[upper], colors=torch.ones_like(g.colors))
+    side = 512
+    cam = Cameras.look_at(torch.tensor([[0.0, 0.0, 0.6]]), torch.zeros(1, 3), fov_deg=18.0, width=side, height=side)
+    alpha = render(g, cam, background=(0.0, 0.0, 0.0)).rgb[0, 0].numpy()  # white splats on black: alpha
+    w2c, K = cam.w2c.reshape(4, 4).double().numpy(), cam.K.reshape(3, 3).double().numpy()
+    pts = (fit.vertices[ids[upper.numpy()]].astype(np.float64) + basis.expression_basis[hm.expression_names.index("jawOpen")][ids[upper.numpy()]])
+    uv = (pts @ w2c[:3, :3].T + w2c[:3, 3]) @ K.T
+    uv = uv[:, :2] / uv[:, 2:]
+    mid = np.abs(uv[:, 0] - side / 2) < 10  # the front teeth
+    edge = uv[mid, 1].max()  # lowest front upper-teeth vertex, pixels
+    px_per_mm = side / (2 * 0.6 * math.tan(math.radians(9.0))) / 1000.0
+    cols = slice(side // 2 - 10, side // 2 + 10)
+    covered = np.flatnonzero((alpha[:, cols] > 0.3).any(1))
+    assert len(covered) and covered.max() >= edge - 2 * px_per_mm, "the teeth should be drawn"
+    assert (covered.max() - edge) / px_per_mm < 3.0, ((covered.max() - edge) / px_per_mm, "mm past the teeth's edge")

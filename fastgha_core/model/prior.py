@@ -73,6 +73,7 @@ GATE_START, GATE_FULL = 0.04, 0.25  # gate(z) = smoothstep((g.z - START) / (FULL
 # as 1.3 mm Gaussians; their colour is the avatar's own (``_lash_color``), at most LASH_MAX_LUMA
 # times as bright as the closed lid's skin; LASH_DEFAULT without an avatar to take it from.
 LASH_TRAVEL, LASH_STEP, LASH_SCALE = 0.004, 2, 0.0013
+TEETH_SCALE = 0.0012  # metres, the teeth Gaussians' scale (gums and socket: 0.9 * 2.2 mm)
 LASH_MAX_LUMA = 0.45
 LASH_DEFAULT = (0.10, 0.08, 0.07)
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)  # Rec. 601 luma weights
@@ -181,7 +182,11 @@ def _ict_basis() -> HeadBasis:
     # Closed eyelids: the skin the blink blendshapes pull over the eye, as Gaussians that appear as
     # the lids close (a few-view reconstruction has no skin under the open lids to move down).
     groups = [np.zeros(len(ids), np.int64)]
-    scales = [np.full(len(ids), 0.0022 * 0.9)]
+    # teeth splats about as wide as their sampling (1.4 mm apart): at the gums' 2 mm they grew 2-3 mm
+    # past the teeth's edges, a white band under the upper lip and a rim over the lower one that dlib
+    # took for the inner lips (jawOpen lip-gap change on the real sets +0.005 to +0.015, synthetic
+    # response 0.65 -> 0.68)
+    scales = [np.concatenate([np.full(len(teeth), TEETH_SCALE), np.full(len(gums) + len(sock), 0.0022 * 0.9)])]
     sample = [np.zeros(len(ids), bool)]
     lid_ids, lash_ids = [], []
     lash_all = np.flatnonzero(reg.lashes > 0)
