@@ -425,6 +425,32 @@ def test_lash_colour_is_the_avatars_darkest_at_the_lid_or_capped_below_the_skin(
     assert np.allclose(got / got.sum(), blurred[0] / blurred[0].sum(), atol=1e-3)  # same hue, darker
 
 
+def test_lashes_are_gated_with_their_lid_and_dark_without_an_avatar():
+    """Each eye's lash Gaussians sit on upper-lash vertices of that eye, appear with that eye's blink
+    gate (not the mouth's, not the other eye's), and take the dark default without an avatar."""
+    from fastgha_core.data.appearance import head_regions
+    from fastgha_core.model.prior import LASH_DEFAULT, generic_fit, opacity_factors
+
+    basis = load_basis("ict53")
+    hm = HeadModel.load()
+    gi, bi = mouth_interior(generic_fit(basis), basis, 4)
+    lash = torch.from_numpy(basis.lash)
+    ids = basis.interior_vertices[basis.lash]
+    assert (head_regions(hm).lashes[ids] > 0).all()
+    assert torch.allclose(gi.colors[lash], torch.tensor(LASH_DEFAULT).expand(int(lash.sum()), 3))
+    rt = PriorRuntime(bi, basis)
+    names = hm.expression_names
+    for side, sign in (("L", 1.0), ("R", -1.0)):
+        on = lash & torch.from_numpy(np.sign(hm.neutral[basis.interior_vertices, 0]) == sign)
+        assert int(on.sum()) > 50
+        for w, expect in (({}, 0.0), ({f"eyeBlink_{side}": 1.0}, 1.0), ({"eyeBlink_L" if side == "R" else "eyeBlink_R": 1.0, "jawOpen": 1.0}, 0.0)):
+            z = torch.zeros(len(names))
+            for k, val in w.items():
+                z[names.index(k)] = val
+            f = opacity_factors(z, basis, rt.group_index)[on]
+            assert torch.allclose(f, torch.full_like(f, expect)), (side, w)
+
+
 def test_a_blink_closes_the_eye_in_a_render():
     """An avatar with open dark eyes and no lashes of its own (skin Gaussians on the head, dark ones
     on the front of the eyeballs: a blurred reconstruction), rendered from the front:
