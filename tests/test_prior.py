@@ -400,3 +400,152 @@ def test_closed_lids_take_the_skin_colour_not_the_dark_eye_or_brow():
 
     got = _lid_skin_colors(lid, np.eye(3), cKDTree(np.concatenate(pts).astype(np.float32)), np.concatenate(cols).astype(np.float32))
     assert np.allclose(got[0], skin, atol=0.02), got
+
+
+def test_lash_colour_is_the_avatars_darkest_at_the_lid_or_capped_below_the_skin():
+    """The closed lashes take the darkest colours of the avatar at the open eye's upper lid; a blurred
+    eye with nothing dark there still gets a line clearly darker than the lid's skin."""
+    from scipy.spatial import cKDTree
+
+    from fastgha_core.model.prior import LASH_MAX_LUMA, _lash_color
+
+    rng = np.random.default_rng(1)
+    lid = rng.normal(0.0, 0.002, (30, 3)).astype(np.float32)
+    skin = np.array([0.8, 0.6, 0.5], np.float32)
+    lash = np.array([0.12, 0.07, 0.05], np.float32)
+    pts = rng.normal(0.0, 0.003, (400, 3)).astype(np.float32)
+    cols = np.tile(skin, (400, 1))
+    cols[::3] = lash  # a third of the Gaussians at the lid line are lashes
+    got = _lash_color(lid, cKDTree(pts), cols, skin)
+    assert np.allclose(got, lash, atol=0.01), got
+    blurred = np.tile(np.array([0.7, 0.5, 0.45], np.float32), (400, 1))  # no dark line left at the lid
+    got = _lash_color(lid, cKDTree(pts), blurred, skin)
+    luma = np.array([0.299, 0.587, 0.114], np.float32)
+    assert float(got @ luma) == pytest.approx(LASH_MAX_LUMA * float(skin @ luma), rel=1e-3)
+    assert np.allclose(got / got.sum(), blurred[0] / blurred[0].sum(), atol=1e-3)  # same hue, darker
+
+
+def test_lashes_are_gated_with_their_lid_and_dark_without_an_avatar():
+    """Each eye's lash Gaussians sit on upper-lash vertices of that eye, appear with that eye's blink
+    gate (not the mouth's, not the other eye's), and take the dark default without an avatar."""
+    from fastgha_core.data.appearance import head_regions
+    from fastgha_core.model.prior import LASH_DEFAULT, generic_fit, opacity_factors
+
+    basis = load_basis("ict53")
+    hm = HeadModel.load()
+    gi, bi = mouth_interior(generic_fit(basis), basis, 4)
+    lash = torch.from_numpy(basis.lash)
+    ids = basis.interior_vertices[basis.lash]
+    assert (head_regions(hm).lashes[ids] > 0).all()
+    assert torch.allclose(gi.colors[lash], torch.tensor(LASH_DEFAULT).expand(int(lash.sum()), 3))
+    rt = PriorRuntime(bi, basis)
+    names = hm.expression_names
+    for side, sign in (("L", 1.0), ("R", -1.0)):
+        on = lash & torch.from_numpy(np.sign(hm.neutral[basis.interior_vertices, 0]) == sign)
+        assert int(on.sum()) > 50
+        for w, expect in (({}, 0.0), ({f"eyeBlink_{side}": 1.0}, 1.0), ({"eyeBlink_L" if side == "R" else "eyeBlink_R": 1.0, "jawOpen": 1.0}, 0.0)):
+            z = torch.zeros(len(names))
+            for k, val in w.items():
+                z[names.index(k)] = val
+            f = opacity_factors(z, basis, rt.group_index)[on]
+            assert torch.allclose(f, torch.full_like(f, expect)), (side, w)
+
+
+def test_a_blink_closes_the_eye_in_a_render():
+    """An avatar with open dark eyes and no lashes of its own (skin Gaussians on the head, dark ones
+    on the front of the eyeballs: a blurred reconstruction), rendered from the front:
+    with ``eyeBlink_L/R`` = 1 the upper part of each eye turns to skin (the closed lid covers the eye)
+    and its darkest row is a lash line in the lower part (the closed lid's lash Gaussians)."""
+    from fastgha_core.cameras import Cameras
+    from fastgha_core.data.headmodel import EYEBALL_VERTEX_RANGE
+    from fastgha_core.gaussians import Gaussians
+    from fastgha_core.model.fastgha import _combine
+    from fastgha_core.model.prior import generic_fit, opacity_factors
+    from fastgha_core.render import render
+
+    basis = load_basis("ict53")
+    hm = HeadModel.load()
+    v = hm.neutral
+    skin_c, dark_c = np.array([0.78, 0.58, 0.48], np.float32), np.array([0.08, 0.06, 0.05], np.float32)
+    eye = np.arange(*EYEBALL_VERTEX_RANGE)
+    eye = eye[v[eye, 2] > np.percentile(v[eye, 2], 60)]  # the front of the eyeballs
+    ids = np.concatenate([np.arange(0, 11248, 2), eye])
+    cols = np.concatenate([np.tile(skin_c, (len(ids) - len(eye), 1)), np.tile(dark_c, (len(eye), 1))])
+    n = len(ids)
+    g = Gaussians(
+        torch.from_numpy(v[ids].copy()), torch.tensor([1.0, 0, 0, 0]).expand(n, 4).clone(), torch.full((n, 3), 0.0015),
+        torch.full((n,), 0.95), torch.from_numpy(cols), torch.zeros(n, 4),
+    )
+    fit = generic_fit(basis)
+    gi, bi = mouth_interior(fit, basis, 4, avatar=g)
+    g_all = Gaussians.concat([g, gi])
+    b_all = PriorBinding.concat(bind(g.means, fit, basis), bi)
+    rt = PriorRuntime(b_all, basis)
+    cam = Cameras.look_at(torch.tensor([[0.0, 0.0, 0.6]]), torch.zeros(1, 3), fov_deg=18.0, width=256, height=256)
+    names = hm.expression_names
+    luma = torch.tensor([0.299, 0.587, 0.114])
+    imgs = {}
+    for name in ("neutral", "eyeBlink"):
+        z = torch.zeros(len(names))
+        if name == "eyeBlink":
+            z[names.index("eyeBlink_L")] = z[names.index("eyeBlink_R")] = 1.0
+        zero = torch.zeros(n, 3)
+        frame = _combine(g_all, zero, zero, rt.displacement(z), len(gi), opacity_factors(z, basis, rt.group_index))
+        rgb = render(frame, cam, background=(1.0, 1.0, 1.0)).rgb[0].clamp(0, 1)
+        imgs[name] = (rgb * luma[:, None, None]).sum(0).numpy()  # [H, W] luma
+    w2c, K = cam.w2c.reshape(4, 4).double().numpy(), cam.K.reshape(3, 3).double().numpy()
+    lm = v[hm.landmarks68].astype(np.float64)
+    uv = (lm @ w2c[:3, :3].T + w2c[:3, 3]) @ K.T
+    uv = uv[:, :2] / uv[:, 2:]
+    skin_l = float(skin_c @ luma.numpy())
+    for ids_eye in (range(36, 42), range(42, 48)):
+        p = uv[list(ids_eye)]
+        (x0, y0), (x1, y1) = p.min(0), p.max(0)
+        x0, x1 = int(x0 + 0.15 * (x1 - x0)), int(x1 - 0.15 * (x1 - x0))  # inside the corners
+        h = y1 - y0
+        rows = slice(int(y0 - 0.3 * h), int(y1 + 1.2 * h))  # the open eye and the lower lid below it
+        yc = int(0.5 * (y0 + y1)) - rows.start
+        prof = {k: im[rows, x0:x1].mean(1) for k, im in imgs.items()}  # row-mean luma, top to bottom
+        open_min, top_closed = prof["neutral"][: int(y1) - rows.start].min(), prof["eyeBlink"][:yc].min()
+        assert open_min < 0.6 * skin_l, ("the open eye should show dark", open_min, skin_l)
+        assert top_closed > 0.8 * skin_l, ("the closed lid should cover the upper half with skin", top_closed, skin_l)
+        low = prof["eyeBlink"]
+        assert int(low.argmin()) >= yc and low.min() < 0.6 * skin_l, ("a dark lash line below the eye's middle", low.round(2).tolist(), yc)
+
+
+def test_open_mouth_teeth_end_where_the_teeth_end():
+    """Rendered from the front with ``jawOpen`` = 1, the upper teeth Gaussians cover (alpha > 0.3) at
+    most 3 mm past the lowest upper-teeth vertex (2 mm splats reached 4.8 mm): they drew a white band under the upper lip
+    that dlib took for the inner lip (issue 16)."""
+    from fastgha_core.cameras import Cameras
+    from fastgha_core.data.appearance import head_regions
+    from fastgha_core.model.prior import generic_fit, opacity_factors
+    from fastgha_core.render import render
+
+    basis = load_basis("ict53")
+    hm = HeadModel.load()
+    fit = generic_fit(basis)
+    gi, bi = mouth_interior(fit, basis, 4)
+    z = torch.zeros(hm.num_expression)
+    z[hm.expression_names.index("jawOpen")] = 1.0
+    rt = PriorRuntime(bi, basis)
+    ids = basis.interior_vertices
+    jaw = np.linalg.norm(basis.expression_basis[hm.expression_names.index("jawOpen")][ids], axis=1)
+    upper = torch.from_numpy(np.flatnonzero((head_regions(hm).teeth[ids] > 0) & (jaw < 0.005)))  # upper teeth
+    assert len(upper) > 100
+    g = gi[upper]
+    g = g.replace(means=g.means + rt.displacement(z)[upper], opacities=g.opacities * opacity_factors(z, basis, rt.group_index)[upper], colors=torch.ones_like(g.colors))
+    side = 512
+    cam = Cameras.look_at(torch.tensor([[0.0, 0.0, 0.6]]), torch.zeros(1, 3), fov_deg=18.0, width=side, height=side)
+    alpha = render(g, cam, background=(0.0, 0.0, 0.0)).rgb[0, 0].numpy()  # white splats on black: alpha
+    w2c, K = cam.w2c.reshape(4, 4).double().numpy(), cam.K.reshape(3, 3).double().numpy()
+    pts = (fit.vertices[ids[upper.numpy()]].astype(np.float64) + basis.expression_basis[hm.expression_names.index("jawOpen")][ids[upper.numpy()]])
+    uv = (pts @ w2c[:3, :3].T + w2c[:3, 3]) @ K.T
+    uv = uv[:, :2] / uv[:, 2:]
+    mid = np.abs(uv[:, 0] - side / 2) < 10  # the front teeth
+    edge = uv[mid, 1].max()  # lowest front upper-teeth vertex, pixels
+    px_per_mm = side / (2 * 0.6 * math.tan(math.radians(9.0))) / 1000.0
+    cols = slice(side // 2 - 10, side // 2 + 10)
+    covered = np.flatnonzero((alpha[:, cols] > 0.3).any(1))
+    assert len(covered) and covered.max() >= edge - 2 * px_per_mm, "the teeth should be drawn"
+    assert (covered.max() - edge) / px_per_mm < 3.0, ((covered.max() - edge) / px_per_mm, "mm past the teeth's edge")

@@ -24,7 +24,8 @@ Pieces (all numpy/torch on CPU, no learning):
 - ``mouth_interior(fit, basis)``: Gaussians on the teeth, gums/tongue and mouth-socket meshes of the
   fitted head, coloured plausibly, bound to their own vertex (so they follow the jaw), with an
   opacity gate that is 0 while the lips are closed; and Gaussians on the upper eyelids, coloured
-  like the avatar's skin, that appear as a blink closes the lids (``gate_factors``).
+  like the avatar's skin, and on the upper lashes, dark (the avatar's darkest colours at the open
+  eye's upper lid), that appear as a blink closes the lids (``gate_factors``).
 """
 
 from __future__ import annotations
@@ -68,6 +69,14 @@ _MOUTH_OPENING = {
     "mouthStretch_R": 0.15,
 }
 GATE_START, GATE_FULL = 0.04, 0.25  # gate(z) = smoothstep((g.z - START) / (FULL - START))
+# Closed-lid lashes: ICT-FaceKit's upper-lash vertices (those the blink moves > 4 mm), every 2nd,
+# as 1.3 mm Gaussians; their colour is the avatar's own (``_lash_color``), at most LASH_MAX_LUMA
+# times as bright as the closed lid's skin; LASH_DEFAULT without an avatar to take it from.
+LASH_TRAVEL, LASH_STEP, LASH_SCALE = 0.004, 2, 0.0013
+TEETH_SCALE = 0.0012  # metres, the teeth Gaussians' scale (gums and socket: 0.9 * 2.2 mm)
+LASH_MAX_LUMA = 0.45
+LASH_DEFAULT = (0.10, 0.08, 0.07)
+_LUMA = np.array([0.299, 0.587, 0.114], np.float32)  # Rec. 601 luma weights
 
 
 @dataclass(frozen=True, eq=False)
@@ -99,6 +108,7 @@ class HeadBasis:
     interior_scale: np.ndarray  # [I] Gaussian scale (metres, before the fit's scale)
     sample_color: np.ndarray  # [I] bool: colour taken from the avatar (nearest Gaussian above the point)
     hide_group: np.ndarray  # [Nv] int8: reconstructed Gaussians bound here fade out with this gate (0: never)
+    lash: np.ndarray | None = None  # [I] bool: closed-lid lash points (dark, ``_lash_color``); None: none
 
     @property
     def gate(self) -> np.ndarray:
@@ -172,18 +182,27 @@ def _ict_basis() -> HeadBasis:
     # Closed eyelids: the skin the blink blendshapes pull over the eye, as Gaussians that appear as
     # the lids close (a few-view reconstruction has no skin under the open lids to move down).
     groups = [np.zeros(len(ids), np.int64)]
-    scales = [np.full(len(ids), 0.0022 * 0.9)]
+    # teeth splats about as wide as their sampling (1.4 mm apart): at the gums' 2 mm they grew 2-3 mm
+    # past the teeth's edges, a white band under the upper lip and a rim over the lower one that dlib
+    # took for the inner lips (jawOpen lip-gap change on the real sets +0.005 to +0.015, synthetic
+    # response 0.65 -> 0.68)
+    scales = [np.concatenate([np.full(len(teeth), TEETH_SCALE), np.full(len(gums) + len(sock), 0.0022 * 0.9)])]
     sample = [np.zeros(len(ids), bool)]
-    lid_ids = []
+    lid_ids, lash_ids = [], []
+    lash_all = np.flatnonzero(reg.lashes > 0)
     for gi, side in ((1, "L"), (2, "R")):
         k = m.expression_names.index(f"eyeBlink_{side}")
         gates[gi, k] = 1.0
         mv = np.linalg.norm(m.expression_basis[k, :9409], axis=1)
         lid = np.flatnonzero(mv > 0.0025)  # moves > 2.5 mm: the upper lid
+        # the upper lashes (the lower ones hardly move): with the lids closed they hang over the
+        # lower lid as the dark line a closed eye shows (the synthetic truth's, and a real one's)
+        lash = lash_all[np.linalg.norm(m.expression_basis[k, lash_all], axis=1) > LASH_TRAVEL][::LASH_STEP]
         lid_ids.append(lid)
-        groups.append(np.full(len(lid), gi))
-        scales.append(np.full(len(lid), 0.0022))
-        sample.append(np.ones(len(lid), bool))
+        lash_ids.append(lash)
+        groups += [np.full(len(lid), gi), np.full(len(lash), gi)]
+        scales += [np.full(len(lid), 0.0022), np.full(len(lash), LASH_SCALE)]
+        sample += [np.ones(len(lid), bool), np.ones(len(lash), bool)]
     # Reconstructed Gaussians on the eyeballs fade out as the lids close over them.
     from ..data.headmodel import EYEBALL_VERTEX_RANGE
 
@@ -193,8 +212,11 @@ def _ict_basis() -> HeadBasis:
     sides = [np.sign(v[lid, 0].mean()) for lid in lid_ids]
     for gi, sg in zip((1, 2), sides):
         hide[eye & (np.sign(v[:, 0]) == sg)] = gi
-    ids = np.concatenate([ids, *lid_ids]).astype(np.int64)
-    cols = np.concatenate([cols, np.zeros((sum(len(x) for x in lid_ids), 3), np.float32)])
+    n_mouth = len(ids)
+    ids = np.concatenate([ids, *(x for pair in zip(lid_ids, lash_ids) for x in pair)]).astype(np.int64)
+    lash_flag = np.zeros(len(ids), bool)
+    lash_flag[n_mouth:] = np.concatenate([np.r_[np.zeros(len(a), bool), np.ones(len(b), bool)] for a, b in zip(lid_ids, lash_ids)])
+    cols = np.concatenate([cols, np.zeros((len(ids) - n_mouth, 3), np.float32)])
     return HeadBasis(
         space="ict53",
         neutral=m.neutral,
@@ -211,6 +233,7 @@ def _ict_basis() -> HeadBasis:
         interior_scale=np.concatenate(scales).astype(np.float32),
         sample_color=np.concatenate(sample),
         hide_group=hide,
+        lash=lash_flag,
     )
 
 
@@ -533,16 +556,37 @@ def _lid_skin_colors(points: np.ndarray, M: np.ndarray, tree, colors: np.ndarray
     _, above = tree.query(points + (0.006 * up + 0.002 * fwd).astype(np.float32), k=k)
     _, below = tree.query(points + (-0.014 * up + 0.004 * fwd).astype(np.float32), k=k)
     c = colors[np.concatenate([above, below], axis=1)]  # [P, 2k, 3]
-    lum = c @ np.array([0.299, 0.587, 0.114], np.float32)  # [P, 2k]
+    lum = c @ _LUMA  # [P, 2k]
     order = np.argsort(lum, axis=1)[:, k:]  # the brighter half
     return np.median(np.take_along_axis(c, order[..., None], axis=1), axis=1).astype(np.float32)
 
 
+def _lash_color(lid: np.ndarray, tree, colors: np.ndarray, skin: np.ndarray, k: int = 8) -> np.ndarray:
+    """The closed lashes' colour ``[3]`` of one eye, from the avatar.
+
+    ``lid [P, 3]``: the part of that eye's upper lid that closes over the eye, where it sits with the
+    eye open (its lash line); ``tree``: a ``scipy.spatial.cKDTree`` of the avatar's solid Gaussian
+    centres with ``colors [N, 3]``; ``skin [3]``: the closed lid's colour. The colour is the median of
+    the darkest quarter of the Gaussians among the ``k`` nearest to each lid point (the lashes and the
+    lid margin of the open eye), scaled down to ``LASH_MAX_LUMA`` times the skin's luma when it is
+    brighter than that (a blurred reconstruction can leave no dark lash line to take it from)."""
+    _, nn = tree.query(lid, k=k)
+    c = colors[np.unique(nn)]
+    dark = c[np.argsort(c @ _LUMA)[: max(1, len(c) // 4)]]
+    col = np.median(dark, axis=0)
+    cap = LASH_MAX_LUMA * float(skin @ _LUMA)
+    luma = float(col @ _LUMA)
+    if luma > cap:
+        col = col * (cap / max(luma, 1e-6))
+    return np.clip(col, 0.0, 1.0).astype(np.float32)
+
+
 def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gaussians | None" = None) -> tuple["Gaussians", PriorBinding]:  # noqa: F821
     """Gated Gaussians of the fitted head, each bound to its own vertex with full weight: the mouth
-    interior (teeth, gums/tongue, mouth socket; coloured like the synthetic albedo) and the closed
+    interior (teeth, gums/tongue, mouth socket; coloured like the synthetic albedo), the closed
     upper eyelids (the part that closes over the eye coloured like the avatar's skin around the eye,
-    ``_lid_skin_colors``, the rest like the avatar where it sits; skin grey without ``avatar``).
+    ``_lid_skin_colors``, the rest like the avatar where it sits; skin grey without ``avatar``) and
+    their lashes (``_lash_color``; ``LASH_DEFAULT`` without ``avatar``).
     ``features`` are zeros ``[I, num_features]``; the binding's ``group`` says which gate
     (``gate_factors``) hides each one."""
     from scipy.spatial import cKDTree
@@ -555,7 +599,9 @@ def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "G
     s = float(np.cbrt(abs(np.linalg.det(M))))
     pos = fit.vertices[ids].astype(np.float32)
     cols = basis.interior_colors.astype(np.float32).copy()
-    smp = basis.sample_color
+    lash = np.zeros(n, bool) if basis.lash is None else basis.lash
+    smp = basis.sample_color & ~lash
+    cols[lash] = np.array(LASH_DEFAULT, np.float32)
     if smp.any():
         cols[smp] = np.array([0.62, 0.48, 0.42], np.float32)
         if avatar is not None and len(avatar) > 0:
@@ -575,6 +621,11 @@ def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "G
                 lid_cols[~over_eye] = np.median(ac[nn], axis=1)
                 lid_cols[over_eye] = _lid_skin_colors(lid[over_eye], M, tree, ac)
                 cols[smp] = lid_cols
+                grp = basis.interior_group
+                for gi in np.unique(grp[lash]):  # each eye's lashes: dark colours at its open upper lid
+                    sel = np.flatnonzero(smp)[over_eye & (grp[smp] == gi)]
+                    if len(sel):
+                        cols[lash & (grp == gi)] = _lash_color(pos[sel], tree, ac, np.median(cols[sel], axis=0))
     g = Gaussians(
         means=torch.from_numpy(pos),
         quats=torch.tensor([1.0, 0.0, 0.0, 0.0]).expand(n, 4).contiguous(),
