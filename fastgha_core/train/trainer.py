@@ -39,6 +39,7 @@ from torch import Tensor, nn
 
 from ..cameras import Cameras
 from ..constants import BACKGROUND_RGB
+from ..data.augment import InputCameraNoise
 from .losses import LOSS_TERMS, FastGHALoss, LossConfig
 
 __all__ = [
@@ -90,6 +91,9 @@ class TrainConfig:
     vgg_weights: str | None = None  # torchvision VGG16 weights file for L_perc (None: L_perc off)
     train_only: str = ""  # "deform": freeze the reconstruction network, train the deformation MLP only
     loss: LossConfig = field(default_factory=LossConfig)
+    # pose noise on the cameras given to the encoder (not the supervision cameras), shaped like
+    # tracking errors (data/augment.py); off by default and in every preset
+    input_camera_noise: InputCameraNoise = field(default_factory=InputCameraNoise)
 
     def __post_init__(self) -> None:
         if self.lr_schedule not in ("constant", "cosine"):
@@ -120,6 +124,8 @@ class TrainConfig:
             kw["loss"] = LossConfig(**lk)
         if "betas" in kw:
             kw["betas"] = tuple(kw["betas"])
+        if "input_camera_noise" in kw and not isinstance(kw["input_camera_noise"], InputCameraNoise):
+            kw["input_camera_noise"] = InputCameraNoise.from_dict(kw["input_camera_noise"])
         return cls(**kw)
 
 
@@ -175,8 +181,11 @@ def load_train_config(spec: str) -> TrainConfig:
     merged = base.to_dict()
     loss = dict(merged["loss"])
     loss.update(data.pop("loss", {}) or {})
+    noise = dict(merged["input_camera_noise"])
+    noise.update(data.pop("input_camera_noise", {}) or {})
     merged.update(data)
     merged["loss"] = loss
+    merged["input_camera_noise"] = noise
     return TrainConfig.from_dict(merged)
 
 
