@@ -42,7 +42,16 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
-__all__ = ["InputCameraNoise", "perturb_w2c", "view_yaw_deg", "rotation_vector", "InputCameraNoiseDataset"]
+__all__ = [
+    "InputCameraNoise",
+    "perturb_w2c",
+    "view_yaw_deg",
+    "rotation_vector",
+    "InputCameraNoiseDataset",
+    "InputMatting",
+    "matte_input_view",
+    "InputMattingDataset",
+]
 
 
 @dataclass
@@ -169,3 +178,107 @@ class InputCameraNoiseDataset(Dataset):
     def __getitem__(self, index: int):
         sample = self.base[index]
         return replace(sample, input_w2c=perturb_w2c(sample.input_w2c, self.noise, self.generator(index)))
+
+
+# ---------------------------------------------------------------------------- our own matting on the inputs
+@dataclass
+class InputMatting:
+    """Input images matted by the project's own matting instead of the renderer's exact alpha.
+
+    At inference on photos the inputs are cut out by ``tracking/matting.py`` (a trimap from the
+    *fitted* head, MediaPipe selfie segmentation deciding the rest), so hair tips get cut, a strip of
+    wall can stay and the edge is a 1 px feather. With ``enabled``, each synthetic input view is put
+    on a random wall with the subject's own soft shadow (``tracking.matting_eval.composite_on_wall``)
+    and matted by ``matte_from_head`` from a head that misses like a fit: the true head at the view's
+    expression, turned about its centre by ``N(0, head_yaw_std_deg)`` of yaw and scaled by
+    ``1 + |N(0, head_scale_std)|`` (fits make the skull too large rather than too small,
+    ``docs/tracking.md``); its 68 landmarks give the face region and the mouth row. Supervision images
+    and masks stay exact. Only for ``--data synthetic`` (the head mesh is needed). Off by default.
+    """
+
+    enabled: bool = False
+    method: str = "auto"  # MattingConfig.method: "auto" (segmentation with MediaPipe, else mixture) | ...
+    head_yaw_std_deg: float = 5.0
+    head_scale_std: float = 0.05
+
+    def __post_init__(self) -> None:
+        if self.method not in ("auto", "mixture", "grabcut", "segmentation"):
+            raise ValueError(f"input_matting.method must be 'auto', 'mixture', 'grabcut' or 'segmentation', got {self.method!r}")
+        for name in ("head_yaw_std_deg", "head_scale_std"):
+            v = float(getattr(self, name))
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"input_matting.{name} must be a finite number >= 0, got {getattr(self, name)!r}")
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any] | None) -> "InputMatting":
+        data = dict(data or {})
+        names = {f.name for f in fields(cls)}
+        bad = sorted(set(data) - names)
+        if bad:
+            raise ValueError(f"train config: unknown input_matting field(s) {bad}; expected some of {sorted(names)}")
+        return cls(**data)
+
+
+def matte_input_view(subject, expression: np.ndarray, view, w2c: Tensor, K: Tensor, cfg: InputMatting, rng: np.random.Generator) -> tuple[Tensor, Tensor]:
+    """One synthetic view on a wall, matted by our matting from a fit-like head.
+
+    Args:
+        subject: the view's ``data.synthetic.SyntheticSubject``.
+        expression: ``[53]`` ict53 code of the view's timestep.
+        view: the rendered ``View`` (image over ``BACKGROUND_RGB`` ``[3, S, S]``, mask ``[1, S, S]``).
+        w2c: ``[4, 4]``, K: ``[3, 3]`` the view's camera (pixels of the ``S x S`` image).
+        rng: the draw (wall, shadow, head error).
+
+    Returns:
+        ``(image [3, S, S] float32 over BACKGROUND_RGB, matte [1, S, S] float32 in [0, 1])``.
+    """
+    from ..constants import BACKGROUND_RGB
+    from ..tracking.fit import rodrigues
+    from ..tracking.matting import MattingConfig, head_silhouette, matte_from_head
+    from ..tracking.matting_eval import composite_on_wall
+
+    S = int(view.image.shape[-1])
+    if view.image.shape[-2] != S:
+        raise ValueError(f"matte_input_view expects a square view, got {list(view.image.shape[-2:])}")
+    verts = subject.vertices(np.asarray(expression, np.float32)).astype(np.float64)
+    centre = verts.mean(0)
+    err = rodrigues(np.radians([0.0, float(rng.normal(0.0, cfg.head_yaw_std_deg)), 0.0]))
+    scale = 1.0 + abs(float(rng.normal(0.0, cfg.head_scale_std)))
+    wrong = (verts - centre) @ err.T * scale + centre
+    photo, _, _ = composite_on_wall(view, rng)
+    w = w2c.detach().double().cpu().numpy()
+    R, t, Kn = w[:3, :3], w[:3, 3], K.detach().double().cpu().numpy()
+    sil = head_silhouette(wrong, subject.model.visible_faces(eyelashes=False), R, t, Kn, S)
+    lm = (subject.model.landmarks(wrong) @ R.T + t) @ Kn.T
+    lm = lm[:, :2] / lm[:, 2:]
+    m = matte_from_head(photo, sil, Kn[0, 0] / t[2], float(lm[57, 1]), None, MattingConfig(method=cfg.method), face_points=lm)
+    m_t = torch.from_numpy(np.ascontiguousarray(m, dtype=np.float32))[None]  # [1, S, S]
+    img = torch.from_numpy(photo.astype(np.float32) / 255.0).permute(2, 0, 1)
+    bg = torch.tensor(BACKGROUND_RGB, dtype=torch.float32)[:, None, None]
+    return (img * m_t + bg * (1 - m_t)).clamp(0, 1), m_t
+
+
+class InputMattingDataset(Dataset):
+    """Wraps a ``SyntheticTrainingDataset``: each sample's input images are re-matted by
+    :func:`matte_input_view` (draw seeded by ``(seed, index)``); every other field is unchanged."""
+
+    def __init__(self, base, matting: InputMatting, seed: int = 0):
+        if not (hasattr(base, "plan") and hasattr(base, "source") and hasattr(base, "subject_of")):
+            raise ValueError(f"input matting needs the synthetic training data (--data synthetic), got {type(base).__name__}")
+        self.base = base
+        self.matting = matting
+        self.seed = int(seed)
+
+    def __len__(self) -> int:
+        return len(self.base)
+
+    def __getitem__(self, index: int):
+        sample = self.base[index]
+        src, plan = self.base.plan(index)
+        subject = src.synthetic_subject
+        rng = np.random.default_rng([self.seed, 6, int(index)])
+        images = []
+        for i, (t, c) in enumerate(zip(plan.input_timesteps, plan.input_cameras)):
+            img, _ = matte_input_view(subject, src.expressions[t], src.view(t, c), sample.input_w2c[i], sample.input_K[i], self.matting, rng)
+            images.append(img)
+        return replace(sample, input_images=torch.stack(images).to(sample.input_images.dtype))
