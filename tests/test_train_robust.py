@@ -154,3 +154,65 @@ def test_cli_flag_turns_the_noise_on():
     train_cmd.add_arguments(p)
     assert p.parse_args(["--data", "synthetic", "--out", "x"]).input_camera_noise is False
     assert p.parse_args(["--data", "synthetic", "--out", "x", "--input-camera-noise"]).input_camera_noise is True
+
+
+# ---------------------------------------------------------------------------- inputs matted by our matting
+@pytest.fixture(scope="module")
+def synthetic_pair():
+    from fastgha_core.data.augment import InputMatting, InputMattingDataset
+    from fastgha_core.data.synthetic import TRAIN_SEEDS
+
+    base = SyntheticTrainingDataset(TRAIN_SEEDS, resolution=96, timesteps=6, num_cameras=8, num_targets=6, seed=3, length=4)
+    cfg = InputMatting(enabled=True, method="mixture")  # no MediaPipe needed
+    return base, InputMattingDataset(base, cfg, seed=3), cfg
+
+
+def test_matting_changes_only_the_input_images_and_is_deterministic(synthetic_pair):
+    base, ds, cfg = synthetic_pair
+    a, b = base[0], ds[0]
+    assert not torch.equal(a.input_images, b.input_images)
+    for f in ("input_w2c", "input_K", "target_images", "target_masks", "target_depths", "target_w2c", "target_K", "expression"):
+        assert torch.equal(getattr(a, f), getattr(b, f)), f
+    assert b.input_images.shape == a.input_images.shape and b.input_images.dtype == a.input_images.dtype
+    # the same index gives the same wall, shadow and head error; the inside of the head is the render's
+    assert torch.equal(ds[0].input_images, b.input_images)
+    assert float((a.input_images - b.input_images).abs().median()) < 0.01
+
+
+def test_matte_of_a_fit_like_head_follows_the_true_alpha(synthetic_pair):
+    from fastgha_core.data.augment import matte_input_view
+
+    base, _, cfg = synthetic_pair
+    src, plan = base.plan(1)
+    for i, (t, c) in enumerate(zip(plan.input_timesteps, plan.input_cameras)):
+        view = src.view(t, c)
+        cam = src.cameras(t)[c : c + 1]
+        img, matte = matte_input_view(src.synthetic_subject, src.expressions[t], view, cam.w2c[0], cam.K[0], cfg, np.random.default_rng(i))
+        truth, ours = view.mask[0] > 0.5, matte[0] > 0.5
+        iou = float((truth & ours).sum() / (truth | ours).sum())
+        assert iou > 0.9, (i, iou)
+        # outside our matte the image is the plain background, inside it the photo (no wall left where the truth is head)
+        assert float((img - view.image).abs()[:, truth & ours].mean()) < 0.02
+
+
+def test_matting_is_off_by_default_and_refuses_other_data(tmp_path):
+    from fastgha_core.data.augment import InputMatting, InputMattingDataset
+    from fastgha_core.train.builders import build_training_data
+
+    assert TrainConfig().input_matting.enabled is False
+    assert all(not p.input_matting.enabled for p in TRAIN_PRESETS.values())
+    with pytest.raises(ValueError, match="needs the synthetic training data"):
+        InputMattingDataset([1, 2, 3], InputMatting(enabled=True))
+    cfg = load_train_config("tiny")
+    cfg.input_matting = InputMatting(enabled=True)
+    with pytest.raises(ValueError, match="input_matting needs --data synthetic"):
+        build_training_data(str(tmp_path), cfg, None)
+    with pytest.raises(ValueError, match="method must be"):
+        InputMatting(method="magic")
+    # both options compose: the matting inside, the camera noise on top (it sees the exact cameras it perturbs)
+    from fastgha_core.config import get_preset
+
+    cfg.input_camera_noise = InputCameraNoise(enabled=True)
+    train, val, _ = build_training_data("synthetic", cfg, get_preset("tiny"))
+    assert isinstance(train, InputCameraNoiseDataset) and isinstance(train.base, InputMattingDataset)
+    assert isinstance(val, SyntheticTrainingDataset)

@@ -55,12 +55,12 @@ def build_training_data(data: str, cfg: TrainConfig, model_config):
     ``cfg.input_matting.enabled`` the training inputs are matted by our own matting, with
     ``cfg.input_camera_noise.enabled`` their cameras get tracking-shaped pose noise
     (``data/augment.py``); the validation samples keep exact inputs and cameras."""
+    if cfg.input_matting.enabled and data != "synthetic":
+        raise ValueError(f"input_matting needs --data synthetic (it re-mattes rendered heads), got {data!r}")
     train, val, shuffle = _training_data(data, cfg, model_config)
     if cfg.input_matting.enabled:
         from ..data.augment import InputMattingDataset
 
-        if data != "synthetic":
-            raise ValueError(f"input_matting needs --data synthetic (it re-mattes rendered heads), got {data!r}")
         train = InputMattingDataset(train, cfg.input_matting, seed=cfg.seed)
         log.info("input matting on: %s", cfg.input_matting)
     if cfg.input_camera_noise.enabled:
