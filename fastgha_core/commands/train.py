@@ -23,6 +23,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--dino-weights", default=None, help="local Hugging Face DINOv3 folder (loaded, frozen)")
     parser.add_argument("--vae-weights", default=None, help="local Hugging Face AutoencoderKL folder (loaded, frozen encoder)")
     parser.add_argument("--vgg-weights", default=None, help="torchvision VGG16 weights (.pth/.safetensors) for the perceptual loss; without it the loss is off")
+    parser.add_argument("--input-camera-noise", action="store_true", help="perturb the input cameras given to the encoder with tracking-shaped pose noise (magnitudes: the config's input_camera_noise, docs/training.md); off by default")
+    parser.add_argument("--input-matting", action="store_true", help="matte the synthetic input images with our own matting from a fit-like head instead of the exact alpha (docs/training.md); off by default")
     parser.add_argument("--init-from", default=None, help="start from a model folder written by save_pretrained (e.g. a previous run's model/)")
 
 
@@ -50,6 +52,10 @@ def run(args) -> int:
     for k, v in overrides.items():
         if v is not None:
             setattr(cfg, k, v)
+    if args.input_camera_noise:
+        cfg.input_camera_noise.enabled = True
+    if args.input_matting:
+        cfg.input_matting.enabled = True
     if not 0.0 <= cfg.min_lr_ratio <= 1.0:
         raise CLIError(f"--min-lr-ratio must be in [0, 1], got {cfg.min_lr_ratio}")
     if cfg.steps < 1 or cfg.batch_size < 1:

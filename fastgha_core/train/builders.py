@@ -51,7 +51,27 @@ def build_model(cfg: TrainConfig, dino_weights: str | None = None, vae_weights: 
 def build_training_data(data: str, cfg: TrainConfig, model_config):
     """``(train_dataset, val_dataset, shuffle)`` for ``--data synthetic`` or an on-disk layout folder.
     Synthetic samples are read in index order (``shuffle=False``): the dataset is already in random
-    subject order and caches the subject that consecutive indices share."""
+    subject order and caches the subject that consecutive indices share. With
+    ``cfg.input_matting.enabled`` the training inputs are matted by our own matting, with
+    ``cfg.input_camera_noise.enabled`` their cameras get tracking-shaped pose noise
+    (``data/augment.py``); the validation samples keep exact inputs and cameras."""
+    if cfg.input_matting.enabled and data != "synthetic":
+        raise ValueError(f"input_matting needs --data synthetic (it re-mattes rendered heads), got {data!r}")
+    train, val, shuffle = _training_data(data, cfg, model_config)
+    if cfg.input_matting.enabled:
+        from ..data.augment import InputMattingDataset
+
+        train = InputMattingDataset(train, cfg.input_matting, seed=cfg.seed)
+        log.info("input matting on: %s", cfg.input_matting)
+    if cfg.input_camera_noise.enabled:
+        from ..data.augment import InputCameraNoiseDataset
+
+        train = InputCameraNoiseDataset(train, cfg.input_camera_noise, seed=cfg.seed)
+        log.info("input camera noise on: %s", cfg.input_camera_noise)
+    return train, val, shuffle
+
+
+def _training_data(data: str, cfg: TrainConfig, model_config):
     from ..data import sampling
 
     if data == "synthetic":

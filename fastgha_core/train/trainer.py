@@ -39,6 +39,7 @@ from torch import Tensor, nn
 
 from ..cameras import Cameras
 from ..constants import BACKGROUND_RGB
+from ..data.augment import InputCameraNoise, InputMatting
 from .losses import LOSS_TERMS, FastGHALoss, LossConfig
 
 __all__ = [
@@ -90,6 +91,12 @@ class TrainConfig:
     vgg_weights: str | None = None  # torchvision VGG16 weights file for L_perc (None: L_perc off)
     train_only: str = ""  # "deform": freeze the reconstruction network, train the deformation MLP only
     loss: LossConfig = field(default_factory=LossConfig)
+    # pose noise on the cameras given to the encoder (not the supervision cameras), shaped like
+    # tracking errors (data/augment.py); off by default and in every preset
+    input_camera_noise: InputCameraNoise = field(default_factory=InputCameraNoise)
+    # input images matted by our own matting from a fit-like head instead of the exact alpha
+    # (data/augment.py; --data synthetic only); off by default and in every preset
+    input_matting: InputMatting = field(default_factory=InputMatting)
 
     def __post_init__(self) -> None:
         if self.lr_schedule not in ("constant", "cosine"):
@@ -120,6 +127,10 @@ class TrainConfig:
             kw["loss"] = LossConfig(**lk)
         if "betas" in kw:
             kw["betas"] = tuple(kw["betas"])
+        if "input_camera_noise" in kw and not isinstance(kw["input_camera_noise"], InputCameraNoise):
+            kw["input_camera_noise"] = InputCameraNoise.from_dict(kw["input_camera_noise"])
+        if "input_matting" in kw and not isinstance(kw["input_matting"], InputMatting):
+            kw["input_matting"] = InputMatting.from_dict(kw["input_matting"])
         return cls(**kw)
 
 
@@ -175,8 +186,13 @@ def load_train_config(spec: str) -> TrainConfig:
     merged = base.to_dict()
     loss = dict(merged["loss"])
     loss.update(data.pop("loss", {}) or {})
+    nested = {}
+    for key in ("input_camera_noise", "input_matting"):
+        nested[key] = dict(merged[key])
+        nested[key].update(data.pop(key, {}) or {})
     merged.update(data)
     merged["loss"] = loss
+    merged.update(nested)
     return TrainConfig.from_dict(merged)
 
 
