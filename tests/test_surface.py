@@ -211,3 +211,80 @@ def test_track_then_reconstruct_uses_the_tracked_head(tmp_path, capsys):
     (req / "expressions.json").unlink()
     assert main(["reconstruct", "--input", str(req), "--out", str(tmp_path / "c.safetensors")]) == 2
     assert "needs expressions.json" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- photos with known cameras
+def _world_cameras(yaws_deg, G, size=256, dist=0.8):
+    """Cameras around the head at ``yaws_deg`` whose world is the head frame moved by ``G [4, 4]``
+    (head -> world): ``w2c = w2c_head @ inv(G)``."""
+    from fastgha_core.cameras import Cameras
+
+    c = _cameras(yaws_deg, size=size, dist=dist)
+    w2c = c.w2c.double() @ torch.from_numpy(np.linalg.inv(G))
+    return Cameras(c.K, w2c.float(), size, size)
+
+
+def _rigid(rot_deg, axis, t):
+    G = np.eye(4)
+    a = np.asarray(axis, float)
+    G[:3, :3] = rodrigues(np.radians(rot_deg) * a / np.linalg.norm(a))
+    G[:3, 3] = t
+    return G
+
+
+def test_known_camera_fit_recovers_head_pose_and_shape_from_exact_landmarks():
+    """Landmarks of a known head projected through known cameras whose world is not the head frame:
+    one shared head -> world transform, identity and per-view expressions come back."""
+    from fastgha_core.tracking.fit import FitConfig, LandmarkModel, fit_known_cameras
+
+    head = HeadModel.load()
+    rng = np.random.default_rng(11)
+    ident = np.zeros(100)
+    ident[:30] = rng.standard_normal(30) * 0.6
+    expr = np.zeros((3, 53))
+    expr[1, head.expression_names.index("jawOpen")] = 0.5
+    G = _rigid(25.0, [0.3, 1.0, 0.2], [0.12, -0.05, 0.3])
+    cams = _world_cameras([-30.0, 0.0, 40.0], G)
+    model = LandmarkModel.from_head_model(num_identity=30)
+    lms = []
+    for v in range(3):
+        X = model.points(ident[:30], expr[v]) @ G[:3, :3].T + G[:3, 3]
+        x = X @ cams.R[v].double().numpy().T + cams.t[v].double().numpy()
+        uv = x @ cams.K[v].double().numpy().T
+        lms.append(uv[:, :2] / uv[:, 2:])
+    lms.append(None)  # a fourth photo without landmarks keeps a neutral expression
+    K = np.concatenate([cams.K.double().numpy(), cams.K[:1].double().numpy()])
+    w2c = np.concatenate([cams.w2c.double().numpy(), cams.w2c[:1].double().numpy()])
+    fit = fit_known_cameras(lms, K, w2c, FitConfig(num_identity=30, identity_weight=0.01, expression_weight=0.1, weak_expression_weight=0.1), model)
+    assert fit.detected.tolist() == [True, True, True, False]
+    R_err = np.degrees(np.arccos(np.clip((np.trace(fit.head_to_world[:3, :3].T @ G[:3, :3]) - 1) / 2, -1, 1)))
+    assert R_err < 0.3 and np.linalg.norm(fit.head_to_world[:3, 3] - G[:3, 3]) < 0.002, (R_err, fit.head_to_world)
+    assert np.nanmax(fit.rms_px) < 0.5 and np.isnan(fit.rms_px[3])
+    assert abs(fit.expressions[1, head.expression_names.index("jawOpen")] - 0.5) < 0.1 and not fit.expressions[3].any()
+    surf = HeadSurface(fit.identity, fit.expressions, fit.head_to_world)
+    truth = head.vertices(ident.astype(np.float32), expr[1].astype(np.float32)) @ G[:3, :3].T + G[:3, 3]
+    err = np.linalg.norm(surf.vertices(1, head) - truth, axis=1)[head.landmarks68]
+    assert np.median(err) < 0.002, np.median(err)
+
+
+def test_head_surface_transform_moves_vertices_and_the_prior_fit():
+    head = HeadModel.load()
+    G = _rigid(30.0, [0, 1, 0], [0.1, 0.0, -0.2])
+    a = HeadSurface(np.zeros(100), np.zeros((1, 53)))
+    b = HeadSurface(np.zeros(100), np.zeros((1, 53)), G)
+    np.testing.assert_allclose(b.vertices(0, head), a.vertices(0, head) @ G[:3, :3].T + G[:3, 3], atol=1e-5)
+    assert b.subset([0, 0]).head_to_world is b.head_to_world
+    with pytest.raises(ValueError, match="rigid"):
+        HeadSurface(np.zeros(100), np.zeros((1, 53)), np.diag([2.0, 2.0, 2.0, 1.0]))
+    with pytest.raises(ValueError, match=r"\[4, 4\]"):
+        HeadSurface(np.zeros(100), np.zeros((1, 53)), np.eye(3))
+
+
+def test_ray_depth_follows_the_world_frame():
+    """The same head seen by the same cameras gives the same ray depth whichever world they share."""
+    s0 = HeadSurface(np.zeros(100), np.zeros((2, 53)))
+    G = _rigid(40.0, [0.2, 1.0, 0.0], [0.3, 0.1, -0.5])
+    s1 = HeadSurface(np.zeros(100), np.zeros((2, 53)), G)
+    d0 = surface_ray_depth(s0, _cameras([0.0, 45.0])).t
+    d1 = surface_ray_depth(s1, _world_cameras([0.0, 45.0], G, size=128, dist=0.6)).t
+    assert float((d0 - d1).abs().max()) < 1e-3

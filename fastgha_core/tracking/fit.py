@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["FitConfig", "FitResult", "LandmarkModel", "fit_landmarks", "default_intrinsics", "intrinsics_from_35mm", "rodrigues", "FRONTAL_R"]
+__all__ = ["FitConfig", "FitResult", "KnownCameraFit", "LandmarkModel", "fit_landmarks", "fit_known_cameras", "default_intrinsics", "intrinsics_from_35mm", "rodrigues", "FRONTAL_R"]
 
 logger = logging.getLogger(__name__)
 
@@ -454,13 +454,21 @@ class _Problem:
         return np.array([[self.nid + v * self.nv + 6 + k for k in range(53)] for v in range(self.V)])
 
 
-def _lm(prob: _Problem, beta, E, Rs, ts, iterations: int, tol: float):
+def _lm(prob: _Problem, beta, E, Rs, ts, iterations: int, tol: float, reduce=None):
+    """Levenberg-Marquardt on ``prob``. ``reduce = (T [n_full, n_red], ecols [V, 53])``: the unknowns
+    are ``x_red`` with ``x_full = T x_red`` (the known-camera fit's one shared head pose), ``ecols``
+    the reduced columns of the expressions."""
     r = prob.residuals(beta, E, Rs, ts)
     cost = 0.5 * float(r @ r)
     lam = 1e-3
+    T = None
     ecols = prob.expression_columns() if prob.free_ex else None
+    if reduce is not None:
+        T, ecols = reduce
     for _ in range(iterations):
         J = prob.jacobian(beta, E, Rs, ts)
+        if T is not None:
+            J = J @ T
         g = J.T @ r
         H = J.T @ J
         free = np.ones(H.shape[0], dtype=bool)
@@ -479,6 +487,8 @@ def _lm(prob: _Problem, beta, E, Rs, ts, iterations: int, tol: float):
                 continue
             x = np.zeros(H.shape[0])
             x[idx] = step
+            if T is not None:
+                x = T @ x
             nb, nE, nR, nt = prob.apply(x, beta, E, Rs, ts)
             nr = prob.residuals(nb, nE, nR, nt)
             ncost = 0.5 * float(nr @ nr)
@@ -737,3 +747,129 @@ def _fit_landmarks(
     full_id = np.zeros(model.num_total_identity)
     full_id[:Ki] = beta
     return FitResult(identity=full_id, expressions=E, rotations=Rs, translations=ts, K=K, rms_px=rms, cost=cost, outline_px=outline)
+
+
+@dataclass
+class KnownCameraFit:
+    """The head of one person fitted to photos whose cameras are known (:func:`fit_known_cameras`).
+
+    ``V`` photos, of which those with ``detected`` landmarks took part in the fit.
+    """
+
+    identity: np.ndarray  # [100] float64, zeros beyond num_identity (shared)
+    expressions: np.ndarray  # [V, 53] float64 in [0, 1]; 0 (neutral) for photos without landmarks
+    head_to_world: np.ndarray  # [4, 4] rigid: x_world = R x_head + t (metres), one for all photos
+    rms_px: np.ndarray  # [V] RMS landmark reprojection error through the given cameras (pixels); NaN = not detected
+    detected: np.ndarray  # [V] bool: the photo's landmarks were found and fitted
+    pose_spread_deg: np.ndarray  # [V] angle between each photo's own (photo-only) head pose and the shared one; NaN = not detected
+    pose_spread_mm: np.ndarray  # [V] distance between each photo's own head origin and the shared one (mm); NaN = not detected
+    cost: float = 0.0
+
+
+def _world_pose(R: np.ndarray, t: np.ndarray, w2c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Head -> camera ``(R, t)`` through a camera ``w2c [4, 4]`` -> head -> world."""
+    C, c = w2c[:3, :3], w2c[:3, 3]
+    return C.T @ R, C.T @ (t - c)
+
+
+def _orthonormal(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M)
+    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+
+
+def fit_known_cameras(
+    landmarks: list,
+    K: np.ndarray,
+    w2c: np.ndarray,
+    config: FitConfig | None = None,
+    model: LandmarkModel | None = None,
+) -> KnownCameraFit:
+    """Fit one head to photos with **known** cameras: identity shared, an expression per photo, and
+    one rigid head -> world transform for all photos (the cameras' world need not be head-centric).
+
+    Stages: the photo-only fit (:func:`fit_landmarks` on the photos with landmarks, each photo its
+    own head pose through its ``K``) gives every photo a head -> world pose through its ``w2c``;
+    their chordal mean (rotation) and mean (translation) start a joint Levenberg-Marquardt where
+    the head pose is one unknown shared by all photos (per photo ``R_v = C_v R_hw``,
+    ``t_v = C_v t_hw + c_v`` with ``w2c_v = [C_v | c_v]``), with the same residuals, priors,
+    visibility weights and, for the Face Mesh layout, the same yaw-dependent map rounds. The yaw
+    prior and outline terms of the photo-only path are not used (the cameras fix the yaw).
+
+    Args:
+        landmarks: ``V`` entries, each ``[N, 2]`` pixels in ``model``'s layout, or None for a photo
+            without landmarks (a profile the detector misses): it keeps a neutral expression.
+        K: ``[V, 3, 3]`` intrinsics of the photos (pixels); w2c: ``[V, 4, 4]`` world -> camera
+            (OpenCV, metres; ``docs/conventions.md``).
+        config: ``FitConfig``; model: a ``LandmarkModel`` (Face Mesh layout when ``N != 68``).
+    Returns:
+        ``KnownCameraFit``; ``pose_spread_*`` says how far the photos' own poses disagreed.
+    Raises:
+        ValueError: when no photo has landmarks, or on mismatched shapes.
+    """
+    from .blas import one_blas_thread
+
+    cfg = config or FitConfig()
+    V = len(landmarks)
+    K = np.asarray(K, dtype=np.float64).reshape(-1, 3, 3)
+    w2c = np.asarray(w2c, dtype=np.float64).reshape(-1, 4, 4)
+    if K.shape[0] != V or w2c.shape[0] != V:
+        raise ValueError(f"fit_known_cameras: got {V} landmark sets, {K.shape[0]} intrinsics and {w2c.shape[0]} cameras")
+    idx = [v for v, lm in enumerate(landmarks) if lm is not None]
+    if not idx:
+        raise ValueError(f"fit_known_cameras: none of the {V} photos has landmarks")
+    obs = np.stack([np.asarray(landmarks[v], dtype=np.float64) for v in idx])
+    if model is None:
+        model = LandmarkModel.from_head_model(num_identity=cfg.num_identity, layout="dlib68" if obs.shape[1] == 68 else "mediapipe")
+    own = fit_landmarks(obs, K[idx], cfg, model)
+    n = len(idx)
+    poses = [_world_pose(own.rotations[j], own.translations[j], w2c[v]) for j, v in enumerate(idx)]
+    R_hw = _orthonormal(sum(p[0] for p in poses))
+    t_hw = np.mean([p[1] for p in poses], axis=0)
+    Cs, cs = w2c[idx, :3, :3], w2c[idx, :3, 3]
+    Rs = np.einsum("vij,jk->vik", Cs, R_hw)
+    ts = np.einsum("vij,j->vi", Cs, t_hw) + cs
+    beta, E = own.identity[: model.num_identity].copy(), own.expressions.copy()
+
+    with one_blas_thread():
+        W = np.ones((n, model.num_points))
+        if cfg.occluded_weight < 1.0 and model.normals is not None:
+            W = visibility_weights(model, Rs, ts, cfg.occluded_weight)
+        prob = _Problem(model, obs, K[idx], cfg, W, free_identity=True, free_expression=True)
+        nid = prob.nid
+        T = np.zeros((nid + n * prob.nv, nid + 6 + n * 53))
+        T[:nid, :nid] = np.eye(nid)
+        for j in range(n):
+            c0 = nid + j * prob.nv
+            T[c0 : c0 + 3, nid : nid + 3] = Cs[j]  # world rotation increment seen from camera j
+            T[c0 + 3 : c0 + 6, nid + 3 : nid + 6] = Cs[j]  # world translation increment
+            T[c0 + 6 : c0 + 6 + 53, nid + 6 + j * 53 : nid + 6 + (j + 1) * 53] = np.eye(53)
+        ecols = nid + 6 + np.arange(n)[:, None] * 53 + np.arange(53)[None]
+        table = _yaw_models(model) if cfg.yaw_map and model.layout == "mediapipe" else None
+        beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance, reduce=(T, ecols))
+        for _ in range(cfg.yaw_map_rounds if table is not None else 0):
+            wv = np.ones((n, model.num_points))
+            for j in range(n):
+                prob.ms[j], hit = _model_at_yaw(table, _yaw_deg(Rs[j]))
+                wv[j] *= hit
+                if cfg.occluded_weight < 1.0:
+                    wv[j] *= visibility_weights(prob.ms[j], Rs[j : j + 1], ts[j : j + 1], cfg.occluded_weight)[0]
+            prob.set_weights(wv)
+            beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance, reduce=(T, ecols))
+    R_hw, t_hw = _world_pose(Rs[0], ts[0], w2c[idx[0]])
+    R_hw = _orthonormal(R_hw)
+    H = np.eye(4)
+    H[:3, :3], H[:3, 3] = R_hw, t_hw
+    expressions = np.zeros((V, 53))
+    rms = np.full(V, np.nan)
+    spread_deg, spread_mm = np.full(V, np.nan), np.full(V, np.nan)
+    for j, v in enumerate(idx):
+        expressions[v] = E[j]
+        R_v, t_v = Cs[j] @ R_hw, Cs[j] @ t_hw + cs[j]
+        uv, _ = _project(prob.ms[j].points(beta, E[j]), R_v, t_v, K[v])
+        rms[v] = float(np.sqrt(((uv - obs[j]) ** 2).sum(1).mean()))
+        cos = (np.trace(poses[j][0].T @ R_hw) - 1.0) / 2.0
+        spread_deg[v] = math.degrees(math.acos(float(np.clip(cos, -1.0, 1.0))))
+        spread_mm[v] = 1000.0 * float(np.linalg.norm(poses[j][1] - t_hw))
+    full_id = np.zeros(model.num_total_identity)
+    full_id[: model.num_identity] = beta
+    return KnownCameraFit(full_id, expressions, H, rms, np.array([lm is not None for lm in landmarks]), spread_deg, spread_mm, cost)
