@@ -777,12 +777,27 @@ def _orthonormal(M: np.ndarray) -> np.ndarray:
     return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
 
 
+def _shared_pose_reduction(nid: int, nv: int, Cs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(T, ecols)`` for ``_lm(reduce=...)``: unknowns ``[identity | world rotation (3), world
+    translation (3) | expressions of each view]`` mapped to the per-view ``_Problem`` columns."""
+    n = len(Cs)
+    T = np.zeros((nid + n * nv, nid + 6 + n * 53))
+    T[:nid, :nid] = np.eye(nid)
+    for j in range(n):
+        c0 = nid + j * nv
+        T[c0 : c0 + 3, nid : nid + 3] = Cs[j]  # world rotation increment seen from camera j
+        T[c0 + 3 : c0 + 6, nid + 3 : nid + 6] = Cs[j]  # world translation increment
+        T[c0 + 6 : c0 + 6 + 53, nid + 6 + j * 53 : nid + 6 + (j + 1) * 53] = np.eye(53)
+    return T, nid + 6 + np.arange(n)[:, None] * 53 + np.arange(53)[None]
+
+
 def fit_known_cameras(
     landmarks: list,
     K: np.ndarray,
     w2c: np.ndarray,
     config: FitConfig | None = None,
     model: LandmarkModel | None = None,
+    masks: list | None = None,
 ) -> KnownCameraFit:
     """Fit one head to photos with **known** cameras: identity shared, an expression per photo, and
     one rigid head -> world transform for all photos (the cameras' world need not be head-centric).
@@ -835,15 +850,7 @@ def fit_known_cameras(
         if cfg.occluded_weight < 1.0 and model.normals is not None:
             W = visibility_weights(model, Rs, ts, cfg.occluded_weight)
         prob = _Problem(model, obs, K[idx], cfg, W, free_identity=True, free_expression=True)
-        nid = prob.nid
-        T = np.zeros((nid + n * prob.nv, nid + 6 + n * 53))
-        T[:nid, :nid] = np.eye(nid)
-        for j in range(n):
-            c0 = nid + j * prob.nv
-            T[c0 : c0 + 3, nid : nid + 3] = Cs[j]  # world rotation increment seen from camera j
-            T[c0 + 3 : c0 + 6, nid + 3 : nid + 6] = Cs[j]  # world translation increment
-            T[c0 + 6 : c0 + 6 + 53, nid + 6 + j * 53 : nid + 6 + (j + 1) * 53] = np.eye(53)
-        ecols = nid + 6 + np.arange(n)[:, None] * 53 + np.arange(53)[None]
+        T, ecols = _shared_pose_reduction(prob.nid, prob.nv, Cs)
         table = _yaw_models(model) if cfg.yaw_map and model.layout == "mediapipe" else None
         beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance, reduce=(T, ecols))
         for _ in range(cfg.yaw_map_rounds if table is not None else 0):
@@ -855,15 +862,21 @@ def fit_known_cameras(
                     wv[j] *= visibility_weights(prob.ms[j], Rs[j : j + 1], ts[j : j + 1], cfg.occluded_weight)[0]
             prob.set_weights(wv)
             beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance, reduce=(T, ecols))
-    R_hw, t_hw = _world_pose(Rs[0], ts[0], w2c[idx[0]])
+        R_hw, t_hw = _world_pose(Rs[0], ts[0], w2c[idx[0]])
+        E_all = np.zeros((V, 53))
+        E_all[idx] = E
+        if masks is not None and cfg.silhouette_rounds > 0:
+            beta, E_all, R_hw, t_hw, cost = _known_camera_outlines(
+                model, prob, obs, idx, K, w2c, masks, beta, E_all, _orthonormal(R_hw), t_hw, cfg, cost
+            )
     R_hw = _orthonormal(R_hw)
     H = np.eye(4)
     H[:3, :3], H[:3, 3] = R_hw, t_hw
     expressions = np.zeros((V, 53))
     rms = np.full(V, np.nan)
     spread_deg, spread_mm = np.full(V, np.nan), np.full(V, np.nan)
+    expressions[:] = E_all
     for j, v in enumerate(idx):
-        expressions[v] = E[j]
         R_v, t_v = Cs[j] @ R_hw, Cs[j] @ t_hw + cs[j]
         uv, _ = _project(prob.ms[j].points(beta, E[j]), R_v, t_v, K[v])
         rms[v] = float(np.sqrt(((uv - obs[j]) ** 2).sum(1).mean()))
@@ -873,3 +886,57 @@ def fit_known_cameras(
     full_id = np.zeros(model.num_total_identity)
     full_id[: model.num_identity] = beta
     return KnownCameraFit(full_id, expressions, H, rms, np.array([lm is not None for lm in landmarks]), spread_deg, spread_mm, cost)
+
+
+def _known_camera_outlines(model, prob, obs, idx, K, w2c, masks, beta, E_all, R_hw, t_hw, cfg, cost):
+    """Outline stage of :func:`fit_known_cameras`: every photo with a mask whose head is turned by
+    at least ``silhouette_min_yaw`` (profiles the detector misses included, with zero landmark
+    weight) adds the face band's outline residual (``silhouette.py``); all outline points of a
+    photo weigh ``silhouette_weight`` x the mean landmark weight of a photo with landmarks."""
+    from ..data.headmodel import HeadModel
+    from .silhouette import SilhouetteTarget
+
+    V = len(masks)
+    Cw, cw = w2c[:, :3, :3], w2c[:, :3, 3]
+    views = [v for v in range(V) if v in idx or masks[v] is not None]
+    Rs = np.einsum("vij,jk->vik", Cw[views], R_hw)
+    ts = np.einsum("vij,j->vi", Cw[views], t_hw) + cw[views]
+    full_obs, W = [], []
+    for j, v in enumerate(views):
+        if v in idx:
+            full_obs.append(obs[idx.index(v)])
+            W.append(prob.scale[idx.index(v)] ** 2 * (cfg.landmark_sigma * max(prob.diag[idx.index(v)], 1.0)) ** 2 / np.maximum(prob._w0, 1e-12))
+        else:  # no landmarks: the model's own projection as a placeholder, weight 0
+            full_obs.append(_project(model.points(beta, E_all[v]), Rs[j], ts[j], K[v])[0])
+            W.append(np.zeros(model.num_points))
+    full_obs = np.stack(full_obs)
+    p2 = _Problem(model, full_obs, K[views], cfg, np.stack(W), free_identity=True, free_expression=True)
+    for j, v in enumerate(views):
+        if v in idx:
+            p2.ms[j] = prob.ms[idx.index(v)]
+    T, ecols = _shared_pose_reduction(p2.nid, p2.nv, Cw[views])
+    ref = float(np.mean([(prob.scale[k] ** 2).sum() * 2.0 for k in range(len(idx))]))
+    targets = []
+    for j, v in enumerate(views):
+        tg = None
+        if masks[v] is not None:
+            face = float(np.linalg.norm(full_obs[j].max(0) - full_obs[j].min(0)))
+            try:
+                tg = SilhouetteTarget.from_mask(np.asarray(masks[v], dtype=np.float32), face)
+            except ValueError:
+                tg = None
+        targets.append(tg)
+    head = HeadModel.load()
+    E = E_all[views]
+    for _ in range(cfg.silhouette_rounds):
+        side = [t if t is not None and abs(_yaw_deg(Rs[j])) >= cfg.silhouette_min_yaw else None for j, t in enumerate(targets)]
+        if p2.set_silhouettes(head, side, beta, E, Rs, ts) == 0:
+            break
+        for j, v in enumerate(views):
+            if v not in idx and p2.sil[j] is not None:
+                p2.sil[j]["sqrt_w"] = math.sqrt(cfg.silhouette_weight * ref / len(p2.sil[j]["mean"]))
+        beta, E, Rs, ts, cost = _lm(p2, beta, E, Rs, ts, cfg.iterations, cfg.tolerance, reduce=(T, ecols))
+    E_all = E_all.copy()
+    E_all[views] = E
+    R_hw, t_hw = _world_pose(Rs[0], ts[0], w2c[views[0]])
+    return beta, E_all, R_hw, t_hw, cost

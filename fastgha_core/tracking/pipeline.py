@@ -211,6 +211,7 @@ def track_known_cameras(
     detector=None,
     names: list[str] | None = None,
     max_rms: float = TrackConfig.max_rms,
+    masks=None,
 ):
     """Photos **with** cameras -> the person's head in the cameras' world (``fit.fit_known_cameras``).
 
@@ -225,6 +226,9 @@ def track_known_cameras(
         images: ``[V, 3, H, W]`` float in [0, 1] or uint8 tensor, or ``V`` x ``[H_i, W_i, 3]`` uint8 arrays.
         cameras: ``Cameras [V]`` of those images, or ``V`` single ``Cameras`` (photos of different sizes).
         config: ``fit.FitConfig``; detector: a ``faces`` detector (default ``load_face_detector()``).
+        masks: optional ``[V, H, W]`` / ``[V, 1, H, W]`` tensor or ``V`` x ``[H_i, W_i]`` alpha (or None
+            entries): the outline of each turned photo's face joins the fit (``fit.fit_known_cameras``),
+            profiles without landmarks included.
     Returns:
         ``(model.surface.HeadSurface [V] with head_to_world, fit.KnownCameraFit)``.
     Raises:
@@ -265,13 +269,19 @@ def track_known_cameras(
     model = LandmarkModel.from_head_model(num_identity=cfg.num_identity, layout=layout)
     K = np.stack([c.K[0].double().numpy() for c in cams])
     w2c = np.stack([c.w2c[0].double().numpy() for c in cams])
-    fit = fit_known_cameras(lms, K, w2c, cfg, model)
+    mlist = None
+    if masks is not None:
+        ms = list(masks.detach().cpu().float().unbind(0)) if isinstance(masks, torch.Tensor) else list(masks)
+        if len(ms) != V:
+            raise ValueError(f"track_known_cameras: got {V} photos but {len(ms)} masks")
+        mlist = [None if m is None else _as_mask(m.numpy() if isinstance(m, torch.Tensor) else m, photos[i].shape[:2], names[i]) for i, m in enumerate(ms)]
+    fit = fit_known_cameras(lms, K, w2c, cfg, model, masks=mlist)
     bad = [v for v in range(V) if lms[v] is not None and fit.rms_px[v] > max_rms * float(np.linalg.norm(lms[v].max(0) - lms[v].min(0)))]
     if bad:  # a photo the shared head cannot explain (wrong camera, another person): fit without it
         logger.info("%s: the shared head misses the landmarks (RMS %s px); fitted without them",
                     ", ".join(names[v] for v in bad), ", ".join(f"{fit.rms_px[v]:.1f}" for v in bad))  # fmt: skip
         lms = [None if v in bad else lm for v, lm in enumerate(lms)]
-        fit = fit_known_cameras(lms, K, w2c, cfg, model)
+        fit = fit_known_cameras(lms, K, w2c, cfg, model, masks=mlist)
     for v, name in enumerate(names):
         if fit.detected[v]:
             logger.debug("%s: landmark RMS %.2f px through the given camera; own pose %.1f deg / %.0f mm from the shared one",

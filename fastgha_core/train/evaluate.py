@@ -73,6 +73,7 @@ class EvalConfig:
     # network's per-pixel depth. Falls back to "none" per subject when no input photo gives landmarks
     # (or the faces extra is missing) and the report counts it.
     surface: str = "tracked"
+    surface_outline: bool = True  # the input masks' outlines join the known-camera fit (profiles without landmarks too)
 
     def __post_init__(self) -> None:
         if self.ablation not in ABLATIONS:
@@ -163,10 +164,11 @@ def _cameras_at(source, pairs: Sequence[tuple[int, int]]) -> Cameras:
     return Cameras(torch.stack(Ks).float(), torch.stack(w2cs).float(), first.width, first.height)
 
 
-def fit_input_surface(images: Tensor, cameras: Cameras, detector=None):
+def fit_input_surface(images: Tensor, cameras: Cameras, detector=None, masks: Tensor | None = None):
     """The head fitted to a subject's input photos through their known cameras, or None.
 
-    ``images [V, 3, H, W]`` in [0, 1] with ``cameras [V]`` of that size. Returns
+    ``images [V, 3, H, W]`` in [0, 1] with ``cameras [V]`` of that size, optional ``masks [V, 1, H, W]``
+    (their outlines join the fit for turned views). Returns
     ``(model.surface.HeadSurface, tracking.fit.KnownCameraFit)``, or ``(None, reason)`` when the
     ``faces`` extra is missing or no photo gives usable landmarks (the caller then keeps the
     network's depth)."""
@@ -174,7 +176,7 @@ def fit_input_surface(images: Tensor, cameras: Cameras, detector=None):
     from ..tracking.pipeline import track_known_cameras
 
     try:
-        return track_known_cameras(images, cameras, detector=detector)
+        return track_known_cameras(images, cameras, detector=detector, masks=masks)
     except FacesUnavailableError as e:
         return None, f"faces extra missing: {e}"
     except ValueError as e:
@@ -256,7 +258,7 @@ def evaluate(
         in_expr = in_expr if in_expr.shape[-1] == model.config.expression_dim else None
         surface, surface_info = None, None
         if cfg.surface != "none":
-            surface, fit = fit_input_surface(images, _cameras_at(source, pairs), detector=detector)
+            surface, fit = fit_input_surface(images, _cameras_at(source, pairs), detector=detector, masks=masks if cfg.surface_outline else None)
             if surface is None:
                 surface_fallbacks += 1
                 log.warning("%s: no fitted head (%s); using the network's depth", source.subject, fit)
