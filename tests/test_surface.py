@@ -350,3 +350,29 @@ def test_evaluation_reconstructs_on_the_fitted_head_when_asked(monkeypatch):
     assert len(calls) == n and got[-1] == (None, "replace")
     with pytest.raises(ValueError, match="surface"):
         ev.EvalConfig(surface="mesh")
+
+
+def test_blend_puts_the_face_on_the_surface_and_leaves_the_far_rest_to_the_network(surface):
+    from fastgha_core.model.surface import blend_network_depth
+
+    cams = _cameras([0.0, 40.0], size=128)
+    sd = surface_ray_depth(surface.subset([0, 0]), cams)
+    assert sd.face_hit is not None and sd.face_hit.any() and not (sd.face_hit & ~sd.hit).any()
+    # the bare face only: no hair region (top rows of the frontal view are the scalp, not the face)
+    assert not sd.face_hit[0, :20].any()
+    t_net = sd.t + 0.03 + 0.01 * torch.randn(sd.t.shape, generator=torch.Generator().manual_seed(0))
+    out = blend_network_depth(sd, t_net, falloff_px=8.0)
+    fh = sd.face_hit
+    assert torch.equal(out[fh], sd.t[fh])
+    from scipy.ndimage import distance_transform_edt
+
+    for v in range(2):
+        d = torch.from_numpy(distance_transform_edt(~fh[v].numpy()))
+        far, near = d > 25, (d > 0) & (d <= 2)
+        assert far.sum() > 500
+        # far from the face: the network's own depth, within the fading offset (falloff 8 px at 256 = 4 px here)
+        assert float((out[v][far] - t_net[v][far]).abs().max()) < 0.05 * np.exp(-25 / 4), v
+        # next to the face: moved most of the way onto the surface (no 3 cm step at the face's edge)
+        assert float((out[v][near] - sd.t[v][near]).abs().median()) < 0.012
+    with pytest.raises(ValueError, match="shape"):
+        blend_network_depth(sd, t_net[:1])
