@@ -376,3 +376,23 @@ def test_blend_puts_the_face_on_the_surface_and_leaves_the_far_rest_to_the_netwo
         assert float((out[v][near] - sd.t[v][near]).abs().median()) < 0.012
     with pytest.raises(ValueError, match="shape"):
         blend_network_depth(sd, t_net[:1])
+
+
+@needs_faces
+def test_reconstruct_with_cameras_fits_the_head_through_them(tmp_path):
+    """`fastgha reconstruct --surface-fit blend` on a folder with its own cameras (the shipped sample):
+    the avatar's prior is bound to the head fitted through those cameras (near the synthetic truth's
+    origin, since the sample's world is its head frame); `off` keeps the ICP fit."""
+    from fastgha_core.cli import main
+    from fastgha_core.data.samples import SAMPLES_DIR
+    from fastgha_core.model.avatar import CanonicalAvatar
+
+    req = SAMPLES_DIR / "synth_1000000" / "request"
+    assert main(["reconstruct", "--input", str(req), "--out", str(tmp_path / "a.safetensors"), "--surface-fit", "blend"]) == 0
+    assert main(["reconstruct", "--input", str(req), "--out", str(tmp_path / "b.safetensors")]) == 0
+    a, b = CanonicalAvatar.load(tmp_path / "a.safetensors"), CanonicalAvatar.load(tmp_path / "b.safetensors")
+    Ta, Tb = a.prior.transform.double().numpy(), b.prior.transform.double().numpy()
+    R = Ta[:3, :3]
+    assert np.allclose(R @ R.T, np.eye(3), atol=1e-4)  # rigid: the known-camera fit, not a scaled ICP fit
+    assert np.linalg.norm(Ta[:3, 3]) < 0.02 and np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) < 8.0
+    assert not np.allclose(Ta, Tb, atol=1e-4)
