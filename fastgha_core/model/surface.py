@@ -26,6 +26,11 @@ Distances are along the pixel ray from the camera centre (``Cameras.pixel_rays``
 quantity ``GaussianHead`` calls ``t``. The head frame is the tracker's: metres, +x the subject's
 left, +y up, +z out of the face, origin the ICT head centre (``docs/conventions.md``), which is the
 world frame of the tracked cameras (``tracking/camera.py``: ``w2c = [R | t]`` of the head pose).
+``blend_network_depth`` (``FastGHA.reconstruct(..., surface_mode="blend")``) uses the surface on the
+bare face only (``SurfaceDepth.face_hit``) and the network's depth elsewhere, joined to the face by a
+fading offset: the head model has no hair volume, and on held-out synthetic subjects replacing the
+hair's depth too lost 1.5 dB (``docs/model-card.md``).
+
 Photos that come with their own cameras (held-out synthetic renders, a request's ``cameras.json``)
 have a world of their own: ``tracking.pipeline.track_known_cameras`` fits the head through those
 cameras and gives the surface a ``head_to_world`` transform (``tracking.fit.fit_known_cameras``).

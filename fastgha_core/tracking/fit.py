@@ -757,7 +757,7 @@ class KnownCameraFit:
     """
 
     identity: np.ndarray  # [100] float64, zeros beyond num_identity (shared)
-    expressions: np.ndarray  # [V, 53] float64 in [0, 1]; 0 (neutral) for photos without landmarks
+    expressions: np.ndarray  # [V, 53] float64 in [0, 1]; photos without landmarks: neutral, or what their outline moved
     head_to_world: np.ndarray  # [4, 4] rigid: x_world = R x_head + t (metres), one for all photos
     rms_px: np.ndarray  # [V] RMS landmark reprojection error through the given cameras (pixels); NaN = not detected
     detected: np.ndarray  # [V] bool: the photo's landmarks were found and fitted
@@ -808,11 +808,17 @@ def fit_known_cameras(
     the head pose is one unknown shared by all photos (per photo ``R_v = C_v R_hw``,
     ``t_v = C_v t_hw + c_v`` with ``w2c_v = [C_v | c_v]``), with the same residuals, priors,
     visibility weights and, for the Face Mesh layout, the same yaw-dependent map rounds. The yaw
-    prior and outline terms of the photo-only path are not used (the cameras fix the yaw).
+    prior of the photo-only path is not used (the cameras fix the yaw); outlines are, when
+    ``masks`` are given.
 
     Args:
         landmarks: ``V`` entries, each ``[N, 2]`` pixels in ``model``'s layout, or None for a photo
-            without landmarks (a profile the detector misses): it keeps a neutral expression.
+            without landmarks (a profile the detector misses): neutral expression unless its outline
+            joins the fit.
+        masks: optional ``V`` entries ``[H_v, W_v]`` alpha in [0, 1] or None: the outline stage
+            (``_known_camera_outlines``) adds the face band's outline of every photo turned by at
+            least ``config.silhouette_min_yaw`` degrees (``silhouette.py``), profiles without
+            landmarks included; ``config.silhouette_rounds`` rounds.
         K: ``[V, 3, 3]`` intrinsics of the photos (pixels); w2c: ``[V, 4, 4]`` world -> camera
             (OpenCV, metres; ``docs/conventions.md``).
         config: ``FitConfig``; model: a ``LandmarkModel`` (Face Mesh layout when ``N != 68``).

@@ -18,6 +18,12 @@ resized to that size. Metrics: PSNR, SSIM, LPIPS (when weights are given), CSIM 
 installed); unavailable metrics are null, never approximated. The "strong expression" subset is the
 target timesteps whose ``||z||`` lies at or above the ``strong_quantile`` of the subject's sequence.
 
+Input depth (``EvalConfig.surface``): ``none`` (the network's per-pixel depth), ``tracked`` (every input
+pixel's Gaussian on the head fitted to the input photos and masks through their known cameras,
+``tracking.pipeline.track_known_cameras``; never the ground-truth mesh) or ``blend`` (that head on
+the face only, ``model.surface.blend_network_depth``). The report gives per subject the fit's
+landmark RMS and, for synthetic sources, its distance to the true mesh (``surface_error_mm``).
+
 Ablations (``EvalConfig.ablation``):
 
 - ``none``: the model as trained;
