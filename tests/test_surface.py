@@ -331,8 +331,8 @@ def test_evaluation_reconstructs_on_the_fitted_head_when_asked(monkeypatch):
         detected = np.array([True, False, False, True])
         rms_px = np.array([1.0, np.nan, np.nan, 2.0])
 
-    def fake_fit(images, cameras, detector=None):
-        calls.append((tuple(images.shape), cameras.width))
+    def fake_fit(images, cameras, detector=None, masks=None):
+        calls.append((tuple(images.shape), cameras.width, None if masks is None else tuple(masks.shape)))
         return (head, Fit()) if len(calls) == 1 else (None, "no face")
 
     monkeypatch.setattr(ev, "fit_input_surface", fake_fit)
@@ -340,7 +340,7 @@ def test_evaluation_reconstructs_on_the_fitted_head_when_asked(monkeypatch):
     monkeypatch.setattr(model, "reconstruct", lambda *a, **k: (got.append((k.get("surface"), k.get("surface_mode"))), recon(*a, **k))[1])
     cfg = dict(num_inputs=4, num_target_timesteps=1, num_target_views=1, backend="cpu")
     rep = ev.evaluate(model, [src], ev.EvalConfig(surface="blend", **cfg), progress=False)
-    assert calls == [((4, 3, 64, 64), 64)] and got == [(head, "blend")]
+    assert calls == [((4, 3, 64, 64), 64, (4, 1, 64, 64))] and got == [(head, "blend")]
     assert rep["subjects"][0]["surface"]["fitted"] and rep["subjects"][0]["surface"]["views_with_landmarks"] == 2
     assert rep["subjects"][0]["surface"]["error"]["all_mm"] > 0 and rep["surface_fallbacks"] == 0
     rep = ev.evaluate(model, [src], ev.EvalConfig(surface="tracked", **cfg), progress=False)
