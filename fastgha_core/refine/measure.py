@@ -61,7 +61,7 @@ def render_inputs(model, avatar, cams: Cameras, expressions, size: int) -> tuple
     return torch.stack(rgbs), torch.stack(alphas)
 
 
-def reproduce(model, folder: str | Path, steps: int, resolution: int = 256, config: RefineConfig | None = None, surface: str = "tracked") -> dict:
+def reproduce(model, folder: str | Path, steps: int, resolution: int = 256, config: RefineConfig | None = None, surface: str = "none") -> dict:
     """Masked PSNR of every input view rendered at its own camera; refinement with ``steps`` steps.
 
     ``masked_psnr`` renders at the corrected cameras (the ones the refined avatar was fitted to),
@@ -77,7 +77,7 @@ def reproduce(model, folder: str | Path, steps: int, resolution: int = 256, conf
     if surface != "none":
         from ..train.evaluate import fit_input_surface
 
-        head, fit = fit_input_surface(images, cams)
+        head, fit = fit_input_surface(images, cams, masks=masks)
         used = surface if head is not None else f"none ({fit})"
     t_fit = time.perf_counter() - t0
     avatar = model.reconstruct(imgs, in_cams, expressions=expr if expr is not None and expr.shape[-1] == model.config.expression_dim else None, surface=head, surface_mode="blend" if surface == "blend" else "replace")
@@ -121,7 +121,7 @@ def main(argv=None) -> int:
     ap.add_argument("--coarse-resolution", type=int, default=None)
     ap.add_argument("--coarse-fraction", type=float, default=None)
     ap.add_argument("--set", action="append", default=[], help="RefineConfig field=value (repeatable)")
-    ap.add_argument("--surface", default="tracked", choices=["tracked", "blend", "none"], help="tracked: Gaussians on the head fitted through the request's cameras; none: the network's depth")
+    ap.add_argument("--surface", default="none", choices=["tracked", "blend", "none"], help="none (default): the network's depth; tracked: Gaussians on the head fitted through the request's photos, masks and cameras; blend: that head on the face only")
     ap.add_argument("--picture", default=None, help="write a grid picture (targets, then one row per step count) here")
     args = ap.parse_args(argv)
     from ..model.fastgha import load_model

@@ -271,10 +271,10 @@ def track_known_cameras(
     w2c = np.stack([c.w2c[0].double().numpy() for c in cams])
     mlist = None
     if masks is not None:
-        ms = list(masks.detach().cpu().float().unbind(0)) if isinstance(masks, torch.Tensor) else list(masks)
+        ms = list(masks.detach().cpu().unbind(0)) if isinstance(masks, torch.Tensor) else list(masks)
         if len(ms) != V:
             raise ValueError(f"track_known_cameras: got {V} photos but {len(ms)} masks")
-        mlist = [None if m is None else _as_mask(m.numpy() if isinstance(m, torch.Tensor) else m, photos[i].shape[:2], names[i]) for i, m in enumerate(ms)]
+        mlist = [None if m is None else _as_mask(m.numpy() if isinstance(m, torch.Tensor) else m, photos[i].shape[:2], names[i]) for i, m in enumerate(ms)]  # uint8: /255
     fit = fit_known_cameras(lms, K, w2c, cfg, model, masks=mlist)
     bad = [v for v in range(V) if lms[v] is not None and fit.rms_px[v] > max_rms * float(np.linalg.norm(lms[v].max(0) - lms[v].min(0)))]
     if bad:  # a photo the shared head cannot explain (wrong camera, another person): fit without it
