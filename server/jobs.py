@@ -637,7 +637,7 @@ class JobQueue:
         known_surface = False
         if req.cameras is not None and s.surface_depth_cameras != "off":
             # photos with cameras: the head fitted through them (None without the faces extra or a face)
-            surface = self.tracker.fit_known_cameras(images, cams, names=names)
+            surface = self.tracker.fit_known_cameras(images, cams, names=names, masks=mlist)
             known_surface = surface is not None
             if known_surface and model.config.expression_dim == 53:
                 expressions = torch.from_numpy(surface.expressions)  # the photos' fitted expressions: undone, and refined with

@@ -120,13 +120,14 @@ class PhotoTracker:
 
         return crops, res.cameras, out_masks, torch.from_numpy(res.expressions), HeadSurface.from_tracking(res)
 
-    def fit_known_cameras(self, images: list[Tensor], cameras: list[Cameras], names: list[str] | None = None):
+    def fit_known_cameras(self, images: list[Tensor], cameras: list[Cameras], names: list[str] | None = None, masks: list[Tensor] | None = None):
         """The head fitted to photos with known cameras (``model.surface.HeadSurface`` in the
         cameras' world, with a ``head_to_world``), or None when the ``faces`` extra is missing, no
         photo shows a detectable face, or a photo's size differs from its camera's.
 
         Args:
             images: V x ``[3, H_i, W_i]`` float in [0, 1]; cameras: V single ``Cameras`` of those sizes.
+            masks: V x ``[1, H_i, W_i]`` alpha in [0, 1], or None: turned photos' face outlines join the fit.
         """
         from fastgha_core.tracking.faces import FacesUnavailableError
         from fastgha_core.tracking.pipeline import track_known_cameras
@@ -140,7 +141,8 @@ class PhotoTracker:
                 return None
             try:
                 photos = [(img.clamp(0, 1) * 255.0).round().to(torch.uint8).permute(1, 2, 0).numpy() for img in images]
-                surface, fit = track_known_cameras(photos, list(cameras), detector=det, names=names)
+                ms = None if masks is None else [m[0].numpy() for m in masks]
+                surface, fit = track_known_cameras(photos, list(cameras), detector=det, names=names, masks=ms)
             except (FacesUnavailableError, ValueError) as e:
                 log.info("no head fitted through the given cameras (%s); using the network's depth", e)
                 return None

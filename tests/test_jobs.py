@@ -635,8 +635,9 @@ def test_photos_with_cameras_use_the_head_fitted_through_them(model_dir, samples
     calls = []
 
     class Tracker:  # stands in for server.tracking.PhotoTracker
-        def fit_known_cameras(self, images, cameras, names=None):
+        def fit_known_cameras(self, images, cameras, names=None, masks=None):
             calls.append((len(images), [(c.width, c.height) for c in cameras], [tuple(im.shape[-2:]) for im in images]))
+            assert masks is not None and [tuple(m.shape[-2:]) for m in masks] == [tuple(im.shape[-2:]) for im in images]
             return surface
 
     ctx = ServerContext(settings=Settings(data_dir=tmp_path, warmup=False, surface_depth_cameras=mode))

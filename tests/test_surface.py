@@ -396,3 +396,28 @@ def test_reconstruct_with_cameras_fits_the_head_through_them(tmp_path):
     assert np.allclose(R @ R.T, np.eye(3), atol=1e-4)  # rigid: the known-camera fit, not a scaled ICP fit
     assert np.linalg.norm(Ta[:3, 3]) < 0.02 and np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) < 8.0
     assert not np.allclose(Ta, Tb, atol=1e-4)
+
+
+@needs_faces
+def test_server_tracker_fits_the_head_through_posted_cameras():
+    """``PhotoTracker.fit_known_cameras`` (the server's with-cameras path) on the shipped sample's photos,
+    masks and cameras: a rigid head near the sample's head frame; a camera of the wrong size gives None."""
+    import json
+
+    from PIL import Image
+
+    from fastgha_core.cameras import cameras_from_json
+    from fastgha_core.data.samples import SAMPLES_DIR
+    from server.tracking import PhotoTracker
+
+    req = SAMPLES_DIR / "synth_1000000" / "request"
+    paths = sorted(req.glob("[0-9][0-9].jpg"))
+    imgs = [torch.from_numpy(np.asarray(Image.open(p).convert("RGB"), np.float32) / 255.0).permute(2, 0, 1) for p in paths]
+    masks = [torch.from_numpy(np.asarray(Image.open(p.with_name(p.stem + "_mask.png")).convert("L"), np.float32) / 255.0)[None] for p in paths]
+    cams = cameras_from_json(json.loads((req / "cameras.json").read_text()))
+    tracker = PhotoTracker()
+    surf = tracker.fit_known_cameras(imgs, cams, masks=masks)
+    assert surf is not None and len(surf) == len(paths)
+    H = surf.head_to_world
+    assert np.linalg.norm(H[:3, 3]) < 0.02 and np.degrees(np.arccos(np.clip((np.trace(H[:3, :3]) - 1) / 2, -1, 1))) < 8.0
+    assert tracker.fit_known_cameras(imgs, [c.resize(c.width // 2, c.height // 2) for c in cams]) is None
