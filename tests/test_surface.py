@@ -181,6 +181,16 @@ def test_reconstruct_on_a_surface_binds_the_prior_to_it(surface):
     assert np.median(d) < 0.004, np.median(d)
     with pytest.raises(ValueError, match="surface has 2 views but 3 images"):
         model.reconstruct(imgs, cams, surface=surface.subset([0, 1]))
+    with pytest.raises(ValueError, match="surface_mode"):
+        model.reconstruct(imgs, cams, surface=surface, surface_mode="mesh")
+    # blend: the face's Gaussians on the head, as with replace; the rest is the network's depth
+    bl = model.reconstruct(imgs, cams, surface=surface, surface_mode="blend")
+    sd = surface_ray_depth(surface, cams)
+    n = bl.num_reconstructed
+    assert n == av.num_reconstructed  # same pixels kept (the opacities do not depend on depth)
+    d_bl, _ = cKDTree(neutral).query(bl.gaussians.means[:n].numpy())
+    assert np.median(d_bl) > np.median(d)  # off the face the network's depth, not the head
+    assert bool(sd.face_hit.any())
 
 
 
