@@ -11,7 +11,7 @@ import torch
 from ..cameras import Cameras
 from .camera import pose_to_cameras
 from .crop import DEFAULT_EXTENT_M, background_uint8, crop_array, crop_cameras, head_crop_box
-from .fit import FitConfig, FitResult, KnownCameraFit, LandmarkModel, default_intrinsics, fit_known_cameras, fit_landmarks, intrinsics_from_35mm
+from .fit import FitConfig, FitResult, LandmarkModel, default_intrinsics, fit_known_cameras, fit_landmarks, intrinsics_from_35mm
 from .matting import MattingConfig, head_silhouette, matte_from_head
 from .silhouette import SilhouetteTarget, person_mask
 
