@@ -634,6 +634,13 @@ class JobQueue:
         # ---- reconstructing
         progress("reconstructing", 0.0)
         t2 = time.perf_counter()
+        known_surface = False
+        if req.cameras is not None and s.surface_depth_cameras != "off":
+            # photos with cameras: the head fitted through them (None without the faces extra or a face)
+            surface = self.tracker.fit_known_cameras(images, cams, names=names, masks=mlist)
+            known_surface = surface is not None
+            if known_surface and model.config.expression_dim == 53:
+                expressions = torch.from_numpy(surface.expressions)  # the photos' fitted expressions: undone, and refined with
         try:
             x, c = model.prepare(images, cams, mlist)
         except ValueError as e:
@@ -641,11 +648,12 @@ class JobQueue:
         del images
         if expressions is not None and tuple(expressions.shape) != (x.shape[0], model.config.expression_dim):
             expressions = None  # tracked in another expression space than the model's: nothing to undo
-        if not s.surface_depth:
+        if not s.surface_depth and not known_surface:
             surface = None
+        mode = s.surface_depth_cameras if known_surface else "replace"
         with torch.inference_mode():
             # with the expression prior, the tracked expressions make the canonical head neutral
-            avatar = model.reconstruct(x.to(ctx.device), c.to(ctx.device), expressions=expressions, surface=surface)
+            avatar = model.reconstruct(x.to(ctx.device), c.to(ctx.device), expressions=expressions, surface=surface, surface_mode=mode)
         recon_ms = 1e3 * (time.perf_counter() - t2)
         progress("reconstructing", 1.0)
         state = CreationState(model=model, device=ctx.device, names=names, images=x, cameras=c, avatar=avatar, expressions=expressions)

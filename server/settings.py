@@ -111,6 +111,12 @@ class Settings(BaseSettings):
     surface_depth: bool = Field(
         True, description="photos without cameras: put every pixel's Gaussian on the tracked head (one geometry for all views; docs/model-card.md)"
     )
+    surface_depth_cameras: Literal["off", "replace", "blend"] = Field(
+        "off",
+        description="photos WITH cameras: fit the head through them (faces extra) and put the Gaussians on it: 'replace' every "
+        "pixel, 'blend' the bare face only (the rest the network's depth joined to it); off = the network's depth. "
+        "Off by default: on held-out synthetic subjects both lower novel-view PSNR (docs/model-card.md)",
+    )
     refine_steps: int = Field(0, ge=0, le=1000, description="test-time refinement steps after each reconstruction (0 = off: on real photos it lowers leave-one-out quality today, docs/model-card.md)")
 
     # ------------------------------------------------------------ streaming

@@ -11,6 +11,10 @@ the client sends wins). Every failure becomes an ``ApiError`` with a stable code
 | 422 | ``no_face`` / ``several_faces`` / ``face_too_small`` | the photo named in the message |
 | 422 | ``tracking_failed`` | any other tracking error (message says which) |
 
+Photos **with** cameras: :meth:`PhotoTracker.fit_known_cameras` fits the same head through the
+given cameras (``fastgha_core.tracking.pipeline.track_known_cameras``) so reconstruction can put the
+Gaussians on it; it never fails a request (no extra, no face: None, and the network's depth is used).
+
 One ``PhotoTracker`` lives per app (created in ``create_app``); it loads the detector once, on
 the first request that needs it, and tracks one request at a time (MediaPipe graphs and dlib's
 objects are not thread-safe, and tracking is CPU-bound anyway).
@@ -115,3 +119,33 @@ class PhotoTracker:
         from fastgha_core.model.surface import HeadSurface
 
         return crops, res.cameras, out_masks, torch.from_numpy(res.expressions), HeadSurface.from_tracking(res)
+
+    def fit_known_cameras(self, images: list[Tensor], cameras: list[Cameras], names: list[str] | None = None, masks: list[Tensor] | None = None):
+        """The head fitted to photos with known cameras (``model.surface.HeadSurface`` in the
+        cameras' world, with a ``head_to_world``), or None when the ``faces`` extra is missing, no
+        photo shows a detectable face, or a photo's size differs from its camera's.
+
+        Args:
+            images: V x ``[3, H_i, W_i]`` float in [0, 1]; cameras: V single ``Cameras`` of those sizes.
+            masks: V x ``[1, H_i, W_i]`` alpha in [0, 1], or None: turned photos' face outlines join the fit.
+        """
+        from fastgha_core.tracking.faces import FacesUnavailableError
+        from fastgha_core.tracking.pipeline import track_known_cameras
+
+        names = list(names) if names is not None else [f"image {i}" for i in range(len(images))]
+        t0 = time.perf_counter()
+        with self._lock:
+            try:
+                det = self._load()
+            except ApiError:  # no faces extra: the request has cameras, so this is no error
+                return None
+            try:
+                photos = [(img.clamp(0, 1) * 255.0).round().to(torch.uint8).permute(1, 2, 0).numpy() for img in images]
+                ms = None if masks is None else [m[0].numpy() for m in masks]
+                surface, fit = track_known_cameras(photos, list(cameras), detector=det, names=names, masks=ms)
+            except (FacesUnavailableError, ValueError) as e:
+                log.info("no head fitted through the given cameras (%s); using the network's depth", e)
+                return None
+        log.info("fitted the head through %d given camera(s) in %.0f ms (%d with landmarks)", len(images),
+                 1e3 * (time.perf_counter() - t0), int(fit.detected.sum()))  # fmt: skip
+        return surface

@@ -610,3 +610,52 @@ def test_tracked_photos_are_reconstructed_on_the_tracked_head(model_dir, samples
         stored = ctx.store.get(job.id).avatar
         assert stored.prior is not None and torch.allclose(stored.prior.transform, torch.eye(4))
         assert float(stored.prior.identity.abs().max()) == 0.0
+
+
+@pytest.mark.parametrize("mode", ["off", "blend"])
+def test_photos_with_cameras_use_the_head_fitted_through_them(model_dir, samples, tmp_path, mode):
+    """Photos WITH cameras: with ``FASTGHA_SURFACE_DEPTH_CAMERAS`` on, the job fits the head through
+    the given cameras (``PhotoTracker.fit_known_cameras``) and reconstructs on it in that mode, its
+    prior bound to the fitted head -> world transform; off, nothing is fitted."""
+    import numpy as np
+
+    from fastgha_core import load_model
+    from fastgha_core.cameras import cameras_from_json
+    from fastgha_core.model.avatar import CanonicalAvatar
+    from fastgha_core.model.surface import HeadSurface
+    from server.context import ServerContext
+    from server.settings import Settings
+    from server.store import AvatarStore
+
+    imgs = sorted(samples.glob("[0-9][0-9].jpg"))
+    cams = cameras_from_json(json.loads((samples / "cameras.json").read_text()))
+    G = np.eye(4)
+    G[:3, 3] = [0.0, 0.004, -0.003]
+    surface = HeadSurface(np.zeros(100), np.zeros((len(imgs), 53)), G)
+    calls = []
+
+    class Tracker:  # stands in for server.tracking.PhotoTracker
+        def fit_known_cameras(self, images, cameras, names=None, masks=None):
+            calls.append((len(images), [(c.width, c.height) for c in cameras], [tuple(im.shape[-2:]) for im in images]))
+            assert masks is not None and [tuple(m.shape[-2:]) for m in masks] == [tuple(im.shape[-2:]) for im in images]
+            return surface
+
+    ctx = ServerContext(settings=Settings(data_dir=tmp_path, warmup=False, surface_depth_cameras=mode))
+    ctx.model = load_model(str(model_dir), device="cpu")
+    ctx.store = AvatarStore(tmp_path, 10**9, 0, load_fn=CanonicalAvatar.load)
+    got = []
+    recon = ctx.model.reconstruct
+    ctx.model.reconstruct = lambda *a, **k: (got.append((k.get("surface"), k.get("surface_mode"))), recon(*a, **k))[1]
+    photos = [Photo(p.name, p.read_bytes()) for p in imgs]
+    masks = [Photo(f"{p.stem}_mask.png", (samples / f"{p.stem}_mask.png").read_bytes()) for p in imgs]
+    job, _ = _run_job(ctx, CreationRequest(photos, masks, cams), [], tracker=Tracker())
+    assert job.status == "ready", job.error and job.error.message
+    assert "tracking" not in job.stages
+    if mode == "off":
+        assert calls == [] and got == [(None, "replace")]
+    else:
+        # the full-size photos with their own cameras, one per photo
+        assert len(calls) == 1 and calls[0][0] == len(imgs) and all((w, h) == (hh[1], hh[0]) for (w, h), hh in zip(calls[0][1], calls[0][2]))
+        assert got == [(surface, "blend")]
+        stored = ctx.store.get(job.id).avatar
+        assert stored.prior is not None and torch.allclose(stored.prior.transform.double(), torch.from_numpy(G), atol=1e-6)

@@ -19,6 +19,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--no-faces", action="store_true", help="skip CSIM/AKD even when dlib is installed")
     parser.add_argument("--refine-steps", type=int, default=0, help="test-time refinement steps against the inputs before rendering the targets (0 = off)")
     parser.add_argument("--refine-cameras", action="store_true", help="with --refine-steps: also learn per-view camera corrections (off: the dataset's cameras are exact)")
+    parser.add_argument("--surface", default="none", choices=["tracked", "blend", "none"], help="input depth. none (default; measured best on held-out subjects, docs/model-card.md): the network's per-pixel depth; tracked: every input pixel's Gaussian on the head fitted to the input photos through their known cameras (faces extra; falls back to the network's depth per subject, counted in the report); blend: that head on the face only")
     parser.add_argument("--resolution", type=int, default=0, help="side of the target images in pixels (default: the model's render size); inputs are always resized to the model's input size")
     parser.add_argument("--device", default="cpu", help="torch device")
     parser.add_argument("--backend", default="auto", help="rasterizer backend")
@@ -50,7 +51,7 @@ def run(args) -> int:
         from ..train.faces import load_face_metrics
 
         faces = load_face_metrics()
-    cfg = EvalConfig(num_inputs=args.num_inputs, num_target_timesteps=args.expressions, num_target_views=args.views, ablation=args.ablation, backend=args.backend, resolution=args.resolution, refine_steps=args.refine_steps, refine_cameras=args.refine_cameras)
+    cfg = EvalConfig(num_inputs=args.num_inputs, num_target_timesteps=args.expressions, num_target_views=args.views, ablation=args.ablation, backend=args.backend, resolution=args.resolution, refine_steps=args.refine_steps, refine_cameras=args.refine_cameras, surface=args.surface)
     if args.resolution < 0:
         raise CLIError(f"--resolution must be positive (or 0 for the model's render size), got {args.resolution}")
     res = args.resolution or int(model.config.render_size)

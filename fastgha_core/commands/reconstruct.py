@@ -23,6 +23,14 @@ def add_arguments(parser) -> None:
         action="store_true",
         help="ignore head.json (written by `fastgha track`): use the network's depth instead of the tracked head surface",
     )
+    parser.add_argument(
+        "--surface-fit",
+        default="off",
+        choices=["off", "replace", "blend"],
+        help="without head.json: fit the head to the photos through the folder's own cameras (needs the faces extra) and "
+        "put the Gaussians on it, every pixel (replace) or the face only (blend); off (default) = the network's depth, "
+        "which measured as good or better on held-out synthetic subjects (docs/model-card.md)",
+    )
     parser.add_argument("--cameras-out", default=None, help="with --refine-steps: write the corrected input cameras (cameras.json layout) here")
     parser.add_argument("--dino-weights", default=None, help="local DINOv3 folder (Hugging Face format) to load into the model")
     parser.add_argument("--vae-weights", default=None, help="local AutoencoderKL folder (Hugging Face format) to load into the model")
@@ -79,6 +87,28 @@ def _read_surface(path, expressions):
     return HeadSurface(np.asarray(data["identity"], dtype=np.float32), expressions)
 
 
+def _fit_surface(images, cams, masks):
+    """The head fitted through the folder's cameras (``tracking.pipeline.track_known_cameras``)."""
+    import numpy as np
+
+    from ..cli import CLIError
+    from ..tracking.faces import FacesUnavailableError
+    from ..tracking.pipeline import track_known_cameras
+
+    try:
+        surface, fit = track_known_cameras(
+            [im.permute(1, 2, 0).numpy() for im in images], [c.flatten()[0:1] for c in cams],
+            masks=None if masks[0] is None else [m.numpy() for m in masks],
+        )  # fmt: skip
+    except FacesUnavailableError as e:
+        raise CLIError(f"--surface-fit needs the faces extra: {e}") from None
+    except ValueError as e:
+        raise CLIError(f"--surface-fit: no head could be fitted through the cameras ({e}); use --surface-fit off") from None
+    rms = ", ".join("-" if not np.isfinite(r) else f"{r:.1f}" for r in fit.rms_px)
+    print(f"fitted the head through the cameras: landmarks in {int(fit.detected.sum())} of {len(images)} photos, RMS {rms} px")
+    return surface
+
+
 def run(args) -> int:
     import time
 
@@ -107,9 +137,15 @@ def run(args) -> int:
     head_file = paths[0].parent / "head.json"
     if head_file.exists() and not args.no_surface:
         surface = _read_surface(head_file, expr_ict53)
+    mode = "replace"
+    if surface is None and args.surface_fit != "off" and not args.no_surface:
+        surface = _fit_surface(images, cams, masks)
+        mode = args.surface_fit
     expressions = expr_ict53 if expr_ict53 is not None and model.config.expression_space == "ict53" else None
     t0 = time.perf_counter()
-    avatar = model.reconstruct(imgs, cameras, expressions=None if expressions is None else torch.from_numpy(expressions), surface=surface)
+    avatar = model.reconstruct(
+        imgs, cameras, expressions=None if expressions is None else torch.from_numpy(expressions), surface=surface, surface_mode=mode
+    )
     if torch.device(args.device).type == "cuda":
         torch.cuda.synchronize()
     dt = time.perf_counter() - t0

@@ -421,7 +421,7 @@ class FastGHA(nn.Module):
         return torch.stack(out_i), Cameras.stack(out_c)
 
     @torch.no_grad()
-    def reconstruct(self, images: Tensor, cameras: Cameras, expressions: Tensor | None = None, surface=None) -> CanonicalAvatar:
+    def reconstruct(self, images: Tensor, cameras: Cameras, expressions: Tensor | None = None, surface=None, surface_mode: str = "replace") -> CanonicalAvatar:
         """Canonical avatar from ``images [V, 3, S, S]`` in [0, 1] and ``cameras [V]`` of size ``S x S``.
 
         ``S`` is ``config.input_size`` and ``1 <= V <= config.max_views``. Other sizes raise a
@@ -435,6 +435,9 @@ class FastGHA(nn.Module):
         pixel's Gaussian on the tracked head along its ray instead of the predicted depth, and the
         expression prior binds to that head; its expressions are the photos' own unless
         ``expressions`` is given. See ``model/surface.py`` for why and what it changes.
+        ``surface_mode``: ``"replace"`` (every pixel from the surface, ``surface_ray_depth``) or
+        ``"blend"`` (the bare face from the surface, the rest the network's depth joined to it,
+        ``surface.blend_network_depth``).
         """
         s, vmax = self.config.input_size, self.config.max_views
         hint = "use model.prepare(images, cameras) to crop/resize them"
@@ -466,8 +469,14 @@ class FastGHA(nn.Module):
 
             if len(surface) != v:
                 raise ValueError(f"reconstruct: surface has {len(surface)} views but {v} images were given")
+            if surface_mode not in ("replace", "blend"):
+                raise ValueError(f"reconstruct: surface_mode must be 'replace' or 'blend', got {surface_mode!r}")
             sd = surface_ray_depth(surface, cameras)
             ray_depth = sd.t[None]
+            if surface_mode == "blend":
+                from .surface import blend_network_depth
+
+                ray_depth = lambda t_pred: blend_network_depth(sd, t_pred[0])[None]  # noqa: E731
             if self.config.expression_space == "ict53":
                 if expressions is None:
                     expressions = torch.from_numpy(surface.expressions)
@@ -475,7 +484,7 @@ class FastGHA(nn.Module):
                     head_fit = surface.head_fit(self.head_basis())
         dev = self.device
         g = self.forward_gaussians(
-            images.to(dev, torch.float32)[None], cameras.to(dev, torch.float32)[None], None if ray_depth is None else ray_depth.to(dev)
+            images.to(dev, torch.float32)[None], cameras.to(dev, torch.float32)[None], ray_depth if ray_depth is None or callable(ray_depth) else ray_depth.to(dev)
         )[0]
         view_index = torch.arange(v, device=dev).repeat_interleave(len(g) // v)  # Gaussians are V*S*S, view-major
         if surface is not None:  # off the head next to the face is air: drop what a matte left there

@@ -121,7 +121,8 @@ class GaussianHead:
         """Raw maps ``[B, V, 12+F, H, W]`` (any float dtype) -> float32 Gaussians, computed without autocast.
 
         ``images [B, V, 3, H, W]`` (the inputs, at the maps' size) are required when ``cfg.rgb_residual``.
-        ``ray_depth [B, V, H, W]`` (metres along each pixel's ray), when given, replaces the predicted depth.
+        ``ray_depth [B, V, H, W]`` (metres along each pixel's ray), when given, replaces the predicted depth;
+        a callable ``ray_depth(t_pred [B, V, H, W]) -> [B, V, H, W]`` replaces it by a function of it.
         """
         with torch.autocast(device_type=maps.device.type, enabled=False):
             return self._activate(maps.float(), cameras, images, ray_depth)
@@ -137,8 +138,10 @@ class GaussianHead:
         x = maps.permute(0, 1, 3, 4, 2)  # [B, V, H, W, C]
         origins, dirs = cams.pixel_rays(h, w)  # [B, V, H, W, 3] each
         dist = cams.centers.norm(dim=-1)[..., None, None, None]  # [B, V, 1, 1, 1]
-        if ray_depth is None:
+        if ray_depth is None or callable(ray_depth):
             t = dist + self.cfg.depth_range * torch.tanh(x[..., lay.depth])  # [B, V, H, W, 1]
+            if ray_depth is not None:  # a function of the predicted depth (model/surface.py: blend)
+                t = ray_depth(t[..., 0]).to(maps)[..., None]
         else:
             if tuple(ray_depth.shape) != (b, v, h, w):
                 raise ValueError(f"GaussianHead: ray_depth must have shape [{b}, {v}, {h}, {w}], got {list(ray_depth.shape)}")

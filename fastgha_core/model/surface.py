@@ -26,6 +26,14 @@ Distances are along the pixel ray from the camera centre (``Cameras.pixel_rays``
 quantity ``GaussianHead`` calls ``t``. The head frame is the tracker's: metres, +x the subject's
 left, +y up, +z out of the face, origin the ICT head centre (``docs/conventions.md``), which is the
 world frame of the tracked cameras (``tracking/camera.py``: ``w2c = [R | t]`` of the head pose).
+``blend_network_depth`` (``FastGHA.reconstruct(..., surface_mode="blend")``) uses the surface on the
+bare face only (``SurfaceDepth.face_hit``) and the network's depth elsewhere, joined to the face by a
+fading offset: the head model has no hair volume, and on held-out synthetic subjects replacing the
+hair's depth too lost 1.5 dB (``docs/model-card.md``).
+
+Photos that come with their own cameras (held-out synthetic renders, a request's ``cameras.json``)
+have a world of their own: ``tracking.pipeline.track_known_cameras`` fits the head through those
+cameras and gives the surface a ``head_to_world`` transform (``tracking.fit.fit_known_cameras``).
 """
 
 from __future__ import annotations
@@ -38,7 +46,7 @@ from torch import Tensor
 
 from ..cameras import Cameras
 
-__all__ = ["HeadSurface", "SurfaceDepth", "surface_ray_depth", "face_vertex_mask"]
+__all__ = ["HeadSurface", "SurfaceDepth", "surface_ray_depth", "face_vertex_mask", "front_face_vertex_mask", "blend_network_depth"]
 
 
 @dataclass
@@ -48,14 +56,27 @@ class HeadSurface:
     Attributes:
         identity: ``[100]`` ICT identity coefficients (``FitResult.identity``; modes ~ N(0, 1)).
         expressions: ``[V, 53]`` ``ict53`` blendshape weights of each input photo, in [0, 1].
+        head_to_world: ``[4, 4]`` rigid transform, ``x_world = R x_head + t`` (metres), from the
+            head frame (module doc) to the world of the cameras the surface is used with; None =
+            identity (the tracker's head-centric cameras). From ``tracking.fit.fit_known_cameras``
+            when the photos came with their own cameras.
     """
 
     identity: np.ndarray
     expressions: np.ndarray
+    head_to_world: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.identity = np.asarray(self.identity, dtype=np.float32).reshape(-1)
         self.expressions = np.asarray(self.expressions, dtype=np.float32)
+        if self.head_to_world is not None:
+            h = np.asarray(self.head_to_world, dtype=np.float64)
+            if h.shape != (4, 4) or not np.isfinite(h).all():
+                raise ValueError(f"HeadSurface: head_to_world must be a finite [4, 4] matrix, got shape {list(h.shape)}")
+            r = h[:3, :3]
+            if np.abs(r @ r.T - np.eye(3)).max() > 1e-3 or np.linalg.det(r) < 0 or np.abs(h[3] - [0, 0, 0, 1]).max() > 1e-6:
+                raise ValueError("HeadSurface: head_to_world must be rigid (a rotation and a translation, last row 0 0 0 1)")
+            self.head_to_world = h
         if self.expressions.ndim != 2 or self.expressions.shape[1] != 53:
             raise ValueError(f"HeadSurface: expressions must have shape [V, 53] (ict53), got {list(self.expressions.shape)}")
         if self.identity.shape[0] > 100:
@@ -70,20 +91,25 @@ class HeadSurface:
     def from_tracking(tracked) -> "HeadSurface":
         """From ``tracking.TrackedPhotos`` (or a ``tracking.fit.FitResult``)."""
         fit = getattr(tracked, "fit", tracked)
-        return HeadSurface(fit.identity, fit.expressions)
+        return HeadSurface(fit.identity, fit.expressions, getattr(fit, "head_to_world", None))
 
     def subset(self, views) -> "HeadSurface":
         """The surface of the views ``views`` (indices or a bool mask), in that order."""
-        return HeadSurface(self.identity, self.expressions[np.asarray(views)])
+        return HeadSurface(self.identity, self.expressions[np.asarray(views)], self.head_to_world)
 
     def vertices(self, view: int, head=None) -> np.ndarray:
-        """Head-frame vertices ``[Nv, 3]`` (metres) of view ``view``'s expression."""
+        """World vertices ``[Nv, 3]`` (metres) of view ``view``'s expression: the head frame moved by
+        ``head_to_world`` (when set)."""
         from ..data.headmodel import HeadModel
 
         head = head or HeadModel.load()
         ident = np.zeros(head.num_identity, np.float32)
         ident[: len(self.identity)] = self.identity[: head.num_identity]
-        return head.vertices(ident, self.expressions[view])
+        v = head.vertices(ident, self.expressions[view])
+        if self.head_to_world is not None:
+            h = self.head_to_world
+            v = (v.astype(np.float64) @ h[:3, :3].T + h[:3, 3]).astype(np.float32)
+        return v
 
     def head_fit(self, basis):
         """The ``model.prior.HeadFit`` of this head at the neutral expression (identity truncated to
@@ -95,7 +121,9 @@ class HeadSurface:
         n = min(k, len(self.identity))
         ident[:n] = self.identity[:n]
         verts = basis.neutral.astype(np.float64) + np.tensordot(ident, basis.identity_basis, axes=1)
-        return HeadFit(identity=ident, transform=np.eye(4), vertices=verts.astype(np.float32), rms=0.0)
+        h = np.eye(4) if self.head_to_world is None else self.head_to_world
+        verts = verts @ h[:3, :3].T + h[:3, 3]
+        return HeadFit(identity=ident, transform=h.astype(np.float32), vertices=verts.astype(np.float32), rms=0.0)
 
 
 @dataclass
@@ -105,6 +133,51 @@ class SurfaceDepth:
     t: Tensor  # [V, H, W] float32 metres along each pixel's unit ray
     hit: Tensor  # [V, H, W] bool: the pixel's own ray hits the head
     beyond_face: Tensor  # [V, H, W] bool: off the head, next to the face's outline (air: no Gaussian)
+    face_hit: Tensor | None = None  # [V, H, W] bool: hit pixels on the bare face (front_face_vertex_mask)
+
+
+def front_face_vertex_mask(head) -> np.ndarray:
+    """``[Nv]`` bool: ICT-FaceKit face-mesh vertices of the bare face: in front of the jaw-line's first
+    landmark (``z``) and below the brows + 3 cm, so hair, ears and the scalp (whose visible surface
+    is the hair above it, not the skull) are left out."""
+    v = head.neutral
+    lm = v[head.landmarks68]
+    m = np.zeros(len(v), bool)
+    m[:9409] = True  # the face mesh (data/headmodel.py: face 0-9408)
+    return m & (v[:, 2] > lm[0, 2]) & (v[:, 1] < lm[17:27, 1].max() + 0.03)
+
+
+def blend_network_depth(sd: SurfaceDepth, t_net: Tensor, falloff_px: float = 8.0) -> Tensor:
+    """The network's ray depth ``t_net [V, H, W]`` (metres) moved onto the head surface on the face.
+
+    On the bare face (``sd.face_hit``) the surface's distance; elsewhere the network's, shifted by
+    the surface-minus-network difference of the nearest bare-face pixel (smoothed over 2 pixels),
+    fading as ``exp(-d / falloff)`` with the distance ``d`` to the face (``falloff_px`` pixels at a
+    side of 256, scaled with the image). So the face, where views must agree exactly (eyes, nose,
+    mouth), lies on the one fitted head and joins the rest without a step, while hair, ears and
+    shoulders keep the network's depth (the head model has no hair volume; moving them with the
+    face lowered held-out PSNR by 1.5 dB, docs/model-card.md). Views without a bare-face pixel keep
+    the network's depth. ``falloff_px <= 0``: no fading (the whole view shifted).
+    """
+    from scipy.ndimage import distance_transform_edt, gaussian_filter
+
+    if sd.face_hit is None:
+        raise ValueError("blend_network_depth: the SurfaceDepth has no face_hit mask")
+    tn = t_net.detach().float().cpu().numpy()
+    ts, fh = sd.t.numpy(), sd.face_hit.numpy()
+    if tn.shape != ts.shape:
+        raise ValueError(f"blend_network_depth: t_net must have shape {list(ts.shape)}, got {list(tn.shape)}")
+    fall = float(falloff_px)
+    out = tn.copy()
+    for i in range(len(ts)):
+        if not fh[i].any():
+            continue
+        dist, (iy, ix) = distance_transform_edt(~fh[i], return_indices=True)
+        off = gaussian_filter((ts[i] - tn[i])[iy, ix], 2.0)
+        if fall > 0:
+            off = off * np.exp(-dist / (fall * ts.shape[-1] / 256.0))
+        out[i] = np.where(fh[i], ts[i], tn[i] + off)
+    return torch.from_numpy(out).to(t_net)
 
 
 def face_vertex_mask(head) -> np.ndarray:
@@ -143,12 +216,13 @@ def surface_ray_depth(surface: HeadSurface, cameras: Cameras) -> SurfaceDepth:
         raise ValueError(f"surface_ray_depth: {len(surface)} surface views but {v} cameras")
     head = HeadModel.load()
     faces = head.visible_faces(eyelashes=False)
-    attrs = np.stack([np.ones(head.num_vertices), face_vertex_mask(head)], axis=1).astype(np.float32)
+    attrs = np.stack([np.ones(head.num_vertices), face_vertex_mask(head), front_face_vertex_mask(head)], axis=1).astype(np.float32)
     w, h = cams.width, cams.height
     u, r = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
     out = np.empty((v, h, w), np.float32)
     hits = np.empty((v, h, w), bool)
     beyond = np.empty((v, h, w), bool)
+    front = np.empty((v, h, w), bool)
     for i in range(v):
         w2c = cams.w2c[i].double().numpy()
         K = cams.K[i].double().numpy()
@@ -167,4 +241,5 @@ def surface_ray_depth(surface: HeadSurface, cameras: Cameras) -> SurfaceDepth:
         chin = pts[head.landmarks68[8]]  # below the chin the neck and chest continue the head
         chin_row = float(K[1, 1] * chin[1] / chin[2] + K[1, 2])
         beyond[i] = ~covered & (dist > 1.5) & face[iy, ix] & (r < chin_row)
-    return SurfaceDepth(torch.from_numpy(out), torch.from_numpy(hits), torch.from_numpy(beyond))
+        front[i] = hit & (m.color[..., 2] > 0.5)
+    return SurfaceDepth(torch.from_numpy(out), torch.from_numpy(hits), torch.from_numpy(beyond), torch.from_numpy(front))

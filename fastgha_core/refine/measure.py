@@ -61,17 +61,27 @@ def render_inputs(model, avatar, cams: Cameras, expressions, size: int) -> tuple
     return torch.stack(rgbs), torch.stack(alphas)
 
 
-def reproduce(model, folder: str | Path, steps: int, resolution: int = 256, config: RefineConfig | None = None) -> dict:
+def reproduce(model, folder: str | Path, steps: int, resolution: int = 256, config: RefineConfig | None = None, surface: str = "none") -> dict:
     """Masked PSNR of every input view rendered at its own camera; refinement with ``steps`` steps.
 
     ``masked_psnr`` renders at the corrected cameras (the ones the refined avatar was fitted to),
-    ``masked_psnr_given_cameras`` at the cameras of the request.
+    ``masked_psnr_given_cameras`` at the cameras of the request. ``surface``: ``"tracked"`` puts
+    the Gaussians on the head fitted to the photos through the request's cameras
+    (``tracking.pipeline.track_known_cameras``; the network's depth when that fails, and
+    ``"surface"`` in the result says so), ``"none"`` keeps the network's depth.
     """
     images, masks, cams, expr = read_request(folder)
     imgs, in_cams = model.prepare(list(images), [cams[i : i + 1] for i in range(len(cams.K))], None if masks is None else list(masks))
     t0 = time.perf_counter()
-    avatar = model.reconstruct(imgs, in_cams)
-    t_rec = time.perf_counter() - t0
+    head, used = None, "none"
+    if surface != "none":
+        from ..train.evaluate import fit_input_surface
+
+        head, fit = fit_input_surface(images, cams, masks=masks)
+        used = surface if head is not None else f"none ({fit})"
+    t_fit = time.perf_counter() - t0
+    avatar = model.reconstruct(imgs, in_cams, expressions=expr if expr is not None and expr.shape[-1] == model.config.expression_dim else None, surface=head, surface_mode="blend" if surface == "blend" else "replace")
+    t_rec = time.perf_counter() - t0 - t_fit
     cfg = copy.deepcopy(config) if config is not None else RefineConfig()
     cfg.steps = steps
     res = refine_avatar(model, avatar, images, cams, masks, config=cfg, expressions=expr)
@@ -84,10 +94,12 @@ def reproduce(model, folder: str | Path, steps: int, resolution: int = 256, conf
     return {
         "folder": str(folder),
         "steps": steps,
+        "surface": used,
         "resolution": resolution,
         "masked_psnr": float(ps.mean()),
         "per_view": [round(float(x), 2) for x in ps],
         "masked_psnr_given_cameras": float(ps_given.mean()),
+        "surface_fit_s": round(t_fit, 3),
         "reconstruct_s": round(t_rec, 3),
         "refine_s": round(res.timings["total"], 3),
         "refine_opt_s": round(res.timings["optimize"], 3),
@@ -109,6 +121,7 @@ def main(argv=None) -> int:
     ap.add_argument("--coarse-resolution", type=int, default=None)
     ap.add_argument("--coarse-fraction", type=float, default=None)
     ap.add_argument("--set", action="append", default=[], help="RefineConfig field=value (repeatable)")
+    ap.add_argument("--surface", default="none", choices=["tracked", "blend", "none"], help="none (default): the network's depth; tracked: Gaussians on the head fitted through the request's photos, masks and cameras; blend: that head on the face only")
     ap.add_argument("--picture", default=None, help="write a grid picture (targets, then one row per step count) here")
     args = ap.parse_args(argv)
     from ..model.fastgha import load_model
@@ -124,7 +137,7 @@ def main(argv=None) -> int:
         setattr(cfg, k, type(getattr(cfg, k))(v) if not isinstance(getattr(cfg, k), bool) else v.lower() in ("1", "true"))
     rows = []
     for s in [int(x) for x in args.steps.split(",")]:
-        r = reproduce(model, args.input, s, args.resolution, config=cfg)
+        r = reproduce(model, args.input, s, args.resolution, config=cfg, surface=args.surface)
         if not rows:
             rows.append(list(r["_targets"]))
         rows.append(list(r["_pred"]))

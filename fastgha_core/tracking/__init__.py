@@ -11,7 +11,7 @@ are numpy/scipy. See ``docs/tracking.md``.
 - ``camera.py``   fitted pose -> head-centric OpenCV ``Cameras``
 - ``crop.py``     square head crop, K adjusted, background padding
 - ``matting.py``  mask: trimap from the fitted head (sure foreground: the face), the rest decided by segmentation / mixture / GrabCut
-- ``pipeline.py`` ``track_photos`` / ``track_request`` (server entry point)
+- ``pipeline.py`` ``track_photos`` / ``track_request`` (server entry point) / ``track_known_cameras`` (photos with cameras)
 - ``video.py``    per-frame expression + pose tracking with One-Euro smoothing
 - ``evaluate.py`` synthetic accuracy figures (``python -m fastgha_core.tracking.evaluate``)
 - ``realsets.py`` yaw on the real photo sets (``python -m fastgha_core.tracking.realsets``)
@@ -19,6 +19,6 @@ are numpy/scipy. See ``docs/tracking.md``.
 - ``matting_eval.py`` masks against known alpha (synthetic heads on walls) and a leak score on the real sets
 """
 
-from .pipeline import TrackConfig, TrackedPhotos, track_photos, track_request
+from .pipeline import TrackConfig, TrackedPhotos, track_known_cameras, track_photos, track_request
 
-__all__ = ["track_request", "track_photos", "TrackConfig", "TrackedPhotos"]
+__all__ = ["track_request", "track_photos", "track_known_cameras", "TrackConfig", "TrackedPhotos"]

@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["FitConfig", "FitResult", "LandmarkModel", "fit_landmarks", "default_intrinsics", "intrinsics_from_35mm", "rodrigues", "FRONTAL_R"]
+__all__ = ["FitConfig", "FitResult", "KnownCameraFit", "LandmarkModel", "fit_landmarks", "fit_known_cameras", "default_intrinsics", "intrinsics_from_35mm", "rodrigues", "FRONTAL_R"]
 
 logger = logging.getLogger(__name__)
 
@@ -454,13 +454,21 @@ class _Problem:
         return np.array([[self.nid + v * self.nv + 6 + k for k in range(53)] for v in range(self.V)])
 
 
-def _lm(prob: _Problem, beta, E, Rs, ts, iterations: int, tol: float):
+def _lm(prob: _Problem, beta, E, Rs, ts, iterations: int, tol: float, reduce=None):
+    """Levenberg-Marquardt on ``prob``. ``reduce = (T [n_full, n_red], ecols [V, 53])``: the unknowns
+    are ``x_red`` with ``x_full = T x_red`` (the known-camera fit's one shared head pose), ``ecols``
+    the reduced columns of the expressions."""
     r = prob.residuals(beta, E, Rs, ts)
     cost = 0.5 * float(r @ r)
     lam = 1e-3
+    T = None
     ecols = prob.expression_columns() if prob.free_ex else None
+    if reduce is not None:
+        T, ecols = reduce
     for _ in range(iterations):
         J = prob.jacobian(beta, E, Rs, ts)
+        if T is not None:
+            J = J @ T
         g = J.T @ r
         H = J.T @ J
         free = np.ones(H.shape[0], dtype=bool)
@@ -479,6 +487,8 @@ def _lm(prob: _Problem, beta, E, Rs, ts, iterations: int, tol: float):
                 continue
             x = np.zeros(H.shape[0])
             x[idx] = step
+            if T is not None:
+                x = T @ x
             nb, nE, nR, nt = prob.apply(x, beta, E, Rs, ts)
             nr = prob.residuals(nb, nE, nR, nt)
             ncost = 0.5 * float(nr @ nr)
@@ -737,3 +747,202 @@ def _fit_landmarks(
     full_id = np.zeros(model.num_total_identity)
     full_id[:Ki] = beta
     return FitResult(identity=full_id, expressions=E, rotations=Rs, translations=ts, K=K, rms_px=rms, cost=cost, outline_px=outline)
+
+
+@dataclass
+class KnownCameraFit:
+    """The head of one person fitted to photos whose cameras are known (:func:`fit_known_cameras`).
+
+    ``V`` photos, of which those with ``detected`` landmarks took part in the fit.
+    """
+
+    identity: np.ndarray  # [100] float64, zeros beyond num_identity (shared)
+    expressions: np.ndarray  # [V, 53] float64 in [0, 1]; photos without landmarks: neutral, or what their outline moved
+    head_to_world: np.ndarray  # [4, 4] rigid: x_world = R x_head + t (metres), one for all photos
+    rms_px: np.ndarray  # [V] RMS landmark reprojection error through the given cameras (pixels); NaN = not detected
+    detected: np.ndarray  # [V] bool: the photo's landmarks were found and fitted
+    pose_spread_deg: np.ndarray  # [V] angle between each photo's own (photo-only) head pose and the shared one; NaN = not detected
+    pose_spread_mm: np.ndarray  # [V] distance between each photo's own head origin and the shared one (mm); NaN = not detected
+    cost: float = 0.0
+
+
+def _world_pose(R: np.ndarray, t: np.ndarray, w2c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Head -> camera ``(R, t)`` through a camera ``w2c [4, 4]`` -> head -> world."""
+    C, c = w2c[:3, :3], w2c[:3, 3]
+    return C.T @ R, C.T @ (t - c)
+
+
+def _orthonormal(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M)
+    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+
+
+def _shared_pose_reduction(nid: int, nv: int, Cs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(T, ecols)`` for ``_lm(reduce=...)``: unknowns ``[identity | world rotation (3), world
+    translation (3) | expressions of each view]`` mapped to the per-view ``_Problem`` columns."""
+    n = len(Cs)
+    T = np.zeros((nid + n * nv, nid + 6 + n * 53))
+    T[:nid, :nid] = np.eye(nid)
+    for j in range(n):
+        c0 = nid + j * nv
+        T[c0 : c0 + 3, nid : nid + 3] = Cs[j]  # world rotation increment seen from camera j
+        T[c0 + 3 : c0 + 6, nid + 3 : nid + 6] = Cs[j]  # world translation increment
+        T[c0 + 6 : c0 + 6 + 53, nid + 6 + j * 53 : nid + 6 + (j + 1) * 53] = np.eye(53)
+    return T, nid + 6 + np.arange(n)[:, None] * 53 + np.arange(53)[None]
+
+
+def fit_known_cameras(
+    landmarks: list,
+    K: np.ndarray,
+    w2c: np.ndarray,
+    config: FitConfig | None = None,
+    model: LandmarkModel | None = None,
+    masks: list | None = None,
+) -> KnownCameraFit:
+    """Fit one head to photos with **known** cameras: identity shared, an expression per photo, and
+    one rigid head -> world transform for all photos (the cameras' world need not be head-centric).
+
+    Stages: the photo-only fit (:func:`fit_landmarks` on the photos with landmarks, each photo its
+    own head pose through its ``K``) gives every photo a head -> world pose through its ``w2c``;
+    their chordal mean (rotation) and mean (translation) start a joint Levenberg-Marquardt where
+    the head pose is one unknown shared by all photos (per photo ``R_v = C_v R_hw``,
+    ``t_v = C_v t_hw + c_v`` with ``w2c_v = [C_v | c_v]``), with the same residuals, priors,
+    visibility weights and, for the Face Mesh layout, the same yaw-dependent map rounds. The yaw
+    prior of the photo-only path is not used (the cameras fix the yaw); outlines are, when
+    ``masks`` are given.
+
+    Args:
+        landmarks: ``V`` entries, each ``[N, 2]`` pixels in ``model``'s layout, or None for a photo
+            without landmarks (a profile the detector misses): neutral expression unless its outline
+            joins the fit.
+        masks: optional ``V`` entries ``[H_v, W_v]`` alpha in [0, 1] or None: the outline stage
+            (``_known_camera_outlines``) adds the face band's outline of every photo turned by at
+            least ``config.silhouette_min_yaw`` degrees (``silhouette.py``), profiles without
+            landmarks included; ``config.silhouette_rounds`` rounds.
+        K: ``[V, 3, 3]`` intrinsics of the photos (pixels); w2c: ``[V, 4, 4]`` world -> camera
+            (OpenCV, metres; ``docs/conventions.md``).
+        config: ``FitConfig``; model: a ``LandmarkModel`` (Face Mesh layout when ``N != 68``).
+    Returns:
+        ``KnownCameraFit``; ``pose_spread_*`` says how far the photos' own poses disagreed.
+    Raises:
+        ValueError: when no photo has landmarks, or on mismatched shapes.
+    """
+    from .blas import one_blas_thread
+
+    cfg = config or FitConfig()
+    V = len(landmarks)
+    K = np.asarray(K, dtype=np.float64).reshape(-1, 3, 3)
+    w2c = np.asarray(w2c, dtype=np.float64).reshape(-1, 4, 4)
+    if K.shape[0] != V or w2c.shape[0] != V:
+        raise ValueError(f"fit_known_cameras: got {V} landmark sets, {K.shape[0]} intrinsics and {w2c.shape[0]} cameras")
+    idx = [v for v, lm in enumerate(landmarks) if lm is not None]
+    if not idx:
+        raise ValueError(f"fit_known_cameras: none of the {V} photos has landmarks")
+    obs = np.stack([np.asarray(landmarks[v], dtype=np.float64) for v in idx])
+    if model is None:
+        model = LandmarkModel.from_head_model(num_identity=cfg.num_identity, layout="dlib68" if obs.shape[1] == 68 else "mediapipe")
+    own = fit_landmarks(obs, K[idx], cfg, model)
+    n = len(idx)
+    poses = [_world_pose(own.rotations[j], own.translations[j], w2c[v]) for j, v in enumerate(idx)]
+    R_hw = _orthonormal(sum(p[0] for p in poses))
+    t_hw = np.mean([p[1] for p in poses], axis=0)
+    Cs, cs = w2c[idx, :3, :3], w2c[idx, :3, 3]
+    Rs = np.einsum("vij,jk->vik", Cs, R_hw)
+    ts = np.einsum("vij,j->vi", Cs, t_hw) + cs
+    beta, E = own.identity[: model.num_identity].copy(), own.expressions.copy()
+
+    with one_blas_thread():
+        W = np.ones((n, model.num_points))
+        if cfg.occluded_weight < 1.0 and model.normals is not None:
+            W = visibility_weights(model, Rs, ts, cfg.occluded_weight)
+        prob = _Problem(model, obs, K[idx], cfg, W, free_identity=True, free_expression=True)
+        T, ecols = _shared_pose_reduction(prob.nid, prob.nv, Cs)
+        table = _yaw_models(model) if cfg.yaw_map and model.layout == "mediapipe" else None
+        beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance, reduce=(T, ecols))
+        for _ in range(cfg.yaw_map_rounds if table is not None else 0):
+            wv = np.ones((n, model.num_points))
+            for j in range(n):
+                prob.ms[j], hit = _model_at_yaw(table, _yaw_deg(Rs[j]))
+                wv[j] *= hit
+                if cfg.occluded_weight < 1.0:
+                    wv[j] *= visibility_weights(prob.ms[j], Rs[j : j + 1], ts[j : j + 1], cfg.occluded_weight)[0]
+            prob.set_weights(wv)
+            beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance, reduce=(T, ecols))
+        R_hw, t_hw = _world_pose(Rs[0], ts[0], w2c[idx[0]])
+        E_all = np.zeros((V, 53))
+        E_all[idx] = E
+        if masks is not None and cfg.silhouette_rounds > 0:
+            beta, E_all, R_hw, t_hw, cost = _known_camera_outlines(
+                model, prob, obs, idx, K, w2c, masks, beta, E_all, _orthonormal(R_hw), t_hw, cfg, cost
+            )
+    R_hw = _orthonormal(R_hw)
+    H = np.eye(4)
+    H[:3, :3], H[:3, 3] = R_hw, t_hw
+    expressions = np.zeros((V, 53))
+    rms = np.full(V, np.nan)
+    spread_deg, spread_mm = np.full(V, np.nan), np.full(V, np.nan)
+    expressions[:] = E_all
+    for j, v in enumerate(idx):
+        R_v, t_v = Cs[j] @ R_hw, Cs[j] @ t_hw + cs[j]
+        uv, _ = _project(prob.ms[j].points(beta, E[j]), R_v, t_v, K[v])
+        rms[v] = float(np.sqrt(((uv - obs[j]) ** 2).sum(1).mean()))
+        cos = (np.trace(poses[j][0].T @ R_hw) - 1.0) / 2.0
+        spread_deg[v] = math.degrees(math.acos(float(np.clip(cos, -1.0, 1.0))))
+        spread_mm[v] = 1000.0 * float(np.linalg.norm(poses[j][1] - t_hw))
+    full_id = np.zeros(model.num_total_identity)
+    full_id[: model.num_identity] = beta
+    return KnownCameraFit(full_id, expressions, H, rms, np.array([lm is not None for lm in landmarks]), spread_deg, spread_mm, cost)
+
+
+def _known_camera_outlines(model, prob, obs, idx, K, w2c, masks, beta, E_all, R_hw, t_hw, cfg, cost):
+    """Outline stage of :func:`fit_known_cameras`: every photo with a mask whose head is turned by
+    at least ``silhouette_min_yaw`` (profiles the detector misses included, with zero landmark
+    weight) adds the face band's outline residual (``silhouette.py``); all outline points of a
+    photo weigh ``silhouette_weight`` x the mean landmark weight of a photo with landmarks."""
+    from ..data.headmodel import HeadModel
+    from .silhouette import SilhouetteTarget
+
+    V = len(masks)
+    Cw, cw = w2c[:, :3, :3], w2c[:, :3, 3]
+    views = [v for v in range(V) if v in idx or masks[v] is not None]
+    Rs = np.einsum("vij,jk->vik", Cw[views], R_hw)
+    ts = np.einsum("vij,j->vi", Cw[views], t_hw) + cw[views]
+    full_obs, W = [], []
+    for j, v in enumerate(views):
+        if v in idx:
+            full_obs.append(obs[idx.index(v)])
+            W.append(prob.scale[idx.index(v)] ** 2 * (cfg.landmark_sigma * max(prob.diag[idx.index(v)], 1.0)) ** 2 / np.maximum(prob._w0, 1e-12))
+        else:  # no landmarks: the model's own projection as a placeholder, weight 0
+            full_obs.append(_project(model.points(beta, E_all[v]), Rs[j], ts[j], K[v])[0])
+            W.append(np.zeros(model.num_points))
+    full_obs = np.stack(full_obs)
+    p2 = _Problem(model, full_obs, K[views], cfg, np.stack(W), free_identity=True, free_expression=True)
+    for j, v in enumerate(views):
+        if v in idx:
+            p2.ms[j] = prob.ms[idx.index(v)]
+    T, ecols = _shared_pose_reduction(p2.nid, p2.nv, Cw[views])
+    ref = float(np.mean([(prob.scale[k] ** 2).sum() * 2.0 for k in range(len(idx))]))
+    targets = []
+    for j, v in enumerate(views):
+        tg = None
+        if masks[v] is not None:
+            face = float(np.linalg.norm(full_obs[j].max(0) - full_obs[j].min(0)))
+            try:
+                tg = SilhouetteTarget.from_mask(np.asarray(masks[v], dtype=np.float32), face)
+            except ValueError:
+                tg = None
+        targets.append(tg)
+    head = HeadModel.load()
+    E = E_all[views]
+    for _ in range(cfg.silhouette_rounds):
+        side = [t if t is not None and abs(_yaw_deg(Rs[j])) >= cfg.silhouette_min_yaw else None for j, t in enumerate(targets)]
+        if p2.set_silhouettes(head, side, beta, E, Rs, ts) == 0:
+            break
+        for j, v in enumerate(views):
+            if v not in idx and p2.sil[j] is not None:
+                p2.sil[j]["sqrt_w"] = math.sqrt(cfg.silhouette_weight * ref / len(p2.sil[j]["mean"]))
+        beta, E, Rs, ts, cost = _lm(p2, beta, E, Rs, ts, cfg.iterations, cfg.tolerance, reduce=(T, ecols))
+    E_all = E_all.copy()
+    E_all[views] = E
+    R_hw, t_hw = _world_pose(Rs[0], ts[0], w2c[views[0]])
+    return beta, E_all, R_hw, t_hw, cost

@@ -18,6 +18,12 @@ resized to that size. Metrics: PSNR, SSIM, LPIPS (when weights are given), CSIM 
 installed); unavailable metrics are null, never approximated. The "strong expression" subset is the
 target timesteps whose ``||z||`` lies at or above the ``strong_quantile`` of the subject's sequence.
 
+Input depth (``EvalConfig.surface``): ``none`` (the network's per-pixel depth), ``tracked`` (every input
+pixel's Gaussian on the head fitted to the input photos and masks through their known cameras,
+``tracking.pipeline.track_known_cameras``; never the ground-truth mesh) or ``blend`` (that head on
+the face only, ``model.surface.blend_network_depth``). The report gives per subject the fit's
+landmark RMS and, for synthetic sources, its distance to the true mesh (``surface_error_mm``).
+
 Ablations (``EvalConfig.ablation``):
 
 - ``none``: the model as trained;
@@ -46,11 +52,12 @@ from torch import Tensor
 from ..cameras import Cameras, farthest_viewpoint_sampling
 from ..constants import BACKGROUND_RGB
 
-__all__ = ["EvalConfig", "ABLATIONS", "METRICS", "select_protocol", "evaluate", "fit_square", "write_report", "markdown_table"]
+__all__ = ["EvalConfig", "ABLATIONS", "SURFACES", "fit_input_surface", "METRICS", "select_protocol", "evaluate", "fit_square", "write_report", "markdown_table"]
 
 log = logging.getLogger(__name__)
 
 ABLATIONS = ("none", "static", "no-features", "no-prior")
+SURFACES = ("tracked", "blend", "none")
 METRICS = ("psnr", "ssim", "lpips", "csim", "akd")
 
 
@@ -67,10 +74,19 @@ class EvalConfig:
     resolution: int = 0  # side of the rendered/ground-truth target images (0 = the model's render_size)
     refine_steps: int = 0  # test-time refinement (fastgha_core.refine) against the inputs; 0 = off
     refine_cameras: bool = False  # let the refinement correct the (exact) input cameras
+    # "tracked": every input pixel's Gaussian goes on the head fitted to the input photos through
+    # their known cameras (tracking.pipeline.track_known_cameras; model/surface.py); "blend": that
+    # head on the face only; "none" (default: it measured best, docs/model-card.md): the network's
+    # per-pixel depth. The fitted modes fall back to "none" per subject when no input photo gives
+    # landmarks (or the faces extra is missing) and the report counts it.
+    surface: str = "none"
+    surface_outline: bool = True  # the input masks' outlines join the known-camera fit (profiles without landmarks too)
 
     def __post_init__(self) -> None:
         if self.ablation not in ABLATIONS:
             raise ValueError(f"ablation must be one of {list(ABLATIONS)}, got {self.ablation!r}")
+        if self.surface not in SURFACES:
+            raise ValueError(f"surface must be one of {list(SURFACES)}, got {self.surface!r}")
         if self.num_inputs < 1 or self.num_target_timesteps < 1 or self.num_target_views < 1:
             raise ValueError(f"num_inputs, num_target_timesteps and num_target_views must be >= 1, got {self.num_inputs}, {self.num_target_timesteps}, {self.num_target_views}")
 
@@ -155,6 +171,41 @@ def _cameras_at(source, pairs: Sequence[tuple[int, int]]) -> Cameras:
     return Cameras(torch.stack(Ks).float(), torch.stack(w2cs).float(), first.width, first.height)
 
 
+def fit_input_surface(images: Tensor, cameras: Cameras, detector=None, masks: Tensor | None = None):
+    """The head fitted to a subject's input photos through their known cameras, or None.
+
+    ``images [V, 3, H, W]`` in [0, 1] with ``cameras [V]`` of that size, optional ``masks [V, 1, H, W]``
+    (their outlines join the fit for turned views). Returns
+    ``(model.surface.HeadSurface, tracking.fit.KnownCameraFit)``, or ``(None, reason)`` when the
+    ``faces`` extra is missing or no photo gives usable landmarks (the caller then keeps the
+    network's depth)."""
+    from ..tracking.faces import FacesUnavailableError
+    from ..tracking.pipeline import track_known_cameras
+
+    try:
+        return track_known_cameras(images, cameras, detector=detector, masks=masks)
+    except FacesUnavailableError as e:
+        return None, f"faces extra missing: {e}"
+    except ValueError as e:
+        return None, str(e)
+
+
+def surface_error_mm(source, timesteps: Sequence[int], surface) -> dict[str, float] | None:
+    """Mean distance (mm) between the fitted head and a synthetic subject's true mesh at each input's
+    timestep (world frame; all vertices and the face mesh's), or None for a source without truth."""
+    import numpy as np
+
+    subj = getattr(source, "synthetic_subject", None)
+    if subj is None or surface is None:
+        return None
+    allv, face = [], []
+    for i, t in enumerate(timesteps):
+        d = np.linalg.norm(surface.vertices(i, subj.model) - subj.vertices(source.expressions[t]), axis=1) * 1000.0
+        allv.append(float(d.mean()))
+        face.append(float(d[:9409].mean()))  # the face mesh (data/headmodel.py: face 0-9408)
+    return {"all_mm": float(np.mean(allv)), "face_mm": float(np.mean(face))}
+
+
 def _mean(values: list[float | None]) -> float | None:
     vals = [v for v in values if v is not None and math.isfinite(v)]
     return float(sum(vals) / len(vals)) if vals else None
@@ -193,6 +244,15 @@ def evaluate(
     subjects: list[dict[str, Any]] = []
     grid_rows: list[list[Tensor | None]] = []
     face_skipped = 0
+    surface_fallbacks = 0
+    detector = None
+    if cfg.surface != "none":
+        try:
+            from ..tracking.faces import load_face_detector
+
+            detector = load_face_detector()
+        except ImportError as e:  # FacesUnavailableError: every subject falls back (counted below)
+            log.warning("no face detector (%s): every subject uses the network's depth", e)
     for source in tqdm(list(sources), desc="eval", disable=not progress):
         proto = select_protocol(source, cfg)
         pairs = list(zip(proto.input_timesteps, proto.input_cameras))
@@ -203,7 +263,22 @@ def evaluate(
         # the inputs' known expressions (synthetic / tracked): a model with the expression prior undoes them
         in_expr = torch.stack([source.expression(t).float() for t, _ in pairs])
         in_expr = in_expr if in_expr.shape[-1] == model.config.expression_dim else None
-        avatar = model.reconstruct(in_imgs.to(device), in_cams.to(device), expressions=in_expr)
+        surface, surface_info = None, None
+        if cfg.surface != "none":
+            surface, fit = fit_input_surface(images, _cameras_at(source, pairs), detector=detector, masks=masks if cfg.surface_outline else None)
+            if surface is None:
+                surface_fallbacks += 1
+                log.warning("%s: no fitted head (%s); using the network's depth", source.subject, fit)
+                surface_info = {"fitted": False, "reason": fit}
+            else:
+                surface_info = {
+                    "fitted": True,
+                    "views_with_landmarks": int(fit.detected.sum()),
+                    "landmark_rms_px": [None if not math.isfinite(x) else round(float(x), 2) for x in fit.rms_px],
+                    "error": surface_error_mm(source, proto.input_timesteps, surface),
+                }
+        mode = "blend" if cfg.surface == "blend" else "replace"
+        avatar = model.reconstruct(in_imgs.to(device), in_cams.to(device), expressions=in_expr, surface=surface, surface_mode=mode)
         if cfg.refine_steps > 0:
             from ..refine import RefineConfig, refine_avatar
 
@@ -255,6 +330,7 @@ def evaluate(
             "subject": source.subject,
             "sequence": source.sequence,
             "protocol": asdict(proto),
+            "surface": surface_info,
             **_summarise(rows, available),
             "strong": _summarise([r for r in rows if r["strong"]], available),
             "images": rows,
@@ -274,6 +350,7 @@ def evaluate(
         "config": asdict(cfg),
         "available": available,
         "face_images_skipped": face_skipped if faces is not None else None,
+        "surface_fallbacks": surface_fallbacks if cfg.surface != "none" else None,
         "grid_columns": [f"input {i}" for i in range(cfg.num_inputs)] + ["ground truth", "ours", "error"],
         "subjects": subjects,
     }
@@ -294,7 +371,9 @@ def markdown_table(report: dict[str, Any]) -> str:
     body += line("strong expressions", report["strong_expression"], report["strong_expression"]["num_images"])
     for s in report["subjects"]:
         body += line(f"{s['subject']}/{s['sequence']}", s, s["num_images"])
-    return f"Ablation: `{report['ablation']}`\n\n" + head + body
+    surf = report.get("config", {}).get("surface", "none")
+    note = f", input depth: `{surf}`" + (f" ({report['surface_fallbacks']} subject(s) fell back to the network's)" if report.get("surface_fallbacks") else "")
+    return f"Ablation: `{report['ablation']}`{note}\n\n" + head + body
 
 
 def write_report(report: dict[str, Any], json_path: str | Path | None = None, out_dir: str | Path | None = None) -> str:
