@@ -55,6 +55,16 @@ __all__ = [
 ]
 
 
+def _from_dict(cls, data: dict[str, Any] | None, key: str):
+    """``cls(**data)`` for the train config's ``key`` section; unknown fields raise ``ValueError``."""
+    data = dict(data or {})
+    names = {f.name for f in fields(cls)}
+    bad = sorted(set(data) - names)
+    if bad:
+        raise ValueError(f"train config: unknown {key} field(s) {bad}; expected some of {sorted(names)}")
+    return cls(**data)
+
+
 @dataclass
 class InputCameraNoise:
     """Pose noise on the input cameras, shaped like tracking errors (module docstring).
@@ -85,12 +95,7 @@ class InputCameraNoise:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any] | None) -> "InputCameraNoise":
-        data = dict(data or {})
-        names = {f.name for f in fields(cls)}
-        bad = sorted(set(data) - names)
-        if bad:
-            raise ValueError(f"train config: unknown input_camera_noise field(s) {bad}; expected some of {sorted(names)}")
-        return cls(**data)
+        return _from_dict(cls, data, "input_camera_noise")
 
 
 def view_yaw_deg(w2c: Tensor) -> Tensor:
@@ -212,12 +217,7 @@ class InputMatting:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any] | None) -> "InputMatting":
-        data = dict(data or {})
-        names = {f.name for f in fields(cls)}
-        bad = sorted(set(data) - names)
-        if bad:
-            raise ValueError(f"train config: unknown input_matting field(s) {bad}; expected some of {sorted(names)}")
-        return cls(**data)
+        return _from_dict(cls, data, "input_matting")
 
 
 def matte_input_view(subject, expression: np.ndarray, view, w2c: Tensor, K: Tensor, cfg: InputMatting, rng: np.random.Generator) -> tuple[Tensor, Tensor]:

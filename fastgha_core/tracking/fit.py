@@ -557,6 +557,18 @@ def _model_at_yaw(table, yaw: float):
     return models[b].blend(models[b + 1], a), w
 
 
+def _use_yaw_map(prob: "_Problem", table, Rs: np.ndarray, ts: np.ndarray, base: np.ndarray, cfg: "FitConfig") -> None:
+    """Give each photo of ``prob`` the yaw map's model at its current yaw (``Rs [V, 3, 3]``) and the
+    weights ``base [V, N]`` times the map's hits (times the visibility ramp when ``occluded_weight`` < 1)."""
+    wv = base.copy()
+    for v in range(len(Rs)):
+        prob.ms[v], hit = _model_at_yaw(table, _yaw_deg(Rs[v]))
+        wv[v] *= hit
+        if cfg.occluded_weight < 1.0:
+            wv[v] *= visibility_weights(prob.ms[v], Rs[v : v + 1], ts[v : v + 1], cfg.occluded_weight)[0]
+    prob.set_weights(wv)
+
+
 def _yaw_deg(R: np.ndarray) -> float:
     """Yaw of a head -> camera rotation (realsets.head_angles_deg): + = nose towards the image's right."""
     return math.degrees(math.atan2(R[0, 2], -R[2, 2]))
@@ -684,13 +696,7 @@ def _fit_landmarks(
     table = _yaw_models(model) if cfg.yaw_map and model.layout == "mediapipe" else None
 
     def use_yaw_map(p=prob):
-        wv = W_user.copy()
-        for v in range(V):
-            p.ms[v], hit = _model_at_yaw(table, _yaw_deg(Rs[v]))
-            wv[v] *= hit
-            if cfg.occluded_weight < 1.0:
-                wv[v] *= visibility_weights(p.ms[v], Rs[v : v + 1], ts[v : v + 1], cfg.occluded_weight)[0]
-        p.set_weights(wv)
+        _use_yaw_map(p, table, Rs, ts, W_user, cfg)
 
     if table is not None and init is not None:  # warm start (video): the map of the previous pose, one solve
         use_yaw_map()
@@ -860,13 +866,7 @@ def fit_known_cameras(
         table = _yaw_models(model) if cfg.yaw_map and model.layout == "mediapipe" else None
         beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance, reduce=(T, ecols))
         for _ in range(cfg.yaw_map_rounds if table is not None else 0):
-            wv = np.ones((n, model.num_points))
-            for j in range(n):
-                prob.ms[j], hit = _model_at_yaw(table, _yaw_deg(Rs[j]))
-                wv[j] *= hit
-                if cfg.occluded_weight < 1.0:
-                    wv[j] *= visibility_weights(prob.ms[j], Rs[j : j + 1], ts[j : j + 1], cfg.occluded_weight)[0]
-            prob.set_weights(wv)
+            _use_yaw_map(prob, table, Rs, ts, np.ones((n, model.num_points)), cfg)
             beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance, reduce=(T, ecols))
         R_hw, t_hw = _world_pose(Rs[0], ts[0], w2c[idx[0]])
         E_all = np.zeros((V, 53))
