@@ -6,6 +6,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--model", default="tiny", help="preset name (shipped weights) or a model folder (save_pretrained / a checkpoint)")
     parser.add_argument("--data", default="synthetic-heldout", help="'synthetic-heldout' or a dataset folder of held-out subjects")
     parser.add_argument("--subjects", type=int, default=None, help="evaluate the first N subjects (synthetic default: 4)")
+    parser.add_argument("--first-seed", type=int, default=None, help="synthetic held-out data: start at this seed instead of 1000000 (held-out seeds are 1000000-1009999)")
     parser.add_argument("--json", default=None, help="write the report JSON here (default: OUT/eval.json)")
     parser.add_argument("--out", default="eval_out", help="folder for eval.md, comparison.png (and eval.json)")
     parser.add_argument("--ablation", default="none", choices=["none", "static", "no-features", "no-prior"], help="static: canonical head, no deformation; no-features: deformation with zeroed per-Gaussian features; no-prior: the MLP residual without the expression prior's displacement")
@@ -55,7 +56,7 @@ def run(args) -> int:
     if args.resolution < 0:
         raise CLIError(f"--resolution must be positive (or 0 for the model's render size), got {args.resolution}")
     res = args.resolution or int(model.config.render_size)
-    sources = build_eval_sources(args.data, args.subjects, resolution=max(res, int(model.config.input_size)), num_cameras=max(16, args.num_inputs + args.views))
+    sources = build_eval_sources(args.data, args.subjects, resolution=max(res, int(model.config.input_size)), num_cameras=max(16, args.num_inputs + args.views), first_seed=args.first_seed)
     report = evaluate(model, sources, cfg, lpips=lpips, faces=faces, out_dir=args.out)
     report["model"] = str(args.model)
     report["data"] = str(args.data)
@@ -81,7 +82,7 @@ def _run_responses(args, model) -> int:
         raise CLIError("--responses needs dlib's 68 landmarks: install the 'faces' extra") from None
     res = args.resolution or 256
     cfg = ResponseConfig(resolution=res, num_inputs=args.num_inputs, use_prior=args.ablation != "no-prior", backend=args.backend, grid_subject=args.grid_subject)
-    sources = build_eval_sources(args.data, args.subjects, resolution=int(model.config.input_size), num_cameras=16)
+    sources = build_eval_sources(args.data, args.subjects, resolution=int(model.config.input_size), num_cameras=16, first_seed=args.first_seed)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     report = evaluate_responses(model, sources, cfg, out_dir=out)

@@ -96,15 +96,28 @@ def _training_data(data: str, cfg: TrainConfig, model_config):
     return train, val, True
 
 
-def build_eval_sources(data: str, subjects: int | None, resolution: int, timesteps: int = 16, num_cameras: int = 16) -> list:
-    """Held-out ``SequenceSource`` objects: ``synthetic-heldout`` or a dataset folder."""
+def build_eval_sources(data: str, subjects: int | None, resolution: int, timesteps: int = 16, num_cameras: int = 16,
+                       first_seed: int | None = None) -> list:
+    """Held-out ``SequenceSource`` objects: ``synthetic-heldout`` or a dataset folder.
+
+    Synthetic subjects are the seeds ``first_seed, first_seed + 1, ...`` (default: the first of
+    ``data.synthetic.HELDOUT_SEEDS``, 1000000); every one must be a held-out seed, else ``ValueError``
+    (a training seed would measure memorisation). ``first_seed`` with a dataset folder raises too.
+    """
     if data in ("synthetic-heldout", "synthetic"):
         from ..data.synthetic import HELDOUT_SEEDS, make_sequence
 
-        seeds = list(HELDOUT_SEEDS)[: subjects or 4]
+        start = HELDOUT_SEEDS.start if first_seed is None else int(first_seed)
+        seeds = list(range(start, start + (subjects or 4)))
+        if seeds[0] not in HELDOUT_SEEDS or seeds[-1] not in HELDOUT_SEEDS:
+            raise ValueError(
+                f"held-out synthetic seeds must lie in [{HELDOUT_SEEDS.start}, {HELDOUT_SEEDS.stop}), got {seeds[0]}..{seeds[-1]}"
+            )
         return [make_sequence(s, timesteps=timesteps, num_cameras=num_cameras, resolution=resolution) for s in seeds]
     from ..data.layout import open_dataset
 
+    if first_seed is not None:
+        raise ValueError(f"--first-seed applies to synthetic held-out data only, got --data {data!r}")
     root = Path(data)
     if not root.is_dir():
         raise ValueError(f"--data must be 'synthetic-heldout' or a dataset folder, got {data!r} (no such folder)")
