@@ -21,7 +21,6 @@ imported torch first, and idle OpenMP threads then spun for longer after each pa
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -41,7 +40,7 @@ def main(argv=None) -> int:
     import fastgha_core  # noqa: F401  (sets the OpenMP defaults before torch is imported, as the server does)
     import torch
 
-    from _prior_ab import prior_on_off
+    from _prior_ab import prior_on_off, write_json
     from server.frames import FrameRenderer
 
     try:
@@ -75,9 +74,7 @@ def main(argv=None) -> int:
             f"{size}²: prior {ma:.1f} ms ({1e3 / ma:.1f} fps), old path {mb:.1f} ms ({1e3 / mb:.1f} fps), fps ratio {mb / ma:.3f}; "
             f"deform {statistics.median(da):.1f} vs {statistics.median(db):.1f} ms, raster {statistics.median(xa):.1f} vs {statistics.median(xb):.1f} ms"
         )
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(out, indent=2))
+    write_json(args.json, out)
     return 0
 
 

@@ -20,7 +20,6 @@ rasterizer, the splats it composited and the (tile, splat) pairs (medians).
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -44,7 +43,7 @@ def main(argv=None) -> int:
     import numba
     import torch
 
-    from _prior_ab import prior_on_off
+    from _prior_ab import prior_on_off, write_json
     from fastgha_core.constants import BACKGROUND_RGB
     from fastgha_core.render import _background, _finish
     from fastgha_core.render.cpu_backend import num_threads, project_cpu, rasterize_fast
@@ -123,9 +122,7 @@ def main(argv=None) -> int:
         med = {n: statistics.median(s.get(k, 0) for s in runs[n]) for n in runs}
         out["counts"][k] = med
         print(f"{k:>18} {med['A']:8.0f} {med['B']:8.0f} {med['A'] - med['B']:8.0f}")
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(out, indent=2))
+    write_json(args.json, out)
     return 0
 
 
