@@ -140,15 +140,17 @@ def main(argv: list[str] | None = None) -> int:  # pragma: no cover - a measurem
     coef_l = yawprior.load_regression()
 
     def combined(d):  # the layout and the signed silhouette features, one signed ridge (x3: the features' scale)
-        return np.c_[d["layout"], 3.0 * d["sil"] * d["side"][:, None]]
+        return np.c_[d["layout"], 3.0 * d["sil"] * d["side"][:, None], np.ones(len(d["yaw"]))]
 
-    A = np.c_[combined(tr), np.ones(len(tr["yaw"]))][k]
+    A, ay = combined(tr)[k], np.abs(tr["yaw"][k])
     coef_c = np.linalg.solve(A.T @ A + np.eye(A.shape[1]), A.T @ tr["yaw"][k])
-    models = {
+    coef_s = fit_folded_ridge(tr["sil"][k], ay, 0.1)  # all 12 edges
+    coef_b = fit_folded_ridge(tr["sil"][k][:, 0::2], ay, 1.0)  # the 6 back edges
+    models = {  # name -> signed readings [M] of a set of views
         "layout (shipped)": lambda d: d["layout"] @ coef_l[:-1] + coef_l[-1],
-        "silhouette, folded": (lambda c: lambda d: predict_folded(c, d["sil"]) * d["side"])(fit_folded_ridge(tr["sil"][k], np.abs(tr["yaw"][k]), 0.1)),
-        "back edges, folded": (lambda c: lambda d: predict_folded(c, d["sil"][:, 0::2]) * d["side"])(fit_folded_ridge(tr["sil"][k][:, 0::2], np.abs(tr["yaw"][k]), 1.0)),
-        "layout + silhouette": lambda d: np.c_[combined(d), np.ones(len(d["yaw"]))] @ coef_c,
+        "silhouette, folded": lambda d: predict_folded(coef_s, d["sil"]) * d["side"],
+        "back edges, folded": lambda d: predict_folded(coef_b, d["sil"][:, 0::2]) * d["side"],
+        "layout + silhouette": lambda d: combined(d) @ coef_c,
     }
     kt = np.abs(te["yaw"]) >= yawprior.MIN_TRAIN_YAW
     print(f"held-out renders ({int(kt.sum())} detected views turned >= {yawprior.MIN_TRAIN_YAW:.0f}): mean reading / mean abs error by true yaw")
