@@ -81,14 +81,17 @@ def predict_yaw(points: np.ndarray, coef: np.ndarray | None = None) -> float | N
     return float(layout_features(points) @ coef[:-1] + coef[-1])
 
 
-def render_training_views(batches=TRAINING_BATCHES, yaws=TRAINING_YAWS, size: int = 512, fov_deg: float = 25.0) -> dict:
-    """Synthetic renders through MediaPipe (module doc): ``{"seed", "yaw", "pitch" [M], "points" [M, 468, 2]}``."""
+def render_training_views(batches=TRAINING_BATCHES, yaws=TRAINING_YAWS, size: int = 512, fov_deg: float = 25.0,
+                          with_masks: bool = False) -> dict:
+    """Synthetic renders through MediaPipe (module doc): ``{"seed", "yaw", "pitch" [M], "points" [M, 468, 2]}``;
+    with ``with_masks`` also ``"mask" [M, ceil(size^2 / 8)]``: the photo pipeline's person mask of each
+    render (``silhouette.person_mask`` > 0.5, ``np.packbits`` of the ``[size, size]`` bool array)."""
     from ..cameras import Cameras
     from ..data.synthetic import SyntheticSubject
     from .faces import MeshDetector
 
     det = MeshDetector(min_face_px=1.0)
-    rec: dict[str, list] = {k: [] for k in ("seed", "yaw", "pitch", "points")}
+    rec: dict[str, list] = {k: [] for k in ("seed", "yaw", "pitch", "points") + (("mask",) if with_masks else ())}
     for first, n in batches:
         rng = np.random.default_rng(first)
         for s in range(first, first + n):
@@ -104,8 +107,13 @@ def render_training_views(batches=TRAINING_BATCHES, yaws=TRAINING_YAWS, size: in
                 cam = Cameras.look_at(eye, fov_deg=fov_deg, width=size, height=size).flatten()
                 img = (sub.render(sub.frame(e), cam)[0].image.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
                 for flip in (False, True):
-                    faces = det.detect_all(img[:, ::-1].copy() if flip else img)
+                    im = img[:, ::-1].copy() if flip else img
+                    faces = det.detect_all(im)
                     if faces:
+                        if with_masks:
+                            from .silhouette import person_mask
+
+                            rec["mask"].append(np.packbits(person_mask(im) > 0.5))
                         rec["seed"].append(s)
                         rec["yaw"].append(-y if flip else y)
                         rec["pitch"].append(pitch)
