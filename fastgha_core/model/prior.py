@@ -585,8 +585,7 @@ def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "G
     """Gated Gaussians of the fitted head, each bound to its own vertex with full weight: the mouth
     interior (teeth, gums/tongue, mouth socket; coloured like the synthetic albedo), the closed
     upper eyelids (coloured like the avatar's skin around the eye, ``_lid_skin_colors``; skin grey
-    without ``avatar``) and
-    their lashes (``_lash_color``; ``LASH_DEFAULT`` without ``avatar``).
+    without ``avatar``) and their lashes (``_lash_color``; ``LASH_DEFAULT`` without ``avatar``).
     ``features`` are zeros ``[I, num_features]``; the binding's ``group`` says which gate
     (``gate_factors``) hides each one."""
     from scipy.spatial import cKDTree
