@@ -402,6 +402,43 @@ def test_closed_lids_take_the_skin_colour_not_the_dark_eye_or_brow():
     assert np.allclose(got[0], skin, atol=0.02), got
 
 
+def test_the_whole_closed_lid_is_skin_coloured_not_the_open_lids_dark_line():
+    """Every closed-lid Gaussian takes the skin around the eye, including the part of the lid that
+    travels <= 6 mm (towards the crease): a blurred reconstruction puts the open eye's lash line,
+    crease shadow and outline where that part sits with the eye open, and taking the colour there
+    drew a closed lid darker than the cheeks, an oval that dlib read as an open eye (issue 16, real
+    photo sets: luma 0.34-0.42 against cheeks of 0.45-0.63)."""
+    from fastgha_core.gaussians import Gaussians
+    from fastgha_core.model.prior import _LUMA, generic_fit
+
+    basis = load_basis("ict53")
+    fit = generic_fit(basis)
+    v = fit.vertices
+    ids, grp, lash = basis.interior_vertices, basis.interior_group, basis.lash
+    lid = (grp > 0) & ~lash
+    blink = np.flatnonzero(basis.gates[1:].sum(0) > 0)
+    travel = np.linalg.norm(basis.expression_basis[blink][:, ids], axis=-1).max(0)
+    near_crease = lid & (travel <= 0.006)
+    assert near_crease.sum() > 100  # most of each lid
+    skin_c, dark_c = np.array([0.78, 0.58, 0.48], np.float32), np.array([0.25, 0.18, 0.15], np.float32)
+    rng = np.random.default_rng(3)
+    head = np.arange(0, 11248)
+    # the open lid's dark band: Gaussians around each lid point near the crease where it sits with the eye open
+    dark = (v[np.repeat(ids[near_crease], 2)] + rng.normal(0.0, 0.0005, (2 * int(near_crease.sum()), 3))).astype(np.float32)
+    pts = np.concatenate([v[head], dark]).astype(np.float32)
+    cols = np.concatenate([np.tile(skin_c, (len(head), 1)), np.tile(dark_c, (len(dark), 1))])
+    n = len(pts)
+    g = Gaussians(
+        torch.from_numpy(pts), torch.tensor([1.0, 0, 0, 0]).expand(n, 4).clone(), torch.full((n, 3), 0.0015),
+        torch.full((n,), 0.95), torch.from_numpy(cols), torch.zeros(n, 4),
+    )
+    gi, _ = mouth_interior(fit, basis, 4, avatar=g)
+    luma = gi.colors.numpy() @ _LUMA
+    skin_l = float(skin_c @ _LUMA)
+    assert np.all(np.abs(luma[near_crease] - skin_l) < 0.05 * skin_l), np.percentile(luma[near_crease], [0, 50, 100])
+    assert np.all(np.abs(luma[lid] - skin_l) < 0.05 * skin_l)
+
+
 def test_lash_colour_is_the_avatars_darkest_at_the_lid_or_capped_below_the_skin():
     """The closed lashes take the darkest colours of the avatar at the open eye's upper lid; a blurred
     eye with nothing dark there still gets a line clearly darker than the lid's skin."""

@@ -584,9 +584,8 @@ def _lash_color(lid: np.ndarray, tree, colors: np.ndarray, skin: np.ndarray, k: 
 def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gaussians | None" = None) -> tuple["Gaussians", PriorBinding]:  # noqa: F821
     """Gated Gaussians of the fitted head, each bound to its own vertex with full weight: the mouth
     interior (teeth, gums/tongue, mouth socket; coloured like the synthetic albedo), the closed
-    upper eyelids (the part that closes over the eye coloured like the avatar's skin around the eye,
-    ``_lid_skin_colors``, the rest like the avatar where it sits; skin grey without ``avatar``) and
-    their lashes (``_lash_color``; ``LASH_DEFAULT`` without ``avatar``).
+    upper eyelids (coloured like the avatar's skin around the eye, ``_lid_skin_colors``; skin grey
+    without ``avatar``) and their lashes (``_lash_color``; ``LASH_DEFAULT`` without ``avatar``).
     ``features`` are zeros ``[I, num_features]``; the binding's ``group`` says which gate
     (``gate_factors``) hides each one."""
     from scipy.spatial import cKDTree
@@ -609,18 +608,17 @@ def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "G
             solid = avatar.opacities.detach().cpu().numpy() > 0.3
             if solid.sum() >= 16:
                 ac = avatar.colors.detach().float().cpu().numpy()[solid]
-                # lid points that close over the eye (they travel > 6 mm) take the skin around the
-                # eye; the rest of the moving lid (towards the brow) keeps the avatar's colour where it sits
+                # every lid point takes the skin around the eye (``_lid_skin_colors``). Taking the
+                # avatar's colour where the lid sits with the eye open (tried for the part that travels
+                # <= 6 mm, 119 of 184 points an eye) gave that part the blurred lash line, crease shadow
+                # and eye outline that a few-view reconstruction puts there: a closed lid darker than
+                # the cheeks (luma 0.34-0.42 against 0.45-0.63 on the real sets), an oval dlib took for
+                # an open eye (real-set EAR ratios 0.50 / 0.68 / 0.70 -> 0.48 / 0.53 / 0.60, issue 16).
                 blink = np.flatnonzero(basis.gates[1:].sum(0) > 0)  # the lid gates' shapes (eyeBlink_L/R)
                 travel = np.linalg.norm(basis.expression_basis[blink][:, ids[smp]], axis=-1).max(0) if len(blink) else np.zeros(int(smp.sum()))
-                over_eye = travel > 0.006
+                over_eye = travel > 0.006  # the part that closes over the eye: its open position is the lash line
                 tree = cKDTree(am[solid])
-                lid = pos[smp]
-                _, nn = tree.query(lid[~over_eye], k=8)
-                lid_cols = np.empty_like(lid)
-                lid_cols[~over_eye] = np.median(ac[nn], axis=1)
-                lid_cols[over_eye] = _lid_skin_colors(lid[over_eye], M, tree, ac)
-                cols[smp] = lid_cols
+                cols[smp] = _lid_skin_colors(pos[smp], M, tree, ac)
                 grp = basis.interior_group
                 for gi in np.unique(grp[lash]):  # each eye's lashes: dark colours at its open upper lid
                     sel = np.flatnonzero(smp)[over_eye & (grp[smp] == gi)]
