@@ -108,6 +108,35 @@ def test_prior_fades_to_zero_far_from_the_surface(fit, basis):
     assert d[0] > 0.02 and d[2] == 0 and d[3] == 0  # the chin moves ~4 cm; far points not at all
 
 
+def _behind_the_lips(fit, basis):
+    """Points between lip landmarks and the nearest vertex of the mouth's inside (socket, gums):
+    where a reconstruction's lip Gaussians sit when they land a few mm behind the lip skin."""
+    from fastgha_core.data.appearance import head_regions
+
+    hm = HeadModel.load()
+    reg = head_regions(hm)
+    inside = np.flatnonzero((reg.teeth > 0) | (reg.gums > 0) | (reg.mouth_interior > 0))
+    lips = hm.landmarks68[[48, 50, 52, 54, 56, 57, 58, 61, 63, 65, 67]]
+    v = fit.vertices
+    near = inside[np.linalg.norm(v[inside][None] - v[lips][:, None], axis=2).argmin(1)]
+    return lips, inside, (v[lips] + 0.6 * (v[near] - v[lips])).astype(np.float32)
+
+
+def test_lip_gaussians_behind_the_lips_bind_to_the_lips_not_the_socket(fit, basis):
+    """Bound to the socket or gums, Gaussians just behind the lips stayed put while a smile moved the
+    lips back and out: a crack under the lower lip (issue 16). They bind to the lip skin and follow it."""
+    hm = HeadModel.load()
+    lips, inside, pts = _behind_the_lips(fit, basis)
+    b = bind(pts, fit, basis)
+    assert not np.isin(b.vertex_ids.numpy(), inside).any()
+    z = torch.zeros(53)
+    z[[hm.expression_names.index("mouthSmile_L"), hm.expression_names.index("mouthSmile_R")]] = 1.0
+    got = PriorRuntime(b, basis).displacement(z).numpy()
+    want = basis.expression_basis[:, lips].transpose(1, 0, 2)[:, [hm.expression_names.index("mouthSmile_L"), hm.expression_names.index("mouthSmile_R")]].sum(1) @ fit.transform[:3, :3].T
+    err = np.linalg.norm(got - want, axis=1) / np.linalg.norm(want, axis=1)
+    assert np.median(err) < 0.3 and err.max() < 0.6, err
+
+
 def test_mouth_interior_follows_the_jaw_and_hides_with_closed_lips(fit, basis):
     hm = HeadModel.load()
     g, b = mouth_interior(fit, basis, num_features=4)

@@ -87,7 +87,8 @@ class HeadBasis:
         space: expression space of ``expression_basis`` (``"ict53"`` / ``"flame120"``).
         neutral: ``[Nv, 3]``; identity_basis: ``[K, Nv, 3]``; expression_basis: ``[E, Nv, 3]``
             (for ``flame120`` the 100 linear coefficients; jaw/eye rotations are left to the MLP).
-        bind_faces: ``[F, 3]`` triangles Gaussians bind to (visible surfaces).
+        bind_faces: ``[F, 3]`` triangles of the fitted surface (its normals drive the fit; Gaussians
+            bind to them, except ``mouth_faces``).
         fit_vertices: ``[M]`` vertex ids whose nearest Gaussians drive the fit (front of the face).
         interior_vertices / interior_colors: ``[I]`` ids and ``[I, 3]`` sRGB of the mouth interior.
         interior_spacing: typical distance between neighbouring interior vertices (metres).
@@ -109,6 +110,9 @@ class HeadBasis:
     sample_color: np.ndarray  # [I] bool: colour taken from the avatar (nearest Gaussian above the point)
     hide_group: np.ndarray  # [Nv] int8: reconstructed Gaussians bound here fade out with this gate (0: never)
     lash: np.ndarray | None = None  # [I] bool: closed-lid lash points (dark, ``_lash_color``); None: none
+    # [F] bool: triangles of ``bind_faces`` inside the mouth (teeth, gums/tongue, socket) that the
+    # reconstructed Gaussians do not bind to (``bind``); None: every triangle binds
+    mouth_faces: np.ndarray | None = None
 
     @property
     def gate(self) -> np.ndarray:
@@ -165,6 +169,7 @@ def _ict_basis() -> HeadBasis:
     front = idx[(v[idx, 1] < brow_y + 0.015) & (v[idx, 2] > lm[0, 2] - 0.01) & (v[idx, 1] > lm[8, 1] - 0.005)]
     # Mouth interior: teeth, gums/tongue and the mouth socket, with the synthetic albedo's colours.
     reg = head_regions(m)
+    inside = (reg.teeth > 0) | (reg.gums > 0) | (reg.mouth_interior > 0)  # [Nv] the mouth's inside
     teeth = np.flatnonzero(reg.teeth > 0)
     gums = np.flatnonzero(reg.gums > 0)
     sock = np.flatnonzero((reg.mouth_interior > 0) & (reg.gums <= 0))
@@ -234,6 +239,7 @@ def _ict_basis() -> HeadBasis:
         sample_color=np.concatenate(sample),
         hide_group=hide,
         lash=lash_flag,
+        mouth_faces=inside[faces].any(1),
     )
 
 
@@ -510,12 +516,17 @@ def bind(points: np.ndarray | Tensor, fit: HeadFit, basis: HeadBasis, fade: tupl
     """Bind ``points [N, 3]`` to their nearest triangle of the fitted surface (see module doc).
 
     ``fade = (d0, d1)`` metres: full weight up to ``d0`` from the surface, none beyond ``d1``.
-    The nearest triangle is searched among the ``k`` triangles with the nearest centroids.
+    The nearest triangle is searched among the ``k`` triangles with the nearest centroids, leaving out
+    the mouth's inside (``basis.mouth_faces``: teeth, gums/tongue, socket). A reconstruction shows the
+    outside of a closed mouth; its Gaussians sit a few mm off the fitted surface, and near the lips
+    the socket and gums right behind them were often nearer than the lip skin (500-650 of ~33k
+    Gaussians per held-out avatar). Bound there, they did not follow the lips: with ``mouthSmile``
+    the lips moved back and out while those stayed, a pale or white crack under the lower lip.
     """
     from scipy.spatial import cKDTree
 
     p = points.detach().cpu().float().numpy() if isinstance(points, Tensor) else np.asarray(points, np.float32)
-    f = basis.bind_faces
+    f = basis.bind_faces if basis.mouth_faces is None else basis.bind_faces[~basis.mouth_faces]
     v = fit.vertices.astype(np.float32)
     cen = v[f].mean(1)  # [F, 3]
     k = min(k, len(f))
