@@ -21,6 +21,10 @@ Pieces (all numpy/torch on CPU, no learning):
   plus the fit (``transform [4, 4]`` = scale * rotation | offset, ``identity [K]``); saved in the
   avatar file. ``displacement(z)`` -> ``[N, 3]`` (or ``[B, N, 3]``) per frame through a compact basis
   over the vertices actually used (``PriorRuntime``).
+- ``shading_basis(identity, basis)``: per blendshape and vertex, the relative brightness change of the
+  fitted head under a generic light (``SHADE_AMBIENT``, ``SHADE_LIGHT``); ``PriorRuntime.shading(z)``
+  gathers it like the displacement into a colour factor for the reconstructed Gaussians, whose
+  colours carry the photo's light baked in at the neutral pose.
 - ``mouth_interior(fit, basis)``: Gaussians on the teeth, gums/tongue and mouth-socket meshes of the
   fitted head, coloured plausibly, bound to their own vertex (so they follow the jaw), with an
   opacity gate that is 0 while the lips are closed; and Gaussians on the upper eyelids, coloured
