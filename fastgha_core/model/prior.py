@@ -717,7 +717,8 @@ def shading_basis(identity: np.ndarray, basis: HeadBasis) -> np.ndarray:
     ``_brightness``: ``SHADE_AMBIENT``, ``SHADE_LIGHT``). The colour factor of an expression ``z`` is
     ``1 + z @ shading_basis`` (linear in ``z``: exact for one blendshape at any weight's end point
     1, a first-order sum for several), clamped to ``SHADE_RANGE`` per Gaussian. 0 where no
-    blendshape moves a vertex. ~0.3 s for the 53 ICT-FaceKit shapes."""
+    blendshape moves a vertex. ~0.3 s for the 53 ICT-FaceKit shapes (2 cores), once per avatar on its
+    first frame (``PriorRuntime.shade_u``); the training forward with the prior builds it per sample."""
     k = len(identity)
     v = basis.neutral.astype(np.float64) + np.tensordot(np.asarray(identity, np.float64), basis.identity_basis[:k], axes=1)
     f = basis.bind_faces
