@@ -715,8 +715,8 @@ def shading_basis(identity: np.ndarray, basis: HeadBasis) -> np.ndarray:
     """``[E, Nv]`` float32: per blendshape ``k`` and vertex, the relative brightness change
     ``b(head + blendshape_k) / b(head) - 1`` of the head with fitted ``identity [K]`` (model frame,
     ``_brightness``: ``SHADE_AMBIENT``, ``SHADE_LIGHT``). The colour factor of an expression ``z`` is
-    ``1 + z @ shading_basis`` (linear in ``z``: exact for one blendshape at any weight's end point
-    1, a first-order sum for several), clamped to ``SHADE_RANGE`` per Gaussian. 0 where no
+    ``1 + z @ shading_basis`` (linear in ``z``: exact for one blendshape at weight 1, interpolated
+    below it, a sum for several), clamped to ``SHADE_RANGE`` per Gaussian. 0 where no
     blendshape moves a vertex. ~0.3 s for the 53 ICT-FaceKit shapes (2 cores), once per avatar on its
     first frame (``PriorRuntime.shade_u``); the training forward with the prior builds it per sample."""
     k = len(identity)
