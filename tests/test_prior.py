@@ -108,6 +108,64 @@ def test_prior_fades_to_zero_far_from_the_surface(fit, basis):
     assert d[0] > 0.02 and d[2] == 0 and d[3] == 0  # the chin moves ~4 cm; far points not at all
 
 
+def test_expression_shading_relights_what_the_expression_moves(fit, basis):
+    """A reconstruction bakes the photo's light into its colours; the prior relights what an
+    expression moves: at a surface vertex the colour factor of one blendshape at weight 1 is the
+    brightness of the moved fitted head over the neutral one (``_brightness``, computed here on the
+    head directly), 1 at the neutral expression, where nothing moves, and with ``shading=False``."""
+    from fastgha_core.model.prior import SHADE_RANGE, _brightness
+
+    hm = HeadModel.load()
+    vids = hm.landmarks68[[48, 54, 57, 8, 30, 27]]  # mouth corners, lower lip, chin, nose tip, nose bridge
+    b = bind(fit.vertices[vids], fit, basis)
+    rt = PriorRuntime(b, basis)
+    assert torch.equal(rt.shading(torch.zeros(53)), torch.ones(len(vids)))
+    head = basis.neutral.astype(np.float64) + np.tensordot(fit.identity.astype(np.float64), basis.identity_basis, axes=1)
+    b0 = _brightness(head, basis.bind_faces)
+    moved = 0.0
+    for k in ("jawOpen", "mouthSmile_L"):
+        ki = hm.expression_names.index(k)
+        z = torch.zeros(53)
+        z[ki] = 1.0
+        want = np.clip(_brightness(head + basis.expression_basis[ki], basis.bind_faces)[vids] / b0[vids], *SHADE_RANGE)
+        got = rt.shading(z).numpy()
+        np.testing.assert_allclose(got, want, atol=1e-4)
+        assert abs(got[4] - 1) < 0.02 and abs(got[5] - 1) < 0.02  # the nose hardly moves
+        moved = max(moved, float(np.abs(got - 1).max()))
+        torch.testing.assert_close(rt.shading(torch.stack([z, 0.5 * z]))[0], rt.shading(z))
+    assert moved > 0.05  # the jaw or the smile turns some of these points away from the light
+    assert torch.equal(PriorRuntime(b, basis, shading=False).shading(z), torch.ones(len(vids)))
+
+
+def _behind_the_lips(fit, basis):
+    """Points between lip landmarks and the nearest vertex of the mouth's inside (socket, gums):
+    where a reconstruction's lip Gaussians sit when they land a few mm behind the lip skin."""
+    from fastgha_core.data.appearance import head_regions
+
+    hm = HeadModel.load()
+    reg = head_regions(hm)
+    inside = np.flatnonzero((reg.teeth > 0) | (reg.gums > 0) | (reg.mouth_interior > 0))
+    lips = hm.landmarks68[[48, 50, 52, 54, 56, 57, 58, 61, 63, 65, 67]]
+    v = fit.vertices
+    near = inside[np.linalg.norm(v[inside][None] - v[lips][:, None], axis=2).argmin(1)]
+    return lips, inside, (v[lips] + 0.6 * (v[near] - v[lips])).astype(np.float32)
+
+
+def test_lip_gaussians_behind_the_lips_bind_to_the_lips_not_the_socket(fit, basis):
+    """Bound to the socket or gums, Gaussians just behind the lips stayed put while a smile moved the
+    lips back and out: a crack under the lower lip (issue 16). They bind to the lip skin and follow it."""
+    hm = HeadModel.load()
+    lips, inside, pts = _behind_the_lips(fit, basis)
+    b = bind(pts, fit, basis)
+    assert not np.isin(b.vertex_ids.numpy(), inside).any()
+    z = torch.zeros(53)
+    z[[hm.expression_names.index("mouthSmile_L"), hm.expression_names.index("mouthSmile_R")]] = 1.0
+    got = PriorRuntime(b, basis).displacement(z).numpy()
+    want = basis.expression_basis[:, lips].transpose(1, 0, 2)[:, [hm.expression_names.index("mouthSmile_L"), hm.expression_names.index("mouthSmile_R")]].sum(1) @ fit.transform[:3, :3].T
+    err = np.linalg.norm(got - want, axis=1) / np.linalg.norm(want, axis=1)
+    assert np.median(err) < 0.3 and err.max() < 0.6, err
+
+
 def test_mouth_interior_follows_the_jaw_and_hides_with_closed_lips(fit, basis):
     hm = HeadModel.load()
     g, b = mouth_interior(fit, basis, num_features=4)
@@ -204,8 +262,9 @@ def test_animate_with_the_prior(model_and_avatar):
 
 def test_animate_frame_path_matches_the_plain_path(model_and_avatar):
     """``animate`` on the CPU with one expression takes ``PriorRuntime.frame`` (one numba pass):
-    the same Gaussians as the plain path (``_combine`` of the sparse displacement, the MLP residual
-    and the per-Gaussian gate), positions to float32 rounding, colours and opacities exactly; it may
+    the same Gaussians as the plain path (``_combine`` of the sparse displacement, the MLP residual,
+    the per-Gaussian gate and the expression shading), positions and colours to float32 rounding,
+    opacities exactly; it may
     leave out more trailing gated Gaussians (those under the rasterizer's ALPHA_MIN), and the images
     agree. Inference only (``animate`` runs without autograd); training keeps the plain path."""
     import copy
@@ -233,12 +292,16 @@ def test_animate_frame_path_matches_the_plain_path(model_and_avatar):
         rt = avatar.prior_runtime
         with torch.inference_mode():
             dxyz, drgb = model.deform.forward_split(model._deform_partial(avatar), z)
-            plain = _combine(g, dxyz, drgb, rt.displacement(z), avatar.num_interior, model._gate(z, rt), trim=True)
+            shade = rt.shading(z)
+            plain = _combine(g, dxyz, drgb, rt.displacement(z), avatar.num_interior, model._gate(z, rt), trim=True, shade=shade)
         n = len(fast)
         assert n_rec <= n <= len(plain)
         torch.testing.assert_close(fast.means, plain.means[:n], rtol=0, atol=2e-7)
-        for k in ("colors", "opacities", "quats", "scales", "features"):
+        torch.testing.assert_close(fast.colors, plain.colors[:n], rtol=0, atol=1e-6)  # the shading: float32 rounding
+        for k in ("opacities", "quats", "scales", "features"):
             assert torch.equal(getattr(fast, k), getattr(plain, k)[:n]), k
+        if float(z.abs().sum()) > 0:  # the expression shading is in both paths
+            assert float((shade[:n_rec] - 1).abs().max()) > 0.05
         assert torch.all(plain.opacities[n:] < ALPHA_MIN)
         assert float(dxyz.abs().max()) > 1e-4 and (plain.colors[:n_rec] == 0).any() and (plain.colors[:n_rec] == 1).any()
         with torch.no_grad():

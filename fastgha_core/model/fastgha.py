@@ -68,9 +68,10 @@ def _apply_deformation(g: Gaussians, dxyz: Tensor, drgb: Tensor) -> Gaussians:
     return g.replace(means=g.means + dxyz, colors=(g.colors + drgb).clamp(0.0, 1.0))
 
 
-def _combine(g: Gaussians, dxyz: Tensor, drgb: Tensor, prior_d: Tensor | None, n_int: int, gate: Tensor | None, trim: bool = False) -> Gaussians:
+def _combine(g: Gaussians, dxyz: Tensor, drgb: Tensor, prior_d: Tensor | None, n_int: int, gate: Tensor | None, trim: bool = False, shade: Tensor | None = None) -> Gaussians:
     """Deformed ``g`` from the MLP's ``dxyz``/``drgb [N_rec, 3]`` (first ``N - n_int`` Gaussians), the
-    prior's displacement ``[N, 3]`` (or None) and per-Gaussian opacity factors ``gate [N]`` (or None).
+    prior's displacement ``[N, 3]`` (or None), per-Gaussian opacity factors ``gate [N]`` (or None) and
+    the prior's expression shading ``shade [N]`` (or None): the reconstructed Gaussians' colour factor.
 
     ``trim``: drop the trailing interior Gaussians whose gate is 0 (the interior is ordered mouth,
     left lid, right lid, so a neutral frame renders no more Gaussians than an avatar without them)."""
@@ -84,14 +85,18 @@ def _combine(g: Gaussians, dxyz: Tensor, drgb: Tensor, prior_d: Tensor | None, n
             g, gate, n_int = g[:end], gate[:end], end - n_rec
             prior_d = None if prior_d is None else prior_d[:end]
     n_rec = len(g) - n_int
+    if shade is not None:
+        drgb_col = ((g.colors[:n_rec] + drgb).clamp(0.0, 1.0) * shade[:n_rec, None]).clamp(0.0, 1.0)
+    else:
+        drgb_col = (g.colors[:n_rec] + drgb).clamp(0.0, 1.0)
     if prior_d is None:
         prior_d = dxyz.new_zeros(len(g), 3)
     op = g.opacities if gate is None else g.opacities * gate
     if n_int:
         means = g.means + torch.cat([prior_d[:n_rec] + dxyz, prior_d[n_rec:]])
-        colors = torch.cat([(g.colors[:n_rec] + drgb).clamp(0.0, 1.0), g.colors[n_rec:]])
+        colors = torch.cat([drgb_col, g.colors[n_rec:]])
         return g.replace(means=means, colors=colors, opacities=op)
-    return g.replace(means=g.means + prior_d + dxyz, colors=(g.colors + drgb).clamp(0.0, 1.0), opacities=op)
+    return g.replace(means=g.means + prior_d + dxyz, colors=drgb_col, opacities=op)
 
 
 class FastGHA(nn.Module):
@@ -252,7 +257,7 @@ class FastGHA(nn.Module):
                 gate = self._gate(z, rt)
                 n_rec = len(g) - n_int
                 dxyz, drgb = self.deform(g.features[:n_rec], g.means[:n_rec], z)
-                deformed.append(_combine(g, dxyz, drgb, rt.displacement(z), n_int, gate))
+                deformed.append(_combine(g, dxyz, drgb, rt.displacement(z), n_int, gate, shade=rt.shading(z) if rt.shading_on else None))
             else:
                 dxyz, drgb = self.deform(g.features, g.means, z)
                 deformed.append(_apply_deformation(g, dxyz, drgb))
@@ -268,7 +273,7 @@ class FastGHA(nn.Module):
     def _runtime(self, binding):
         from .prior import PriorRuntime
 
-        return PriorRuntime(binding, self.head_basis(), device=binding.vertex_ids.device)
+        return PriorRuntime(binding, self.head_basis(), device=binding.vertex_ids.device, shading=self.config.deform.prior_shading)
 
     @staticmethod
     def _gate(z: Tensor, rt) -> Tensor | None:
@@ -593,7 +598,7 @@ class FastGHA(nn.Module):
         dxyz, drgb = dxyz.float(), drgb.float()
         g = avatar.gaussians.to(dev)
         n_int = avatar.num_interior
-        prior_d = gate = None
+        prior_d = gate = shade = None
         if self.config.deform.prior and avatar.prior is not None:
             rt = avatar.prior_runtime
             if rt is None or rt.n != len(g) or rt.basis_u.device != dev:
@@ -603,11 +608,12 @@ class FastGHA(nn.Module):
                 return rt.frame(g, n_int, dxyz, drgb, z)  # one numba pass, the same Gaussians as below
             if prior:
                 prior_d = rt.displacement(z)  # [N, 3] or [B, N, 3]
+                shade = rt.shading(z) if rt.shading_on else None  # [N] or [B, N]
             gate = self._gate(z, rt)
         if z.ndim == 1:
-            return _combine(g, dxyz, drgb, prior_d, n_int, gate, trim=True)
+            return _combine(g, dxyz, drgb, prior_d, n_int, gate, trim=True, shade=shade)
         return [
-            _combine(g, dxyz[i], drgb[i], None if prior_d is None else prior_d[i], n_int, None if gate is None else gate[i], trim=True)
+            _combine(g, dxyz[i], drgb[i], None if prior_d is None else prior_d[i], n_int, None if gate is None else gate[i], trim=True, shade=None if shade is None else shade[i])
             for i in range(z.shape[0])
         ]
 

@@ -21,6 +21,10 @@ Pieces (all numpy/torch on CPU, no learning):
   plus the fit (``transform [4, 4]`` = scale * rotation | offset, ``identity [K]``); saved in the
   avatar file. ``displacement(z)`` -> ``[N, 3]`` (or ``[B, N, 3]``) per frame through a compact basis
   over the vertices actually used (``PriorRuntime``).
+- ``shading_basis(identity, basis)``: per blendshape and vertex, the relative brightness change of the
+  fitted head under a generic light (``SHADE_AMBIENT``, ``SHADE_LIGHT``); ``PriorRuntime.shading(z)``
+  gathers it like the displacement into a colour factor for the reconstructed Gaussians, whose
+  colours carry the photo's light baked in at the neutral pose.
 - ``mouth_interior(fit, basis)``: Gaussians on the teeth, gums/tongue and mouth-socket meshes of the
   fitted head, coloured plausibly, bound to their own vertex (so they follow the jaw), with an
   opacity gate that is 0 while the lips are closed; and Gaussians on the upper eyelids, coloured
@@ -52,6 +56,7 @@ __all__ = [
     "mouth_gate_vector",
     "generic_fit",
     "gate_factors",
+    "shading_basis",
     "FLAME_ENV",
 ]
 
@@ -77,6 +82,16 @@ TEETH_SCALE = 0.0012  # metres, the teeth Gaussians' scale (gums and socket: 0.9
 LASH_MAX_LUMA = 0.45
 LASH_DEFAULT = (0.10, 0.08, 0.07)
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)  # Rec. 601 luma weights
+# Expression shading: a reconstruction bakes the photo's light into its colours, so a moved surface
+# keeps the shade of its neutral pose (a smile's creases and a dropped lower lip stay as lit as
+# before). The prior relights the change: each vertex's brightness ambient + (1 - ambient) *
+# max(n . light, 0) at the expression over that at neutral, on the fitted head in the head model's
+# own frame. The light is the synthetic rig's mean key light (azimuth +-75 deg, elevation -5..60 deg:
+# frontal, ~27 deg above; photos are mostly lit from above too) and the ambient its share of the
+# light (ambient 0.2-0.45 against a key of 0.7-1.1). Linear in the expression (see ``shading_basis``).
+SHADE_AMBIENT = 0.3
+SHADE_LIGHT = np.array([0.0, 0.5, 1.0], np.float64) / np.sqrt(1.25)
+SHADE_RANGE = (0.5, 1.5)  # the per-Gaussian colour factor is clamped to this
 
 
 @dataclass(frozen=True, eq=False)
@@ -87,7 +102,8 @@ class HeadBasis:
         space: expression space of ``expression_basis`` (``"ict53"`` / ``"flame120"``).
         neutral: ``[Nv, 3]``; identity_basis: ``[K, Nv, 3]``; expression_basis: ``[E, Nv, 3]``
             (for ``flame120`` the 100 linear coefficients; jaw/eye rotations are left to the MLP).
-        bind_faces: ``[F, 3]`` triangles Gaussians bind to (visible surfaces).
+        bind_faces: ``[F, 3]`` triangles of the fitted surface (its normals drive the fit; Gaussians
+            bind to them, except ``mouth_faces``).
         fit_vertices: ``[M]`` vertex ids whose nearest Gaussians drive the fit (front of the face).
         interior_vertices / interior_colors: ``[I]`` ids and ``[I, 3]`` sRGB of the mouth interior.
         interior_spacing: typical distance between neighbouring interior vertices (metres).
@@ -109,6 +125,9 @@ class HeadBasis:
     sample_color: np.ndarray  # [I] bool: colour taken from the avatar (nearest Gaussian above the point)
     hide_group: np.ndarray  # [Nv] int8: reconstructed Gaussians bound here fade out with this gate (0: never)
     lash: np.ndarray | None = None  # [I] bool: closed-lid lash points (dark, ``_lash_color``); None: none
+    # [F] bool: triangles of ``bind_faces`` inside the mouth (teeth, gums/tongue, socket) that the
+    # reconstructed Gaussians do not bind to (``bind``); None: every triangle binds
+    mouth_faces: np.ndarray | None = None
 
     @property
     def gate(self) -> np.ndarray:
@@ -165,6 +184,7 @@ def _ict_basis() -> HeadBasis:
     front = idx[(v[idx, 1] < brow_y + 0.015) & (v[idx, 2] > lm[0, 2] - 0.01) & (v[idx, 1] > lm[8, 1] - 0.005)]
     # Mouth interior: teeth, gums/tongue and the mouth socket, with the synthetic albedo's colours.
     reg = head_regions(m)
+    inside = (reg.teeth > 0) | (reg.gums > 0) | (reg.mouth_interior > 0)  # [Nv] the mouth's inside
     teeth = np.flatnonzero(reg.teeth > 0)
     gums = np.flatnonzero(reg.gums > 0)
     sock = np.flatnonzero((reg.mouth_interior > 0) & (reg.gums <= 0))
@@ -234,6 +254,7 @@ def _ict_basis() -> HeadBasis:
         sample_color=np.concatenate(sample),
         hide_group=hide,
         lash=lash_flag,
+        mouth_faces=inside[faces].any(1),
     )
 
 
@@ -510,12 +531,17 @@ def bind(points: np.ndarray | Tensor, fit: HeadFit, basis: HeadBasis, fade: tupl
     """Bind ``points [N, 3]`` to their nearest triangle of the fitted surface (see module doc).
 
     ``fade = (d0, d1)`` metres: full weight up to ``d0`` from the surface, none beyond ``d1``.
-    The nearest triangle is searched among the ``k`` triangles with the nearest centroids.
+    The nearest triangle is searched among the ``k`` triangles with the nearest centroids, leaving out
+    the mouth's inside (``basis.mouth_faces``: teeth, gums/tongue, socket). A reconstruction shows the
+    outside of a closed mouth; its Gaussians sit a few mm off the fitted surface, and near the lips
+    the socket and gums right behind them were often nearer than the lip skin (500-650 of ~33k
+    Gaussians per held-out avatar). Bound there, they did not follow the lips: with ``mouthSmile``
+    the lips moved back and out while those stayed, a pale or white crack under the lower lip.
     """
     from scipy.spatial import cKDTree
 
     p = points.detach().cpu().float().numpy() if isinstance(points, Tensor) else np.asarray(points, np.float32)
-    f = basis.bind_faces
+    f = basis.bind_faces if basis.mouth_faces is None else basis.bind_faces[~basis.mouth_faces]
     v = fit.vertices.astype(np.float32)
     cen = v[f].mean(1)  # [F, 3]
     k = min(k, len(f))
@@ -676,6 +702,35 @@ def gate_factors(z: Tensor, gates: Tensor, ranges: Tensor) -> Tensor:
     return x * x * (3.0 - 2.0 * x)
 
 
+# ---------------------------------------------------------------------------- shading
+def _brightness(v: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    from ..data.headmodel import vertex_normals
+
+    return SHADE_AMBIENT + (1.0 - SHADE_AMBIENT) * np.clip(vertex_normals(v, faces).astype(np.float64) @ SHADE_LIGHT, 0.0, None)
+
+
+def shading_basis(identity: np.ndarray, basis: HeadBasis) -> np.ndarray:
+    """``[E, Nv]`` float32: per blendshape ``k`` and vertex, the relative brightness change
+    ``b(head + blendshape_k) / b(head) - 1`` of the head with fitted ``identity [K]`` (model frame,
+    ``_brightness``: ``SHADE_AMBIENT``, ``SHADE_LIGHT``). The colour factor of an expression ``z`` is
+    ``1 + z @ shading_basis`` (linear in ``z``: exact for one blendshape at weight 1, interpolated
+    below it, a sum for several), clamped to ``SHADE_RANGE`` per Gaussian. 0 where no
+    blendshape moves a vertex. ~0.3 s for the 53 ICT-FaceKit shapes (2 cores), once per avatar on its
+    first frame (``PriorRuntime.shade_u``); the training forward with the prior builds it per sample."""
+    k = len(identity)
+    v = basis.neutral.astype(np.float64) + np.tensordot(np.asarray(identity, np.float64), basis.identity_basis[:k], axes=1)
+    f = basis.bind_faces
+    b0 = np.maximum(_brightness(v, f), 0.05)
+    moving = _moving_vertices(basis)
+    out = np.zeros((basis.num_expression, len(v)), np.float32)
+    for e in range(basis.num_expression):
+        d = basis.expression_basis[e]
+        if not np.abs(d).max() > 1e-4:
+            continue
+        out[e] = np.where(moving, _brightness(v + d, f) / b0 - 1.0, 0.0)
+    return out
+
+
 # ---------------------------------------------------------------------------- runtime
 @functools.lru_cache(maxsize=4)
 def _moving_cached(key: int, basis: HeadBasis) -> np.ndarray:
@@ -715,10 +770,16 @@ class PriorRuntime:
     fit's scale * rotation, applied after the gather. ``displacement(z [E])`` -> ``[N, 3]``;
     ``z [B, E]`` -> ``[B, N, 3]``. ``frame`` is the server's per-frame path (one expression, CPU):
     it reads a per-avatar copy of the used slots (``compact``) and writes the deformed Gaussians.
+    ``shading(z)`` -> ``[N]`` (``[B, N]``): the colour factor of the expression shading
+    (``shading_basis``, gathered and weighted like the displacement; 1 everywhere with ``shading=False``).
     """
 
-    def __init__(self, binding: PriorBinding, basis: HeadBasis, device=None):
+    def __init__(self, binding: PriorBinding, basis: HeadBasis, device=None, shading: bool = True):
         dev = device or binding.vertex_ids.device
+        self.shading_on = bool(shading)  # expression shading of the reconstructed Gaussians' colours
+        self.identity = binding.identity.detach().cpu().numpy()
+        self._shade_u: Tensor | None = None  # [E, U] per slot, built on first use (``shade_u``)
+        self._shade_c: Tensor | None = None  # [E, Uc] per used slot, for frame()
         self.basis_u, slot = _shared_basis(basis, dev)
         ids = binding.vertex_ids.cpu().numpy()  # [N, 3]
         local = slot[ids]
@@ -763,8 +824,9 @@ class PriorRuntime:
         used = len(np.unique(local))
         g = len(basis.gates)
         own = n * 3 * 8 + n * 3 * 4 + n * 8 + n + g * e * 4 + g * 2 * 4  # local, coef (= coef3), group index int64 + int8, gates
+        own += e * (int(_moving_vertices(basis).sum()) + 1) * 4  # shade_u: the shading per slot
         if torch.device(device).type == "cpu":
-            return own + e * used * 3 * 4 + n * 3 * 4 + n * 4  # compact basis and slots, the opacity reference
+            return own + e * used * 4 * 4 + n * 3 * 4 + n * 4  # compact basis + shading and slots, the opacity reference
         return own + (n + 1) * 8 + n * 3 * 8 + n * 3 * 4  # W: CSR rows, columns, values
 
     @property
@@ -792,6 +854,7 @@ class PriorRuntime:
             e = self.basis_u.shape[0]
             bc = (self.basis_u.view(e, -1, 3)[:, used] @ self.M.T).reshape(e, -1).contiguous()  # [E, Uc*3]
             self._compact = (bc, inv.view(self.n, 3).to(torch.int32).contiguous())
+            self._shade_c = self.shade_u[:, used].contiguous()  # [E, Uc]
         return self._compact
 
     def displacement(self, z: Tensor) -> Tensor:
@@ -807,6 +870,28 @@ class PriorRuntime:
         out = self.W @ du.permute(1, 0, 2).reshape(du.shape[1], 3 * b)  # [N, B*3]
         return out.view(self.n, b, 3).permute(1, 0, 2)  # [B, N, 3]
 
+    @property
+    def shade_u(self) -> Tensor:
+        """``[E, U]``: ``shading_basis`` of this avatar's fitted identity per slot of ``basis_u`` (0 off)."""
+        if self._shade_u is None:
+            moving = _moving_vertices(self.basis)
+            t = np.zeros((self.basis.num_expression, int(moving.sum()) + 1), np.float32)
+            if self.shading_on and self.basis.space == "ict53":
+                t[:, 1:] = shading_basis(self.identity, self.basis)[:, moving]
+            with torch.inference_mode(False):
+                self._shade_u = torch.from_numpy(t).to(self.basis_u.device)
+        return self._shade_u
+
+    def shading(self, z: Tensor) -> Tensor:
+        """Colour factor ``[N]`` for ``z [E]`` (``[B, N]`` for ``[B, E]``): ``1 + sum_k coef_k s[local_k]``
+        with ``s = z @ shade_u``, clamped to ``SHADE_RANGE``; applied to the reconstructed Gaussians only."""
+        z = z.to(self.basis_u.dtype)
+        su = z @ self.shade_u  # [U] or [B, U]
+        if z.ndim == 1:
+            r = self.W @ su[:, None]  # [N, 1]
+            return (1.0 + r[:, 0]).clamp(*SHADE_RANGE)
+        return (1.0 + (self.W @ su.T).T).clamp(*SHADE_RANGE)  # [B, N]
+
     def factor_table(self, z: Tensor) -> Tensor:
         """The opacity factor of each gate slot for ``z [E]`` -> ``[2G]`` (``opacity_factors`` is it at ``group_index``)."""
         return factor_table(z.to(self.gates.dtype), self.gates, self.gate_ranges)
@@ -817,7 +902,8 @@ class PriorRuntime:
         deformed ``Gaussians``.
 
         The same Gaussians as the plain path ``fastgha._combine(g, dxyz, drgb, displacement(z), n_int,
-        opacity_factors(z), trim=True)`` (positions to float32 rounding, colours and opacities exactly),
+        opacity_factors(z), trim=True, shade=shading(z))`` (positions and colours to float32 rounding,
+        opacities exactly),
         from one numba pass (``prior_kernels.prior_frame``), except for which hidden Gaussians are left
         out: a trailing run of one gate group is dropped when every gated opacity in it is below the
         rasterizer's ``ALPHA_MIN`` (the rasterizer skips such splats, so the image is the same), where
@@ -852,6 +938,7 @@ class PriorRuntime:
         basis_c, slots = self.compact
         nz = torch.nonzero(z).flatten()
         d = z[nz] @ basis_c[nz] if len(nz) * 4 < len(z) else z @ basis_c  # [Uc*3], the fit's frame
+        sh = z[nz] @ self._shade_c[nz] if len(nz) * 4 < len(z) else z @ self._shade_c  # [Uc], the shading per slot
         out_means, out_colors, out_op = torch.empty(end, 3), torch.empty(end, 3), torch.empty(end)
         import numba
 
@@ -863,6 +950,7 @@ class PriorRuntime:
             prior_frame(
                 g.means.numpy(), g.colors.numpy(), g.opacities.numpy(), dxyz.numpy(), drgb.numpy(), d.view(-1, 3).numpy(),
                 slots.numpy(), self.coef3.numpy(), self.group_index8.numpy(), table, n_rec,
+                sh.numpy(), np.float32(SHADE_RANGE[0]), np.float32(SHADE_RANGE[1]),
                 out_means.numpy(), out_colors.numpy(), out_op.numpy(),
             )
         finally:
