@@ -98,3 +98,38 @@ def test_masked_psnr_counts_only_the_mask():
     assert float(masked_psnr(a, b, m)[0]) == pytest.approx(100.0)  # clamped at mse 1e-10
     m[..., 0] = 1.0  # 4 wrong of 12 pixels -> mse 1/3
     assert float(masked_psnr(a, b, m)[0]) == pytest.approx(10 * math.log10(3), rel=1e-5)
+
+
+def test_lr_factor_restarts_at_the_fine_phase_only_when_asked():
+    from fastgha_core.refine import lr_factor
+
+    steps, coarse = 20, 10
+    one = [lr_factor(s, steps) for s in range(steps)]
+    assert one[0] == 1.0 and one[9] == 1.0 and math.isclose(one[-1], 0.1) and one[10] < 1.0
+    assert all(a >= b for a, b in zip(one, one[1:]))  # never increases
+    two = [lr_factor(s, steps, restart=coarse) for s in range(steps)]
+    assert math.isclose(two[coarse - 1], 0.1) and two[coarse] == 1.0 and math.isclose(two[-1], 0.1)
+    assert two[:coarse] == [lr_factor(s, coarse) for s in range(coarse)]
+
+
+def test_views_per_step_renders_the_views_in_turn(sample, monkeypatch):
+    import fastgha_core.refine as refine_mod
+
+    model, avatar, images, masks, cams, expr = sample
+    seen = []
+    real = refine_mod._render_view
+
+    def spy(g, means, colors, opac, K, w2c, size, bg):
+        seen.append(int((cams.w2c.float() - w2c.detach()[None]).abs().flatten(1).sum(1).argmin()))
+        return real(g, means, colors, opac, K, w2c, size, bg)
+
+    monkeypatch.setattr(refine_mod, "_render_view", spy)
+    cfg = RefineConfig(steps=3, resolution=64, coarse_resolution=64, views_per_step=2)
+    res = refine_avatar(model, avatar, images, cams, masks, config=cfg, expressions=expr)
+    assert seen == [0, 1, 2, 3, 0, 1]
+    assert len(res.losses) == 3
+    seen.clear()
+    refine_avatar(model, avatar, images, cams, masks, config=RefineConfig(steps=2, resolution=64, coarse_resolution=64), expressions=expr)
+    assert seen == [0, 1, 2, 3, 0, 1, 2, 3]  # 0 = every view every step
+    with pytest.raises(ValueError, match="views_per_step must be >= 0"):
+        RefineConfig(views_per_step=-1)

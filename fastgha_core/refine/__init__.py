@@ -50,7 +50,7 @@ from ..constants import BACKGROUND_RGB
 from ..gaussians import Gaussians
 from ..model.avatar import CanonicalAvatar
 
-__all__ = ["RefineConfig", "RefineResult", "REFINE_PRESETS", "refine_avatar", "prepare_targets", "source_views", "masked_psnr"]
+__all__ = ["RefineConfig", "RefineResult", "REFINE_PRESETS", "refine_avatar", "prepare_targets", "source_views", "masked_psnr", "lr_factor"]
 
 
 @dataclass
@@ -81,6 +81,12 @@ class RefineConfig:
             its own view's expression, so that deformed to that expression it lies on its pixel ray
             again with its pixel's colour (needs ``expressions``).
         prune_opacity: drop Gaussians whose refined opacity falls below this (0 = keep all).
+        phase_schedule: run the step-size schedule (constant, then a linear decay to 10% over the
+            second half) separately in the coarse and in the fine phase, so the fine steps start
+            at the full step size (False: one schedule over all steps, the fine steps then all
+            fall in its decay).
+        views_per_step: render this many input views per step, in turn (0 = all of them every step);
+            the loss is averaged over the views rendered.
     """
 
     steps: int = 40
@@ -110,6 +116,8 @@ class RefineConfig:
     noise_floor: float = 1.0
     smooth_grid: int = 32
     prune_opacity: float = 0.005
+    phase_schedule: bool = False
+    views_per_step: int = 0
 
     def __post_init__(self) -> None:
         if self.steps < 0:
@@ -118,6 +126,8 @@ class RefineConfig:
             r = getattr(self, name)
             if r < 16 or r % 16:
                 raise ValueError(f"{name} must be a multiple of 16 (>= 16), got {r}")
+        if self.views_per_step < 0:
+            raise ValueError(f"views_per_step must be >= 0, got {self.views_per_step}")
         if self.smooth_grid < 0 or self.noise_floor < 0:
             raise ValueError(f"smooth_grid and noise_floor must be >= 0, got {self.smooth_grid} and {self.noise_floor}")
         if not 0.0 <= self.coarse_fraction <= 1.0:
@@ -212,6 +222,16 @@ def source_views(means: Tensor, cameras: Cameras, grid: int) -> Tensor:
     inside = (uv >= 0).all(-1) & (uv < grid).all(-1) & (z > 0)
     off = torch.where(inside, off, torch.full_like(off, 2.0))
     return off.argmin(dim=0)
+
+
+def lr_factor(step: int, steps: int, restart: int = 0) -> float:
+    """Step-size factor of step ``step`` (from 0) of ``steps``: 1 over the first half, then a linear
+    decay to 0.1 at the last step. ``restart > 0`` runs the schedule separately over steps
+    ``[0, restart)`` and ``[restart, steps)`` (``RefineConfig.phase_schedule``: the fine phase
+    starts again at the full step size)."""
+    first, length = (0, steps) if restart <= 0 else ((0, restart) if step < restart else (restart, steps - restart))
+    frac = (step - first) / max(1, length - 1)
+    return 1.0 if frac < 0.5 else 1.0 - 1.8 * (frac - 0.5)
 
 
 def masked_psnr(pred: Tensor, target: Tensor, mask: Tensor, threshold: float = 0.5) -> Tensor:
@@ -416,10 +436,11 @@ def _refine_avatar(
     t_setup = time.perf_counter() - t_start
     losses: list[float] = []
     t0 = time.perf_counter()
+    nv = v if config.views_per_step <= 0 else min(v, config.views_per_step)
     for step in range(config.steps):
-        frac = step / max(1, config.steps - 1)
-        for gr, lr in zip(opt.param_groups, base_lr):  # constant, then linear decay to 10% over the second half
-            gr["lr"] = lr * (1.0 if frac < 0.5 else 1.0 - 1.8 * (frac - 0.5))
+        factor = lr_factor(step, config.steps, n_coarse if config.phase_schedule else 0)
+        for gr, lr in zip(opt.param_groups, base_lr):
+            gr["lr"] = lr * factor
         opt.zero_grad(set_to_none=True)
         size = config.coarse_resolution if step < n_coarse else config.resolution
         targets, tmasks, lcams = levels[size]
@@ -430,7 +451,7 @@ def _refine_avatar(
         colors = torch.sigmoid(c_logit0 + d_c)
         w2c = corrected_w2c(w2c0, rot, trans)
         total = torch.zeros(())
-        for i in range(v):
+        for i in ((step * nv + j) % v for j in range(nv)):  # all views, or nv of them in turn
             rgb, alpha, depth, z, uv = _render_view(
                 g0, means + dxyz[i], (colors + drgb[i]).clamp(0, 1), opac, K[i], w2c[i], size, bg
             )
@@ -446,7 +467,7 @@ def _refine_avatar(
                 if fg.any():
                     diff = (z[own[i]] - d_at).abs() / config.depth_sigma
                     loss = loss + config.w_depth * 1e-2 * (diff * fg).sum() / fg.sum()
-            total = total + loss / v
+            total = total + loss / nv
         reg = config.w_reg_depth * (dt / config.depth_sigma).pow(2).mean()
         reg = reg + config.w_reg_opacity * d_o.pow(2).mean() + config.w_reg_color * d_c.pow(2).mean()
         if config.optimize_cameras:
