@@ -92,13 +92,15 @@ class RefineConfig:
     steps: int = 40
     resolution: int = 256
     coarse_resolution: int = 128
-    coarse_fraction: float = 0.75
+    # 0 (was 0.75): the 128² steps cannot fit what the 256² photos show beyond the 128² inputs, and a
+    # fine phase of 15 of 60 steps all fell in the step-size decay (docs/model-card.md, test-time refinement)
+    coarse_fraction: float = 0.0
     # 0 (was 1.5e-3): on held-out synthetic subjects the ray-depth corrections cost novel-view PSNR
     # (40 steps: 20.26 vs 21.49 dB on seeds 1000200-1000203, 20.55 vs 20.89 on 1000000-1000003,
     # docs/model-card.md); colour and opacity corrections alone gain
     lr_depth: float = 0.0
-    lr_opacity: float = 0.08
-    lr_color: float = 0.08
+    lr_opacity: float = 0.3  # was 0.08 (with views_per_step=2: 26.99 vs 24.92 dB on the sample's inputs)
+    lr_color: float = 0.3
     lr_rotation: float = 2e-3
     lr_translation: float = 1e-3
     w_photo: float = 1.0
@@ -113,11 +115,11 @@ class RefineConfig:
     trans_sigma: float = 0.01
     optimize_cameras: bool = False
     realign: bool = False
-    noise_floor: float = 1.0
-    smooth_grid: int = 32
+    noise_floor: float = 0.0  # was 1.0, and smooth_grid 32: both held the per-Gaussian colours to the 128² detail
+    smooth_grid: int = 0
     prune_opacity: float = 0.005
     phase_schedule: bool = False
-    views_per_step: int = 0
+    views_per_step: int = 2  # was all: half the cost per step, more steps in the same time
 
     def __post_init__(self) -> None:
         if self.steps < 0:
@@ -154,7 +156,7 @@ class RefineResult:
         cameras: the corrected input cameras ``[V]`` (same size as the cameras given).
         rotations: ``[V, 3]`` camera rotation corrections (rotation vectors, radians, camera frame).
         translations: ``[V, 3]`` camera translation corrections (metres, camera frame).
-        losses: total loss per step.
+        losses: total loss per step (over the views that step rendered, ``RefineConfig.views_per_step``).
         timings: seconds: ``setup``, ``optimize`` (all steps), ``total``; ``steps``: steps run.
     """
 
