@@ -6,17 +6,21 @@ faces and reproduces its inputs poorly. ``refine_avatar`` then runs ``RefineConf
 Adam on small corrections, rendering every input view with its known expression and comparing it
 with the photo:
 
-- per Gaussian: a displacement along its own pixel ray (metres), an opacity logit offset and a
-  colour logit offset (scale, rotation and the per-Gaussian features stay as predicted). By
-  default (``RefineConfig.smooth_grid``) these live on a coarse grid per view and are sampled at
-  each Gaussian's pixel in its own view, so neighbouring Gaussians move together;
+- per Gaussian: an opacity logit offset, a colour logit offset and (``RefineConfig.lr_depth`` > 0,
+  off by default) a displacement along its own pixel ray (metres); scale, rotation and the
+  per-Gaussian features stay as predicted. With ``RefineConfig.smooth_grid`` > 0 these live on a
+  coarse grid per view instead, sampled at each Gaussian's pixel in its own view, so neighbouring
+  Gaussians move together (the default before 2026-11-30: it held the colours to the 128² detail of
+  the network's input, while the 256² photos show more);
 - per view (``RefineConfig.optimize_cameras``, off by default): a camera correction
   ``w2c <- [exp(omega) | tau] w2c`` (rotation vector ``omega`` in radians, translation ``tau`` in
   metres, both in the camera frame), so that pose error left by tracking can be absorbed by the
   camera instead of distorting the head. Off by default because, with exact cameras, the
   corrections absorb the avatar's shape error instead (all cameras drift towards the head).
 
-Loss per view, averaged over views (images at ``RefineConfig.resolution``):
+Loss per view, averaged over the views rendered in the step (``RefineConfig.views_per_step`` of
+them, in turn; images at ``RefineConfig.resolution``, or ``coarse_resolution`` in the first
+``coarse_fraction`` of the steps):
 
 - photometric: L1 between the render over ``BACKGROUND_RGB`` and the matted photo;
 - silhouette: squared error between the rendered alpha and the mask;
