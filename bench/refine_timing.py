@@ -22,11 +22,6 @@ import fastgha_core  # noqa: F401  (sets the OpenMP defaults before torch is imp
 import torch
 
 
-# RefineConfig fields that changed on 2026-11-30 (night): before, 75% of the steps at 128², a 32x32 grid
-# of corrections per view, step size 0.08, Adam's noise floor, every view every step
-PREVIOUS_DEFAULTS = dict(coarse_fraction=0.75, smooth_grid=32, lr_color=0.08, lr_opacity=0.08, noise_floor=1.0, views_per_step=0)
-
-
 def _time(fn):
     t, c = time.perf_counter(), time.process_time()
     fn()
@@ -38,7 +33,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--skip-raster", action="store_true")
-    ap.add_argument("--previous", action="store_true", help="also time the defaults before 2026-11-30 night, interleaved")
+    ap.add_argument("--previous", action="store_true", help="also time the defaults before 2026-11-30 night (REFINE_PRESETS['smooth']), interleaved")
     args = ap.parse_args()
     from fastgha_core.bench.render import bench_camera, head_scene
     from fastgha_core.gaussians import Gaussians
@@ -68,7 +63,7 @@ def main() -> None:
         print(f"ratio (wall) {med['0'][0] / med['1'][0]:.2f}x, (cpu) {med['0'][1] / med['1'][1]:.2f}x")
 
     from fastgha_core.model.fastgha import load_model
-    from fastgha_core.refine import RefineConfig, refine_avatar
+    from fastgha_core.refine import REFINE_PRESETS, RefineConfig, refine_avatar
     from fastgha_core.refine.measure import SAMPLE_REQUEST, read_request
 
     model = load_model("tiny")
@@ -77,7 +72,7 @@ def main() -> None:
     avatar = model.reconstruct(imgs, in_cams)
     configs = {"default config": RefineConfig(steps=args.steps)}
     if args.previous:
-        configs["previous defaults"] = RefineConfig(steps=args.steps, **PREVIOUS_DEFAULTS)
+        configs["previous defaults"] = RefineConfig(**{**REFINE_PRESETS["smooth"].__dict__, "steps": args.steps})
     for cfg in configs.values():  # warm-up
         refine_avatar(model, avatar, images, cams, masks, config=RefineConfig(**{**cfg.__dict__, "steps": 2}), expressions=expr)
     runs: dict[str, list] = {k: [] for k in configs}

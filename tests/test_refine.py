@@ -134,3 +134,26 @@ def test_views_per_step_renders_the_views_in_turn(sample, monkeypatch):
     assert seen == [0, 1, 2, 3, 0, 1, 2, 3]  # 0 = every view every step
     with pytest.raises(ValueError, match="views_per_step must be >= 0"):
         RefineConfig(views_per_step=-1)
+
+
+def test_smooth_preset_keeps_the_previous_schedule(sample, monkeypatch):
+    """REFINE_PRESETS['smooth'] (the defaults before 2026-11-30): 75% of the steps coarse, every view every step."""
+    import fastgha_core.refine as refine_mod
+    from fastgha_core.refine import REFINE_PRESETS
+
+    model, avatar, images, masks, cams, expr = sample
+    sizes = []
+    real = refine_mod._render_view
+
+    def spy(g, means, colors, opac, K, w2c, size, bg):
+        sizes.append(size)
+        return real(g, means, colors, opac, K, w2c, size, bg)
+
+    monkeypatch.setattr(refine_mod, "_render_view", spy)
+    cfg = RefineConfig(**{**REFINE_PRESETS["smooth"].__dict__, "steps": 4, "resolution": 64, "coarse_resolution": 32})
+    assert cfg.smooth_grid > 0
+    refine_avatar(model, avatar, images, cams, masks, config=cfg, expressions=expr)
+    assert sizes == [32] * 12 + [64] * 4
+    sizes.clear()
+    refine_avatar(model, avatar, images, cams, masks, config=RefineConfig(steps=4, resolution=64, coarse_resolution=32), expressions=expr)
+    assert sizes == [64] * 8  # the default: 2 views per step, all at the full resolution

@@ -148,6 +148,10 @@ REFINE_PRESETS: dict[str, RefineConfig] = {
     "fast": RefineConfig(steps=20, resolution=128, coarse_resolution=128),
     "default": RefineConfig(),
     "thorough": RefineConfig(steps=100),
+    # the defaults before 2026-11-30 (night): smooth 32x32 correction grids, 75% of the steps at 128²,
+    # every view every step; lower on synthetic inputs and novel views, a little higher on real photos
+    # (docs/model-card.md, test-time refinement)
+    "smooth": RefineConfig(steps=60, coarse_fraction=0.75, smooth_grid=32, lr_color=0.08, lr_opacity=0.08, noise_floor=1.0, views_per_step=0),
 }
 
 
