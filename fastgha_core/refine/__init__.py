@@ -65,9 +65,9 @@ class RefineConfig:
         steps: Adam steps; 0 = no refinement (``refine_avatar`` returns the avatar unchanged).
         resolution: side in pixels of the square target images the views are rendered at in the
             last ``1 - coarse_fraction`` of the steps.
-        coarse_resolution: side of the targets in the first ``coarse_fraction`` of the steps (the
-            Gaussians come from ``input_size`` maps, so the coarse steps see most of what matters,
-            at a quarter of the cost at 128 vs 256).
+        coarse_resolution: side of the targets in the first ``coarse_fraction`` of the steps (cheaper
+            steps, but at the ``input_size`` of the network's maps they cannot fit the photos' finer
+            detail: 0 coarse steps by default).
         lr_depth: step size of the ray displacement (metres; 0 = depth stays as predicted, the
             default: it measured better in novel views); lr_opacity / lr_color: of the logits;
         lr_rotation (radians) / lr_translation (metres): of the camera corrections.
