@@ -157,3 +157,20 @@ def test_smooth_preset_keeps_the_previous_schedule(sample, monkeypatch):
     sizes.clear()
     refine_avatar(model, avatar, images, cams, masks, config=RefineConfig(steps=4, resolution=64, coarse_resolution=32), expressions=expr)
     assert sizes == [64] * 8  # the default: 2 views per step, all at the full resolution
+
+
+@pytest.mark.parametrize("phase_schedule", [False, True])
+def test_phase_schedule_restarts_the_step_size_at_the_fine_phase(sample, monkeypatch, phase_schedule):
+    model, avatar, images, masks, cams, expr = sample
+    lrs = []
+    real_step = torch.optim.Adam.step
+
+    def spy(self, *a, **k):
+        lrs.append(self.param_groups[2]["lr"] / 0.3)  # the colour group, relative to its base step size
+        return real_step(self, *a, **k)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", spy)
+    cfg = RefineConfig(steps=4, resolution=64, coarse_resolution=32, coarse_fraction=0.5, lr_color=0.3, phase_schedule=phase_schedule)
+    refine_avatar(model, avatar, images, cams, masks, config=cfg, expressions=expr)
+    want = [1.0, 0.1, 1.0, 0.1] if phase_schedule else [1.0, 1.0, 0.7, 0.1]
+    assert lrs == pytest.approx(want)
