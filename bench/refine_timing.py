@@ -1,13 +1,14 @@
 """Test-time refinement cost, side by side in one process (timings on a shared machine are noisy:
 compare the ratios, and prefer the CPU-time columns).
 
-    python bench/refine_timing.py [--repeats 5] [--steps 40]
+    python bench/refine_timing.py [--repeats 5] [--steps 40] [--skip-raster] [--previous]
 
 1. Rasterizer forward+backward of ``fastgha bench render``'s 65,536-Gaussian head scene at 256²
    (loss on rgb, alpha and depth): the float64 kernels (``FASTGHA_RASTER_FAST=0``, the path before
    the float32 backward existed) against the float32 gradient path, interleaved, median of repeats.
 2. ``refine_avatar`` of the shipped sample's 4-view avatar with the default ``RefineConfig`` (and
-   ``--steps``): wall and process CPU seconds, and seconds per step.
+   ``--steps``): wall and process CPU seconds, and seconds per step; ``--previous`` also times the
+   defaults before 2026-11-30 (night), interleaved with the current ones, and prints the ratio.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--skip-raster", action="store_true")
+    ap.add_argument("--previous", action="store_true", help="also time the defaults before 2026-11-30 night (REFINE_PRESETS['smooth']), interleaved")
     args = ap.parse_args()
     from fastgha_core.bench.render import bench_camera, head_scene
     from fastgha_core.gaussians import Gaussians
@@ -61,22 +63,29 @@ def main() -> None:
         print(f"ratio (wall) {med['0'][0] / med['1'][0]:.2f}x, (cpu) {med['0'][1] / med['1'][1]:.2f}x")
 
     from fastgha_core.model.fastgha import load_model
-    from fastgha_core.refine import RefineConfig, refine_avatar
+    from fastgha_core.refine import REFINE_PRESETS, RefineConfig, refine_avatar
     from fastgha_core.refine.measure import SAMPLE_REQUEST, read_request
 
     model = load_model("tiny")
     images, masks, cams, expr = read_request(SAMPLE_REQUEST)
     imgs, in_cams = model.prepare(list(images), [cams[i : i + 1] for i in range(len(cams.K))], list(masks))
     avatar = model.reconstruct(imgs, in_cams)
-    refine_avatar(model, avatar, images, cams, masks, config=RefineConfig(steps=2), expressions=expr)  # warm-up
-    runs = []
+    configs = {"default config": RefineConfig(steps=args.steps)}
+    if args.previous:
+        configs["previous defaults"] = RefineConfig(**{**REFINE_PRESETS["smooth"].__dict__, "steps": args.steps})
+    for cfg in configs.values():  # warm-up
+        refine_avatar(model, avatar, images, cams, masks, config=RefineConfig(**{**cfg.__dict__, "steps": 2}), expressions=expr)
+    runs: dict[str, list] = {k: [] for k in configs}
     for _ in range(max(1, args.repeats // 2)):
-        out = {}
-        runs.append(_time(lambda: out.update(r=refine_avatar(model, avatar, images, cams, masks, config=RefineConfig(steps=args.steps), expressions=expr))))
-    wall = statistics.median(a for a, _ in runs)
-    cpu = statistics.median(b for _, b in runs)
-    print(f"refine_avatar 4 views, {len(avatar)} Gaussians, {args.steps} steps (default config): {wall:.2f} s wall, {cpu:.2f} s cpu, {wall / args.steps * 1e3:.0f} ms/step")
-
+        for name, cfg in configs.items():  # interleaved, so both see the same load
+            runs[name].append(_time(lambda cfg=cfg: refine_avatar(model, avatar, images, cams, masks, config=cfg, expressions=expr)))
+    walls = {}
+    for name, r in runs.items():
+        wall = walls[name] = statistics.median(a for a, _ in r)
+        cpu = statistics.median(b for _, b in r)
+        print(f"refine_avatar 4 views, {len(avatar)} Gaussians, {args.steps} steps ({name}): {wall:.2f} s wall, {cpu:.2f} s cpu, {wall / args.steps * 1e3:.0f} ms/step")
+    if args.previous:
+        print(f"ratio default / previous (wall) {walls['default config'] / walls['previous defaults']:.2f}")
 
 if __name__ == "__main__":
     main()

@@ -38,7 +38,8 @@ def test_refinement_fits_the_input_views_better(sample, smooth_grid):
     cfg = RefineConfig(steps=8, resolution=64, coarse_resolution=64, smooth_grid=smooth_grid)
     res = refine_avatar(model, avatar, images, cams, masks, config=cfg, expressions=expr, progress=lambda i, n: calls.append((i, n)))
     assert calls == [(i, 8) for i in range(1, 9)]
-    assert res.losses[-1] < res.losses[0]
+    assert cfg.views_per_step == 2  # the default: steps 0 and 6 render the same two of the 4 views
+    assert res.losses[6] < res.losses[0]
     targets, tmask, _ = prepare_targets(images, cams, masks, 64)
     before = masked_psnr(render_inputs(model, avatar, prepare_targets(images, cams, masks, 64)[2], expr, 64)[0], targets, tmask)
     after = masked_psnr(render_inputs(model, res.avatar, prepare_targets(images, res.cameras, masks, 64)[2], expr, 64)[0], targets, tmask)
@@ -98,3 +99,78 @@ def test_masked_psnr_counts_only_the_mask():
     assert float(masked_psnr(a, b, m)[0]) == pytest.approx(100.0)  # clamped at mse 1e-10
     m[..., 0] = 1.0  # 4 wrong of 12 pixels -> mse 1/3
     assert float(masked_psnr(a, b, m)[0]) == pytest.approx(10 * math.log10(3), rel=1e-5)
+
+
+def test_lr_factor_restarts_at_the_fine_phase_only_when_asked():
+    from fastgha_core.refine import lr_factor
+
+    steps, coarse = 20, 10
+    one = [lr_factor(s, steps) for s in range(steps)]
+    assert one[0] == 1.0 and one[9] == 1.0 and math.isclose(one[-1], 0.1) and one[10] < 1.0
+    assert all(a >= b for a, b in zip(one, one[1:]))  # never increases
+    two = [lr_factor(s, steps, restart=coarse) for s in range(steps)]
+    assert math.isclose(two[coarse - 1], 0.1) and two[coarse] == 1.0 and math.isclose(two[-1], 0.1)
+    assert two[:coarse] == [lr_factor(s, coarse) for s in range(coarse)]
+
+
+def test_views_per_step_renders_the_views_in_turn(sample, monkeypatch):
+    import fastgha_core.refine as refine_mod
+
+    model, avatar, images, masks, cams, expr = sample
+    seen = []
+    real = refine_mod._render_view
+
+    def spy(g, means, colors, opac, K, w2c, size, bg):
+        seen.append(int((cams.w2c.float() - w2c.detach()[None]).abs().flatten(1).sum(1).argmin()))
+        return real(g, means, colors, opac, K, w2c, size, bg)
+
+    monkeypatch.setattr(refine_mod, "_render_view", spy)
+    cfg = RefineConfig(steps=3, resolution=64, coarse_resolution=64, views_per_step=2)
+    res = refine_avatar(model, avatar, images, cams, masks, config=cfg, expressions=expr)
+    assert seen == [0, 1, 2, 3, 0, 1]
+    assert len(res.losses) == 3
+    seen.clear()
+    refine_avatar(model, avatar, images, cams, masks, config=RefineConfig(steps=2, resolution=64, coarse_resolution=64, views_per_step=0), expressions=expr)
+    assert seen == [0, 1, 2, 3, 0, 1, 2, 3]  # 0 = every view every step
+    with pytest.raises(ValueError, match="views_per_step must be >= 0"):
+        RefineConfig(views_per_step=-1)
+
+
+def test_smooth_preset_keeps_the_previous_schedule(sample, monkeypatch):
+    """REFINE_PRESETS['smooth'] (the defaults before 2026-11-30): 75% of the steps coarse, every view every step."""
+    import fastgha_core.refine as refine_mod
+    from fastgha_core.refine import REFINE_PRESETS
+
+    model, avatar, images, masks, cams, expr = sample
+    sizes = []
+    real = refine_mod._render_view
+
+    def spy(g, means, colors, opac, K, w2c, size, bg):
+        sizes.append(size)
+        return real(g, means, colors, opac, K, w2c, size, bg)
+
+    monkeypatch.setattr(refine_mod, "_render_view", spy)
+    cfg = RefineConfig(**{**REFINE_PRESETS["smooth"].__dict__, "steps": 4, "resolution": 64, "coarse_resolution": 32})
+    assert cfg.smooth_grid > 0
+    refine_avatar(model, avatar, images, cams, masks, config=cfg, expressions=expr)
+    assert sizes == [32] * 12 + [64] * 4
+    sizes.clear()
+    refine_avatar(model, avatar, images, cams, masks, config=RefineConfig(steps=4, resolution=64, coarse_resolution=32), expressions=expr)
+    assert sizes == [64] * 8  # the default: 2 views per step, all at the full resolution
+
+
+@pytest.mark.parametrize("phase_schedule", [False, True])
+def test_phase_schedule_restarts_the_step_size_at_the_fine_phase(sample, monkeypatch, phase_schedule):
+    model, avatar, images, masks, cams, expr = sample
+    lrs = []
+    real_step = torch.optim.Adam.step
+
+    def spy(self, *a, **k):
+        lrs.append(self.param_groups[2]["lr"] / 0.3)  # the colour group, relative to its base step size
+        return real_step(self, *a, **k)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", spy)
+    cfg = RefineConfig(steps=4, resolution=64, coarse_resolution=32, coarse_fraction=0.5, lr_color=0.3, phase_schedule=phase_schedule)
+    refine_avatar(model, avatar, images, cams, masks, config=cfg, expressions=expr)
+    want = [1.0, 0.1, 1.0, 0.1] if phase_schedule else [1.0, 1.0, 0.7, 0.1]
+    assert lrs == pytest.approx(want)

@@ -6,17 +6,21 @@ faces and reproduces its inputs poorly. ``refine_avatar`` then runs ``RefineConf
 Adam on small corrections, rendering every input view with its known expression and comparing it
 with the photo:
 
-- per Gaussian: a displacement along its own pixel ray (metres), an opacity logit offset and a
-  colour logit offset (scale, rotation and the per-Gaussian features stay as predicted). By
-  default (``RefineConfig.smooth_grid``) these live on a coarse grid per view and are sampled at
-  each Gaussian's pixel in its own view, so neighbouring Gaussians move together;
+- per Gaussian: an opacity logit offset, a colour logit offset and (``RefineConfig.lr_depth`` > 0,
+  off by default) a displacement along its own pixel ray (metres); scale, rotation and the
+  per-Gaussian features stay as predicted. With ``RefineConfig.smooth_grid`` > 0 these live on a
+  coarse grid per view instead, sampled at each Gaussian's pixel in its own view, so neighbouring
+  Gaussians move together (the default before 2026-11-30: it held the colours to the 128² detail of
+  the network's input, while the 256² photos show more);
 - per view (``RefineConfig.optimize_cameras``, off by default): a camera correction
   ``w2c <- [exp(omega) | tau] w2c`` (rotation vector ``omega`` in radians, translation ``tau`` in
   metres, both in the camera frame), so that pose error left by tracking can be absorbed by the
   camera instead of distorting the head. Off by default because, with exact cameras, the
   corrections absorb the avatar's shape error instead (all cameras drift towards the head).
 
-Loss per view, averaged over views (images at ``RefineConfig.resolution``):
+Loss per view, averaged over the views rendered in the step (``RefineConfig.views_per_step`` of
+them, in turn; images at ``RefineConfig.resolution``, or ``coarse_resolution`` in the first
+``coarse_fraction`` of the steps):
 
 - photometric: L1 between the render over ``BACKGROUND_RGB`` and the matted photo;
 - silhouette: squared error between the rendered alpha and the mask;
@@ -50,7 +54,7 @@ from ..constants import BACKGROUND_RGB
 from ..gaussians import Gaussians
 from ..model.avatar import CanonicalAvatar
 
-__all__ = ["RefineConfig", "RefineResult", "REFINE_PRESETS", "refine_avatar", "prepare_targets", "source_views", "masked_psnr"]
+__all__ = ["RefineConfig", "RefineResult", "REFINE_PRESETS", "refine_avatar", "prepare_targets", "source_views", "masked_psnr", "lr_factor"]
 
 
 @dataclass
@@ -61,9 +65,9 @@ class RefineConfig:
         steps: Adam steps; 0 = no refinement (``refine_avatar`` returns the avatar unchanged).
         resolution: side in pixels of the square target images the views are rendered at in the
             last ``1 - coarse_fraction`` of the steps.
-        coarse_resolution: side of the targets in the first ``coarse_fraction`` of the steps (the
-            Gaussians come from ``input_size`` maps, so the coarse steps see most of what matters,
-            at a quarter of the cost at 128 vs 256).
+        coarse_resolution: side of the targets in the first ``coarse_fraction`` of the steps (cheaper
+            steps, but at the ``input_size`` of the network's maps they cannot fit the photos' finer
+            detail: 0 coarse steps by default).
         lr_depth: step size of the ray displacement (metres; 0 = depth stays as predicted, the
             default: it measured better in novel views); lr_opacity / lr_color: of the logits;
         lr_rotation (radians) / lr_translation (metres): of the camera corrections.
@@ -81,18 +85,26 @@ class RefineConfig:
             its own view's expression, so that deformed to that expression it lies on its pixel ray
             again with its pixel's colour (needs ``expressions``).
         prune_opacity: drop Gaussians whose refined opacity falls below this (0 = keep all).
+        phase_schedule: run the step-size schedule (constant, then a linear decay to 10% over the
+            second half) separately in the coarse and in the fine phase, so the fine steps start
+            at the full step size (False: one schedule over all steps, the fine steps then all
+            fall in its decay).
+        views_per_step: render this many input views per step, in turn (0 = all of them every step);
+            the loss is averaged over the views rendered.
     """
 
     steps: int = 40
     resolution: int = 256
     coarse_resolution: int = 128
-    coarse_fraction: float = 0.75
+    # 0 (was 0.75): the 128² steps cannot fit what the 256² photos show beyond the 128² inputs, and a
+    # fine phase of 15 of 60 steps all fell in the step-size decay (docs/model-card.md, test-time refinement)
+    coarse_fraction: float = 0.0
     # 0 (was 1.5e-3): on held-out synthetic subjects the ray-depth corrections cost novel-view PSNR
     # (40 steps: 20.26 vs 21.49 dB on seeds 1000200-1000203, 20.55 vs 20.89 on 1000000-1000003,
     # docs/model-card.md); colour and opacity corrections alone gain
     lr_depth: float = 0.0
-    lr_opacity: float = 0.08
-    lr_color: float = 0.08
+    lr_opacity: float = 0.3  # was 0.08 (with views_per_step=2: 26.99 vs 24.92 dB on the sample's inputs)
+    lr_color: float = 0.3
     lr_rotation: float = 2e-3
     lr_translation: float = 1e-3
     w_photo: float = 1.0
@@ -107,9 +119,11 @@ class RefineConfig:
     trans_sigma: float = 0.01
     optimize_cameras: bool = False
     realign: bool = False
-    noise_floor: float = 1.0
-    smooth_grid: int = 32
+    noise_floor: float = 0.0  # was 1.0, and smooth_grid 32: both held the per-Gaussian colours to the 128² detail
+    smooth_grid: int = 0
     prune_opacity: float = 0.005
+    phase_schedule: bool = False
+    views_per_step: int = 2  # was all: half the cost per step, more steps in the same time
 
     def __post_init__(self) -> None:
         if self.steps < 0:
@@ -118,6 +132,8 @@ class RefineConfig:
             r = getattr(self, name)
             if r < 16 or r % 16:
                 raise ValueError(f"{name} must be a multiple of 16 (>= 16), got {r}")
+        if self.views_per_step < 0:
+            raise ValueError(f"views_per_step must be >= 0, got {self.views_per_step}")
         if self.smooth_grid < 0 or self.noise_floor < 0:
             raise ValueError(f"smooth_grid and noise_floor must be >= 0, got {self.smooth_grid} and {self.noise_floor}")
         if not 0.0 <= self.coarse_fraction <= 1.0:
@@ -132,6 +148,10 @@ REFINE_PRESETS: dict[str, RefineConfig] = {
     "fast": RefineConfig(steps=20, resolution=128, coarse_resolution=128),
     "default": RefineConfig(),
     "thorough": RefineConfig(steps=100),
+    # the defaults before 2026-11-30 (night): smooth 32x32 correction grids, 75% of the steps at 128²,
+    # every view every step; lower on synthetic inputs and novel views, a little higher on real photos
+    # (docs/model-card.md, test-time refinement)
+    "smooth": RefineConfig(steps=60, coarse_fraction=0.75, smooth_grid=32, lr_color=0.08, lr_opacity=0.08, noise_floor=1.0, views_per_step=0),
 }
 
 
@@ -144,7 +164,7 @@ class RefineResult:
         cameras: the corrected input cameras ``[V]`` (same size as the cameras given).
         rotations: ``[V, 3]`` camera rotation corrections (rotation vectors, radians, camera frame).
         translations: ``[V, 3]`` camera translation corrections (metres, camera frame).
-        losses: total loss per step.
+        losses: total loss per step (over the views that step rendered, ``RefineConfig.views_per_step``).
         timings: seconds: ``setup``, ``optimize`` (all steps), ``total``; ``steps``: steps run.
     """
 
@@ -212,6 +232,16 @@ def source_views(means: Tensor, cameras: Cameras, grid: int) -> Tensor:
     inside = (uv >= 0).all(-1) & (uv < grid).all(-1) & (z > 0)
     off = torch.where(inside, off, torch.full_like(off, 2.0))
     return off.argmin(dim=0)
+
+
+def lr_factor(step: int, steps: int, restart: int = 0) -> float:
+    """Step-size factor of step ``step`` (from 0) of ``steps``: 1 over the first half, then a linear
+    decay to 0.1 at the last step. ``restart > 0`` runs the schedule separately over steps
+    ``[0, restart)`` and ``[restart, steps)`` (``RefineConfig.phase_schedule``: the fine phase
+    starts again at the full step size)."""
+    first, length = (0, steps) if restart <= 0 else ((0, restart) if step < restart else (restart, steps - restart))
+    frac = (step - first) / max(1, length - 1)
+    return 1.0 if frac < 0.5 else 1.0 - 1.8 * (frac - 0.5)
 
 
 def masked_psnr(pred: Tensor, target: Tensor, mask: Tensor, threshold: float = 0.5) -> Tensor:
@@ -416,10 +446,11 @@ def _refine_avatar(
     t_setup = time.perf_counter() - t_start
     losses: list[float] = []
     t0 = time.perf_counter()
+    nv = v if config.views_per_step <= 0 else min(v, config.views_per_step)
     for step in range(config.steps):
-        frac = step / max(1, config.steps - 1)
-        for gr, lr in zip(opt.param_groups, base_lr):  # constant, then linear decay to 10% over the second half
-            gr["lr"] = lr * (1.0 if frac < 0.5 else 1.0 - 1.8 * (frac - 0.5))
+        factor = lr_factor(step, config.steps, n_coarse if config.phase_schedule else 0)
+        for gr, lr in zip(opt.param_groups, base_lr):
+            gr["lr"] = lr * factor
         opt.zero_grad(set_to_none=True)
         size = config.coarse_resolution if step < n_coarse else config.resolution
         targets, tmasks, lcams = levels[size]
@@ -430,7 +461,7 @@ def _refine_avatar(
         colors = torch.sigmoid(c_logit0 + d_c)
         w2c = corrected_w2c(w2c0, rot, trans)
         total = torch.zeros(())
-        for i in range(v):
+        for i in ((step * nv + j) % v for j in range(nv)):  # all views, or nv of them in turn
             rgb, alpha, depth, z, uv = _render_view(
                 g0, means + dxyz[i], (colors + drgb[i]).clamp(0, 1), opac, K[i], w2c[i], size, bg
             )
@@ -446,7 +477,7 @@ def _refine_avatar(
                 if fg.any():
                     diff = (z[own[i]] - d_at).abs() / config.depth_sigma
                     loss = loss + config.w_depth * 1e-2 * (diff * fg).sum() / fg.sum()
-            total = total + loss / v
+            total = total + loss / nv
         reg = config.w_reg_depth * (dt / config.depth_sigma).pow(2).mean()
         reg = reg + config.w_reg_opacity * d_o.pow(2).mean() + config.w_reg_color * d_c.pow(2).mean()
         if config.optimize_cameras:
