@@ -47,9 +47,8 @@ def realsets_root() -> Path:
 
 def run_set(model, folder: Path, size: int, det, pictures: Path | None, drop_untracked: bool = True, surface: bool = True) -> dict:
     import torch
-    from PIL import Image  # call site: the files helper's fastgha_core.images decoder replaces this at merge
-
     from fastgha_core.constants import BACKGROUND_RGB
+    from fastgha_core.images import read_image  # the project's one decoder (EXIF orientation applied)
     from fastgha_core.model.surface import HeadSurface
     from fastgha_core.render import render
     from fastgha_core.tracking import track_photos
@@ -57,7 +56,7 @@ def run_set(model, folder: Path, size: int, det, pictures: Path | None, drop_unt
     from server.frames import FrameRenderer
 
     paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
-    images = [np.asarray(Image.open(p).convert("RGB")) for p in paths]
+    images = [read_image(p, max_pixels=64_000_000).rgb for p in paths]
     dropped = []
     while True:  # photos the tracker cannot use (it names them) are left out, and reported
         try:
@@ -85,6 +84,8 @@ def run_set(model, folder: Path, size: int, det, pictures: Path | None, drop_unt
             img = render(g, cam, background=BACKGROUND_RGB).rgb[0].float().clamp(0, 1)
         u8 = _u8(img)
         if pictures is not None:
+            from PIL import Image
+
             pictures.mkdir(parents=True, exist_ok=True)
             Image.fromarray(u8).save(pictures / f"{folder.name}_{name}.png")
         box = det.box(u8)

@@ -55,14 +55,10 @@ def list_sets(root: Path) -> list[Path]:
 
 
 def _load_photos(folder: Path) -> tuple[list[np.ndarray], list[str]]:
-    from PIL import Image, ImageOps
+    from ..images import read_image  # the project's one decoder (EXIF orientation applied)
 
     paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in PHOTO_SUFFIXES)
-    out = []
-    for p in paths:
-        with Image.open(p) as im:
-            out.append(np.asarray(ImageOps.exif_transpose(im).convert("RGB")).copy())
-    return out, [p.name for p in paths]
+    return [read_image(p, max_pixels=64_000_000).rgb for p in paths], [p.name for p in paths]
 
 
 def _identity(faces, img: np.ndarray, box=None):
