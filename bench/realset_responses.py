@@ -18,6 +18,13 @@ Photos the tracker cannot use (it names them: profiles, today) are left out of t
 listed under ``dropped``; a set where none tracks is reported with the error. Exits 0 when the folder is absent.
 
     python bench/realset_responses.py --model tiny --json out/realsets.json
+
+``--server URL`` builds each avatar through a running server instead (``fastgha serve``): the photos
+are posted alone, without cameras, the server tracks and reconstructs them with its own settings,
+and the four frames are streamed back over the WebSocket at the same camera (JPEG quality 100)::
+
+    fastgha serve --port 8765 &
+    python bench/realset_responses.py --model tiny --server http://127.0.0.1:8765
 """
 
 from __future__ import annotations
@@ -52,8 +59,7 @@ def run_set(model, folder: Path, size: int, det, pictures: Path | None, drop_unt
     from fastgha_core.model.surface import HeadSurface
     from fastgha_core.render import render
     from fastgha_core.tracking import track_photos
-    from fastgha_core.train.responses import _u8, landmark_measures
-    from server.frames import FrameRenderer
+    from fastgha_core.train.responses import _u8
 
     paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
     images = [read_image(p, max_pixels=64_000_000).rgb for p in paths]
@@ -74,20 +80,66 @@ def run_set(model, folder: Path, size: int, det, pictures: Path | None, drop_unt
     expr = torch.from_numpy(tr.expressions) if tr.expressions.shape[1] == model.config.expression_dim else None
     with torch.inference_mode():
         avatar = model.reconstruct(x, c, expressions=expr, surface=HeadSurface.from_tracking(tr) if surface else None)
-    cam = FrameRenderer(model, "cpu").default_camera.resize(size, size)
-    out: dict = {"photos": [p.name for p in paths], "dropped": dropped, "gaussians": len(avatar), "measures": {}, "detected": {}}
+    cam = frontal_camera(model, size)
     space = model.expression_space
-    fallback = None  # the neutral render's face box, for frames where dlib finds no face
+    frames = {}
     for name, w in EXPRESSIONS.items():
         with torch.inference_mode():
             g = model.animate(avatar, space.parse(w))
-            img = render(g, cam, background=BACKGROUND_RGB).rgb[0].float().clamp(0, 1)
-        u8 = _u8(img)
+            frames[name] = _u8(render(g, cam, background=BACKGROUND_RGB).rgb[0].float().clamp(0, 1))
+    out: dict = {"photos": [p.name for p in paths], "dropped": dropped, "gaussians": len(avatar)}
+    out.update(measure_frames(frames, det, folder.name, pictures))
+    return out
+
+
+def frontal_camera(model, size: int):
+    """The server's default frontal camera at ``size`` x ``size`` (what the browser demo opens with)."""
+    from server.frames import FrameRenderer
+
+    return FrameRenderer(model, "cpu").default_camera.resize(size, size)
+
+
+def run_set_server(url: str, api_key: str | None, model, folder: Path, size: int, det, pictures: Path | None) -> dict:
+    """The same responses for an avatar built by a running server from the photos alone.
+
+    The photos are posted without cameras (the server tracks them, as for a user's upload), and the
+    four expressions are streamed over the WebSocket at the local frontal camera (JPEG quality 100).
+    A photo the server's tracker cannot use fails the set with the server's error (which names it).
+    """
+    from client_demo.client import FastGHAClient
+
+    paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+    client = FastGHAClient(url, api_key=api_key, timeout=600.0)
+    avatar = client.create_avatar(paths)
+    try:
+        cam = frontal_camera(model, size)
+        camera = {"K": cam.K.tolist(), "w2c": cam.w2c.tolist(), "width": size, "height": size}
+        requests = [{"expression": w, "camera": camera} for w in EXPRESSIONS.values()]
+        got = client.stream_sync(avatar, requests, options={"jpeg_quality": 100, "max_size": size})
+    finally:
+        client.delete(avatar)
+    frames = {name: f.image() for name, f in zip(EXPRESSIONS, got)}
+    for name, img in frames.items():
+        if img.shape[:2] != (size, size):
+            raise RuntimeError(f"the server sent a {img.shape[1]}x{img.shape[0]} frame for {name}, expected {size}x{size}")
+    out: dict = {"photos": [p.name for p in paths], "dropped": [], "gaussians": avatar.num_gaussians, "via": url}
+    out.update(measure_frames(frames, det, folder.name, pictures))
+    return out
+
+
+def measure_frames(frames: dict, det, set_name: str, pictures: Path | None) -> dict:
+    """dlib's measures of the ``EXPRESSIONS`` frames (uint8 ``[H, W, 3]`` each), the responses and the targets met."""
+    from fastgha_core.train.responses import landmark_measures
+
+    out: dict = {"measures": {}, "detected": {}}
+    fallback = None  # the neutral render's face box, for frames where dlib finds no face
+    for name in EXPRESSIONS:
+        u8 = frames[name]
         if pictures is not None:
             from PIL import Image
 
             pictures.mkdir(parents=True, exist_ok=True)
-            Image.fromarray(u8).save(pictures / f"{folder.name}_{name}.png")
+            Image.fromarray(u8).save(pictures / f"{set_name}_{name}.png")
         box = det.box(u8)
         out["detected"][name] = box is not None
         lm, _ = det.landmarks(u8, fallback)
@@ -120,6 +172,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sets", default=None, help="comma-separated set names (default: all)")
     ap.add_argument("--no-surface", action="store_true", help="use the network's depth, not the tracked head surface (the server's default)")
     ap.add_argument("--keep-untracked", action="store_true", help="fail a set when one photo does not track (default: leave that photo out and report it)")
+    ap.add_argument("--server", default=None, metavar="URL", help="build each avatar through this running server from the photos alone (no cameras) and measure its streamed frames")
+    ap.add_argument("--api-key", default=os.environ.get("FASTGHA_API_KEY"), help="the server's API key (default: $FASTGHA_API_KEY)")
     args = ap.parse_args(argv)
     root = realsets_root()
     if not root.is_dir():
@@ -135,10 +189,14 @@ def main(argv=None) -> int:
     if args.sets:
         want = set(args.sets.split(","))
         sets = [s for s in sets if s.name in want]
-    report = {"model": args.model, "size": args.size, "prior": bool(model.config.deform.prior), "sets": {}}
+    report = {"model": args.model, "size": args.size, "server": args.server, "prior": bool(model.config.deform.prior), "sets": {}}
     for s in sets:
         try:
-            report["sets"][s.name] = run_set(model, s, args.size, det, Path(args.pictures) if args.pictures else None, not args.keep_untracked, not args.no_surface)
+            pictures = Path(args.pictures) if args.pictures else None
+            if args.server:
+                report["sets"][s.name] = run_set_server(args.server, args.api_key, model, s, args.size, det, pictures)
+            else:
+                report["sets"][s.name] = run_set(model, s, args.size, det, pictures, not args.keep_untracked, not args.no_surface)
         except Exception as e:  # tracking failures name the photo; report and go on
             report["sets"][s.name] = {"error": f"{type(e).__name__}: {e}"}
         r = report["sets"][s.name]
