@@ -52,14 +52,22 @@ def layout_features(points: np.ndarray) -> np.ndarray:
     p = np.asarray(points, dtype=np.float64)
     if p.shape != (468, 2):
         raise ValueError(f"expected the 468 Face Mesh points [468, 2], got {list(p.shape)}")
+    mid, right, down, length = face_axes(p)
+    d = p - mid
+    return (np.stack([d @ right, d @ down], axis=1) / length).reshape(-1)
+
+
+def face_axes(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """The face's own frame in the image from ``[468, 2]`` Face Mesh points (pixels): ``(mid [2],
+    right [2], down [2], length)``, where ``down`` is the unit vector from the forehead point (10) to
+    the chin (152), ``right`` is ``down`` turned to image +x for an upright face, ``mid`` is their
+    midpoint and ``length`` their distance in pixels. Raises ValueError when they coincide."""
     top, chin = p[10], p[152]
     length = float(np.linalg.norm(chin - top))
     if not length > 1e-6:
         raise ValueError("forehead and chin points coincide: not a face layout")
     down = (chin - top) / length
-    right = np.array([down[1], -down[0]])  # image +x for an upright face
-    d = p - 0.5 * (top + chin)
-    return (np.stack([d @ right, d @ down], axis=1) / length).reshape(-1)
+    return 0.5 * (top + chin), np.array([down[1], -down[0]]), down, length
 
 
 @functools.lru_cache(maxsize=1)

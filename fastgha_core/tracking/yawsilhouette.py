@@ -22,6 +22,8 @@ import sys
 import numpy as np
 from scipy import ndimage
 
+from .yawprior import face_axes
+
 __all__ = ["HEIGHTS", "silhouette_edges", "silhouette_features", "near_contour_fraction", "fit_folded_ridge", "predict_folded"]
 
 HEIGHTS = (-0.45, -0.3, -0.15, 0.0, 0.15, 0.3)  # forehead (-0.5) to below the mouth; chin = +0.5
@@ -42,13 +44,8 @@ def silhouette_edges(mask: np.ndarray, points: np.ndarray, side: float, heights=
     p = np.asarray(points, dtype=np.float64)
     if m.ndim != 2 or p.shape != (468, 2):
         raise ValueError(f"expected a mask [H, W] and the 468 Face Mesh points [468, 2], got {list(m.shape)} and {list(p.shape)}")
-    top, chin = p[10], p[152]
-    L = float(np.linalg.norm(chin - top))
-    if not L > 1e-6:
-        raise ValueError("forehead and chin points coincide: not a face layout")
-    down = (chin - top) / L
-    right = np.array([down[1], -down[0]]) * (1.0 if side >= 0 else -1.0)
-    mid = 0.5 * (top + chin)
+    mid, right, down, L = face_axes(p)
+    right = right * (1.0 if side >= 0 else -1.0)
     u_nose = float((p[NOSE_TIP] - mid) @ right) / L
     u_face = float((p.mean(0) - mid) @ right) / L
     u = np.arange(-2.5, 2.5, 0.5 / L)  # half-pixel steps, +-2.5 L around the face's midpoint
@@ -78,12 +75,11 @@ def near_contour_fraction(mask: np.ndarray, points: np.ndarray, side: float) -> 
     scan lines through those points, averaged: the visible share of the head that is face. NaN
     when no scan line finds the head. Raises like :func:`silhouette_edges`."""
     p = np.asarray(points, dtype=np.float64)
+    if p.shape != (468, 2):
+        raise ValueError(f"expected the 468 Face Mesh points [468, 2], got {list(p.shape)}")
     s = 1.0 if side >= 0 else -1.0
-    top, chin = p[10], p[152]
-    L = max(float(np.linalg.norm(chin - top)), 1e-9)
-    down = (chin - top) / L
-    right = np.array([down[1], -down[0]]) * s
-    mid = 0.5 * (top + chin)
+    mid, right, down, L = face_axes(p)
+    right = right * s
     ids = NEAR_CONTOUR[int(s)]
     e = silhouette_edges(mask, p, s, heights=tuple(float((p[j] - mid) @ down) / L for j in ids))
     u = np.array([float((p[j] - p[NOSE_TIP]) @ right) / L for j in ids])  # relative to the nose tip, like the edges
