@@ -300,7 +300,7 @@ class FastGHA(nn.Module):
             ``(gaussians, binding, num_interior)``; the returned Gaussians keep ``g``'s autograd graph
             (means are shifted by a constant when neutralising).
         """
-        from .prior import PriorBinding, bind, fit_head, generic_fit, mouth_interior
+        from .prior import PriorBinding, back_shell, back_shell_vertices, bind, fit_head, generic_fit, mouth_interior
 
         basis = self.head_basis()
         means = g.means.detach().float().cpu()
@@ -339,12 +339,18 @@ class FastGHA(nn.Module):
             g = g.replace(means=g.means - shift.to(dev, g.means.dtype))
         binding = binding.to(dev)
         n_int = 0
+        if self.config.deform.back_shell and len(back_shell_vertices(basis)):
+            # ungated, so first: the gated interior after it stays a trailing run that frames trim
+            gs, bs = back_shell(fit, basis, g.features.shape[1], avatar=g)
+            g = Gaussians.concat([g, gs.to(dev, g.means.dtype)])
+            binding = PriorBinding.concat(binding, bs.to(dev))
+            n_int = len(gs)
         if self.config.deform.mouth_interior and len(basis.interior_vertices):
-            gi, bi = mouth_interior(fit, basis, g.features.shape[1], avatar=g)
+            gi, bi = mouth_interior(fit, basis, g.features.shape[1], avatar=g[: len(g) - n_int])
             gi = gi.to(dev, g.means.dtype)
             g = Gaussians.concat([g, gi])
             binding = PriorBinding.concat(binding, bi.to(dev))
-            n_int = len(gi)
+            n_int += len(gi)
         return g, binding, n_int
 
     @torch.inference_mode()
