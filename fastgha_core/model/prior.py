@@ -672,12 +672,12 @@ def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "G
 # ---------------------------------------------------------------------------- back of the head
 # Back-of-head shell (issue 17): Gaussians exist only on input pixels and no input sees the back of
 # the head, so from behind an avatar was hollow and showed its face from inside. The shell puts flat
-# Gaussians on the fitted head's skin behind the ears and above the hairline, subsampled on a
-# BACK_SHELL_SPACING grid, BACK_SHELL_INSET inside the surface (behind what the inputs do see),
+# Gaussians on the fitted head's skin behind the ears and above the hairline, subsampled to points
+# BACK_SHELL_SPACING apart, BACK_SHELL_INSET inside the surface (behind what the inputs do see),
 # BACK_SHELL_SCALE wide (tangential) and BACK_SHELL_SCALE * BACK_SHELL_FLAT thick (along the normal).
-BACK_SHELL_SPACING = 0.007  # metres: the voxel grid the skin vertices are subsampled on (~1.4k points)
+BACK_SHELL_SPACING = 0.0065  # metres: the least distance between shell points (883 points)
 BACK_SHELL_INSET = 0.005  # metres inside the fitted surface
-BACK_SHELL_SCALE = 0.0045  # metres, tangential scale (closes the 7 mm grid's gaps)
+BACK_SHELL_SCALE = 0.0055  # metres, tangential scale (closes the gaps between points 6.5-13 mm apart)
 BACK_SHELL_FLAT = 0.35  # normal scale / tangential scale
 BACK_SHELL_OPACITY = 0.95
 BACK_SHELL_RADIUS = 0.02  # metres: reconstructed Gaussians this near a shell point colour it
@@ -702,13 +702,23 @@ def _back_shell_cached(key: int, basis: HeadBasis) -> np.ndarray:
     side = np.c_[np.abs(p[:, 0]), p[:, 1:]]  # both ears on the +x side
     sel &= np.linalg.norm(side - BACK_SHELL_EAR_CENTRE, axis=1) > BACK_SHELL_EAR
     ids = idx[sel]
-    _, first = np.unique(np.floor(v[ids] / BACK_SHELL_SPACING).astype(np.int64), axis=0, return_index=True)
-    return np.sort(ids[first]).astype(np.int64)
+    # greedy Poisson-disc subsampling: keep a vertex when no kept one is within BACK_SHELL_SPACING, so
+    # every skin vertex lies within that of a shell point (a voxel grid left 1 cm holes at its seams)
+    from scipy.spatial import cKDTree
+
+    near = cKDTree(v[ids]).query_ball_point(v[ids], r=BACK_SHELL_SPACING)
+    free = np.ones(len(ids), bool)
+    keep = []
+    for i in range(len(ids)):
+        if free[i]:
+            keep.append(i)
+            free[near[i]] = False
+    return ids[np.array(keep, np.int64)].astype(np.int64)
 
 
 def back_shell_vertices(basis: HeadBasis) -> np.ndarray:
     """``[S]`` int64 vertex ids of the back-of-head shell: ICT-FaceKit head skin behind the ears and
-    above the hairline, one vertex per ``BACK_SHELL_SPACING`` grid cell of the neutral head (1.4k).
+    above the hairline, no two closer than ``BACK_SHELL_SPACING`` on the neutral head.
     Empty for other head models (their vertex layout is not known here)."""
     if basis.space != "ict53":
         return np.zeros(0, np.int64)
