@@ -1,4 +1,4 @@
-"""Expression prior from a linear head model, and the mouth interior (issue 16).
+"""Expression prior from a linear head model, the mouth interior (issue 16) and the back of the head (issue 17).
 
 The deformation MLP alone learns expressions slowly (a CPU budget of a few thousand steps moved the
 chin 16 mm for ``jawOpen`` = 1 where the head model moves it 42 mm). The prior gives every
@@ -30,6 +30,9 @@ Pieces (all numpy/torch on CPU, no learning):
   opacity gate that is 0 while the lips are closed; and Gaussians on the upper eyelids, coloured
   like the avatar's skin, and on the upper lashes, dark (the avatar's darkest colours at the open
   eye's upper lid), that appear as a blink closes the lids (``gate_factors``).
+- ``back_shell(fit, basis)``: flat, opaque, ungated Gaussians on the fitted head's skin behind the
+  ears and above the hairline, a few mm inside it and coloured from the avatar next to them: no
+  input photo sees the back of the head, which was otherwise hollow and showed the face from behind.
 """
 
 from __future__ import annotations
