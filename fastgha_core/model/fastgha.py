@@ -73,8 +73,9 @@ def _combine(g: Gaussians, dxyz: Tensor, drgb: Tensor, prior_d: Tensor | None, n
     prior's displacement ``[N, 3]`` (or None), per-Gaussian opacity factors ``gate [N]`` (or None) and
     the prior's expression shading ``shade [N]`` (or None): the reconstructed Gaussians' colour factor.
 
-    ``trim``: drop the trailing interior Gaussians whose gate is 0 (the interior is ordered mouth,
-    left lid, right lid, so a neutral frame renders no more Gaussians than an avatar without them)."""
+    ``trim``: drop the trailing interior Gaussians whose gate is 0 (the interior is ordered back-of-head
+    shell (ungated), mouth, left lid, right lid, so a neutral frame renders no more Gaussians than an
+    avatar without the gated ones)."""
     if prior_d is None and n_int == 0 and gate is None:
         return _apply_deformation(g, dxyz, drgb)
     if trim and n_int and gate is not None:
