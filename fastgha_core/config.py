@@ -130,6 +130,9 @@ class DeformConfig:
     prior: bool = False  # paper: the paper's pure MLP; tiny: on
     prior_fade: tuple[float, float] = (0.006, 0.025)  # metres from the surface: full weight, no weight
     mouth_interior: bool = True  # with the prior: teeth/gums/mouth-socket Gaussians in every avatar
+    # with the prior (ict53): an opaque shell on the fitted head's back and scalp (model/prior.py,
+    # ``back_shell``): no input sees the back of the head, which was hollow and showed the face from behind
+    back_shell: bool = True
     # with the prior: relight what an expression moves (model/prior.py, ``shading_basis``): a photo's
     # baked light otherwise stays on a moved surface (no smile creases, an evenly lit dropped lip)
     prior_shading: bool = True

@@ -12,7 +12,7 @@ import torch
 from pathlib import Path
 
 from fastgha_core.data.headmodel import HeadModel
-from fastgha_core.model.prior import PriorBinding, PriorRuntime, bind, fit_head, load_basis, mouth_gate, mouth_interior
+from fastgha_core.model.prior import PriorBinding, PriorRuntime, back_shell_vertices, bind, fit_head, load_basis, mouth_gate, mouth_interior
 
 
 REPO_SAMPLES = Path(__file__).resolve().parents[1] / "fastgha_core" / "assets" / "samples"
@@ -228,28 +228,33 @@ def test_animate_with_the_prior(model_and_avatar):
     with torch.no_grad():
         model.deform.out.weight.zero_()
         model.deform.out.bias.zero_()
+    grp = avatar.prior.groups()
+    n_shell = int((grp[n_rec:] == -1).sum())  # the back-of-head shell: ungated, first after the reconstruction
+    assert model.config.deform.back_shell and n_shell > 0 and torch.all(grp[n_rec : n_rec + n_shell] == -1)
+    n_vis = n_rec + n_shell
     neutral = model.animate(avatar, torch.zeros(53))
-    assert len(neutral) == n_rec  # closed lips and open eyes: every gated Gaussian is hidden, and left out
-    torch.testing.assert_close(neutral.means, avatar.gaussians.means[:n_rec])  # identity at zero expression
+    assert len(neutral) == n_vis  # closed lips and open eyes: every gated Gaussian is hidden, and left out
+    torch.testing.assert_close(neutral.means, avatar.gaussians.means[:n_vis])  # identity at zero expression
     full = model.static_gaussians(avatar)
-    assert len(full) == len(avatar.gaussians) and torch.all(full.opacities[n_rec:] == 0)
+    assert len(full) == len(avatar.gaussians) and torch.all(full.opacities[n_vis:] == 0)
     z = torch.zeros(53)
     z[hm.expression_names.index("jawOpen")] = 1.0
     opened = model.animate(avatar, z)
     chin = int(torch.argmin((avatar.gaussians.means[:n_rec] - torch.tensor(hm.neutral[hm.landmarks68[8]])).norm(dim=1)))
     assert float((opened.means[chin] - neutral.means[chin]).norm()) > 0.02
-    grp = avatar.prior.groups()
     mouth, lid_l = grp == 0, grp == 1
     assert mouth.any() and lid_l.any()
     n_mouth = int(mouth.sum())
-    assert len(opened) == n_rec + n_mouth and torch.all(opened.opacities[n_rec:] > 0)  # jaw open: mouth, not lids
+    assert len(opened) == n_vis + n_mouth and torch.all(opened.opacities[n_rec:] > 0)  # jaw open: mouth, not lids
+    shell = slice(n_rec, n_vis)  # on the skull: the expression does not move it
+    torch.testing.assert_close(opened.means[shell], avatar.gaussians.means[shell])
     blink = torch.zeros(53)
     blink[hm.expression_names.index("eyeBlink_L")] = 1.0
     closed = model.animate(avatar, blink)
-    assert len(closed) == n_rec + n_mouth + int(lid_l.sum())
+    assert len(closed) == n_vis + n_mouth + int(lid_l.sum())
     assert torch.all(closed.opacities[lid_l[: len(closed)]] > 0) and torch.all(closed.opacities[mouth[: len(closed)]] == 0)
     hides = grp == int(avatar.prior.groups().max())  # reconstructed Gaussians on an eyeball fade as its lid closes
-    assert hides.any() and torch.all(neutral.opacities[hides[:n_rec]] > 0)
+    assert hides.any() and torch.all(neutral.opacities[:n_rec][hides[:n_rec]] > 0)
     both_eyes = torch.zeros(53)
     both_eyes[[hm.expression_names.index("eyeBlink_L"), hm.expression_names.index("eyeBlink_R")]] = 1.0
     either = model.animate(avatar, both_eyes)
@@ -339,6 +344,75 @@ def test_old_avatar_gets_a_prior_on_first_animate(model_and_avatar):
     old = CanonicalAvatar(avatar.gaussians[:n_rec], "tiny", "ict53")
     model.animate(old, torch.zeros(53))
     assert old.prior is not None and old.num_interior == avatar.num_interior
+
+
+def test_back_shell_closes_the_back_of_the_head_and_leaves_the_front_alone():
+    """No input sees the back of the head: an avatar made of the face's Gaussians only (the ICT skin in
+    front of the ears, a dark band across the eyes), seen from behind, showed the inside of the face
+    (issue 17). With ``deform.back_shell`` the back of the fitted skull is drawn there instead (depth
+    from behind ~ the back of the head, the colour the avatar's skin next to it, the dark eye band gone),
+    and a frontal render does not change where the face is drawn."""
+    import copy
+
+    from fastgha_core.cameras import Cameras
+    from fastgha_core.config import get_preset
+    from fastgha_core.gaussians import Gaussians
+    from fastgha_core.model.fastgha import FastGHA
+    from fastgha_core.render import render
+
+    basis = load_basis("ict53")
+    ids = back_shell_vertices(basis)
+    assert 500 <= len(ids) <= 1500
+    hm = HeadModel.load()
+    v = hm.neutral
+    face = np.arange(0, 11248, 2)
+    face = face[v[face, 2] > v[hm.landmarks68[0], 2] - 0.01]  # what frontal photos see: in front of the ears
+    skin, dark = np.array([0.78, 0.58, 0.48], np.float32), np.array([0.05, 0.05, 0.05], np.float32)
+    lm = v[hm.landmarks68]
+    band = (np.abs(v[face, 1] - lm[36:48, 1].mean()) < 0.012) & (np.abs(v[face, 0]) < 0.06)  # a dark band across the eyes
+    cols = np.where(band[:, None], dark, skin).astype(np.float32)
+    n = len(face)
+    g = Gaussians(
+        torch.from_numpy(v[face].copy()), torch.tensor([1.0, 0, 0, 0]).expand(n, 4).clone(), torch.full((n, 3), 0.0025),
+        torch.full((n,), 0.95), torch.from_numpy(cols), torch.zeros(n, 32),
+    )
+    torch.manual_seed(0)
+    model = FastGHA(get_preset("tiny")).eval()
+    with torch.no_grad():
+        model.deform.out.weight.zero_()
+        model.deform.out.bias.zero_()
+    hollow = copy.deepcopy(model)
+    hollow.config.deform.back_shell = False
+    from fastgha_core.model.avatar import CanonicalAvatar
+
+    avatars = {}
+    for name, m in (("shell", model), ("hollow", hollow)):
+        g2, b, n_int = m.build_prior(g)
+        avatars[name] = (m, CanonicalAvatar(g2, "tiny", "ict53", b, n_int))
+    n_shell = len(avatars["shell"][1].gaussians) - len(avatars["hollow"][1].gaussians)
+    assert n_shell == len(ids)
+    centre = torch.tensor([0.0, float(lm[27:31, 1].mean()), 0.0])
+    views = {}
+    for yaw in (0.0, 180.0):
+        eye = centre + 0.6 * torch.tensor([math.sin(math.radians(yaw)), 0.0, math.cos(math.radians(yaw))])
+        cam = Cameras.look_at(eye[None], centre[None], fov_deg=28.0, width=96, height=96)
+        for name, (m, av) in avatars.items():
+            out = render(m.animate(av, torch.zeros(53)), cam, background=(1.0, 1.0, 1.0))
+            views[name, yaw] = out
+    # from behind, the middle of the head: the back of the skull (~0.5 m away), not the face (~0.7 m)
+    mid = (slice(36, 60), slice(36, 60))
+    d_shell = float(views["shell", 180.0].depth[0, 0][mid].median())
+    d_hollow = float(views["hollow", 180.0].depth[0, 0][mid].median())
+    assert d_hollow > 0.66 and d_shell < 0.56, (d_hollow, d_shell)
+    assert float(views["shell", 180.0].alpha[0, 0][mid].min()) > 0.95
+    rgb_back = views["shell", 180.0].rgb[0][:, mid[0], mid[1]].reshape(3, -1)
+    assert float((rgb_back - torch.from_numpy(skin)[:, None]).abs().max()) < 0.1  # the avatar's skin, no dark band
+    hol_back = views["hollow", 180.0].rgb[0][:, mid[0], mid[1]].reshape(3, -1)
+    assert float(hol_back.min()) < 0.3  # without the shell the face's dark band shows through from behind
+    # from the front, wherever the face is drawn (the shell may only widen the silhouette behind the ears)
+    seen = views["hollow", 0.0].alpha[0, 0] > 0.9
+    front = (views["shell", 0.0].rgb[0] - views["hollow", 0.0].rgb[0]).abs()[:, seen]
+    assert float(front.mean()) < 5e-3 and float(front.max()) < 0.1, (float(front.mean()), float(front.max()))  # 0.003, 0.05: a sparse toy face
 
 
 def test_training_forward_with_the_prior_reaches_the_mlp():

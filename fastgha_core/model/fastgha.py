@@ -73,8 +73,9 @@ def _combine(g: Gaussians, dxyz: Tensor, drgb: Tensor, prior_d: Tensor | None, n
     prior's displacement ``[N, 3]`` (or None), per-Gaussian opacity factors ``gate [N]`` (or None) and
     the prior's expression shading ``shade [N]`` (or None): the reconstructed Gaussians' colour factor.
 
-    ``trim``: drop the trailing interior Gaussians whose gate is 0 (the interior is ordered mouth,
-    left lid, right lid, so a neutral frame renders no more Gaussians than an avatar without them)."""
+    ``trim``: drop the trailing interior Gaussians whose gate is 0 (the interior is ordered back-of-head
+    shell (ungated), mouth, left lid, right lid, so a neutral frame renders no more Gaussians than an
+    avatar without the gated ones)."""
     if prior_d is None and n_int == 0 and gate is None:
         return _apply_deformation(g, dxyz, drgb)
     if trim and n_int and gate is not None:
@@ -300,7 +301,7 @@ class FastGHA(nn.Module):
             ``(gaussians, binding, num_interior)``; the returned Gaussians keep ``g``'s autograd graph
             (means are shifted by a constant when neutralising).
         """
-        from .prior import PriorBinding, bind, fit_head, generic_fit, mouth_interior
+        from .prior import PriorBinding, back_shell, back_shell_vertices, bind, fit_head, generic_fit, mouth_interior
 
         basis = self.head_basis()
         means = g.means.detach().float().cpu()
@@ -339,12 +340,18 @@ class FastGHA(nn.Module):
             g = g.replace(means=g.means - shift.to(dev, g.means.dtype))
         binding = binding.to(dev)
         n_int = 0
+        if self.config.deform.back_shell and len(back_shell_vertices(basis)):
+            # ungated, so first: the gated interior after it stays a trailing run that frames trim
+            gs, bs = back_shell(fit, basis, g.features.shape[1], avatar=g)
+            g = Gaussians.concat([g, gs.to(dev, g.means.dtype)])
+            binding = PriorBinding.concat(binding, bs.to(dev))
+            n_int = len(gs)
         if self.config.deform.mouth_interior and len(basis.interior_vertices):
-            gi, bi = mouth_interior(fit, basis, g.features.shape[1], avatar=g)
+            gi, bi = mouth_interior(fit, basis, g.features.shape[1], avatar=g[: len(g) - n_int])
             gi = gi.to(dev, g.means.dtype)
             g = Gaussians.concat([g, gi])
             binding = PriorBinding.concat(binding, bi.to(dev))
-            n_int = len(gi)
+            n_int += len(gi)
         return g, binding, n_int
 
     @torch.inference_mode()
