@@ -30,6 +30,9 @@ Pieces (all numpy/torch on CPU, no learning):
   opacity gate that is 0 while the lips are closed; and Gaussians on the upper eyelids, coloured
   like the avatar's skin, and on the upper lashes, dark (the avatar's darkest colours at the open
   eye's upper lid), that appear as a blink closes the lids (``gate_factors``).
+- ``hide_open_lips(binding, ...)``: the reconstructed Gaussians near the lips from input photos whose
+  (tracked) expression opens the mouth fade out as the avatar's mouth opens: undone onto the closed
+  lips, those photos' teeth and mouth gap lined the opening (``open_mouth_views``).
 - ``back_shell(fit, basis)``: flat, opaque, ungated Gaussians on the fitted head's skin behind the
   ears and above the hairline, a few mm inside it and coloured from the avatar next to them: no
   input photo sees the back of the head, which was otherwise hollow and showed the face from behind.
@@ -487,7 +490,9 @@ class PriorBinding:
     transform: Tensor
     identity: Tensor
     space: str
-    group: Tensor | None = None  # [N] int64: gate group of interior Gaussians, -1 for the reconstructed ones
+    # [N] int64: gate group of interior Gaussians (0..G-1); reconstructed ones: -1, or a hide group
+    # (G..2G-2: eyes under closing lids, ``bind``; 2G-1: open-mouthed photos' lips, ``hide_open_lips``)
+    group: Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.vertex_ids.shape[0])
