@@ -19,6 +19,10 @@ listed under ``dropped``; a set where none tracks is reported with the error. Ex
 
     python bench/realset_responses.py --model tiny --json out/realsets.json
 
+``--sizes 448,512,576`` also measures each response at those render sides and their mean: dlib's
+reading of one render moves by a few hundredths of an interocular distance with the render size
+(and with the server's JPEG rounding), as much as the margin of a reading near its target.
+
 ``--server URL`` builds each avatar through a running server instead (``fastgha serve``): the photos
 are posted alone, without cameras, the server tracks and reconstructs them with its own settings,
 and the four frames are streamed back over the WebSocket at the same camera (JPEG quality 100)::
@@ -52,7 +56,7 @@ def realsets_root() -> Path:
     return Path(env) if env else (REPO / ".." / "shared" / "realsets").resolve()
 
 
-def run_set(model, folder: Path, size: int, det, pictures: Path | None, drop_untracked: bool = True, surface: bool = True) -> dict:
+def run_set(model, folder: Path, size: int, det, pictures: Path | None, drop_untracked: bool = True, surface: bool = True, sizes: tuple[int, ...] = ()) -> dict:
     import torch
     from fastgha_core.constants import BACKGROUND_RGB
     from fastgha_core.images import read_image  # the project's one decoder (EXIF orientation applied)
@@ -80,15 +84,30 @@ def run_set(model, folder: Path, size: int, det, pictures: Path | None, drop_unt
     expr = torch.from_numpy(tr.expressions) if tr.expressions.shape[1] == model.config.expression_dim else None
     with torch.inference_mode():
         avatar = model.reconstruct(x, c, expressions=expr, surface=HeadSurface.from_tracking(tr) if surface else None)
-    cam = frontal_camera(model, size)
     space = model.expression_space
-    frames = {}
-    for name, w in EXPRESSIONS.items():
-        with torch.inference_mode():
-            g = model.animate(avatar, space.parse(w))
-            frames[name] = _u8(render(g, cam, background=BACKGROUND_RGB).rgb[0].float().clamp(0, 1))
+
+    def frames_at(sz: int) -> dict:
+        cam = frontal_camera(model, sz)
+        frames = {}
+        for name, w in EXPRESSIONS.items():
+            with torch.inference_mode():
+                g = model.animate(avatar, space.parse(w))
+                frames[name] = _u8(render(g, cam, background=BACKGROUND_RGB).rgb[0].float().clamp(0, 1))
+        return frames
+
     out: dict = {"photos": [p.name for p in paths], "dropped": dropped, "gaussians": len(avatar)}
-    out.update(measure_frames(frames, det, folder.name, pictures))
+    out.update(measure_frames(frames_at(size), det, folder.name, pictures))
+    if sizes:
+        out["by_size"] = by_size({sz: measure_frames(frames_at(sz), det, folder.name, None)["responses"] for sz in sizes})
+    return out
+
+
+def by_size(res: dict) -> dict:
+    """``{size: responses}`` -> the same plus ``"mean"``: each response averaged over the sizes where dlib
+    measured it (dlib's reading of one render moves by a few hundredths with the render size)."""
+    out = {str(k): v for k, v in res.items()}
+    keys = sorted({k for r in res.values() for k in r})
+    out["mean"] = {k: float(np.mean([r[k] for r in res.values() if k in r])) for k in keys}
     return out
 
 
@@ -99,7 +118,7 @@ def frontal_camera(model, size: int):
     return FrameRenderer(model, "cpu").default_camera.resize(size, size)
 
 
-def run_set_server(url: str, api_key: str | None, model, folder: Path, size: int, det, pictures: Path | None) -> dict:
+def run_set_server(url: str, api_key: str | None, model, folder: Path, size: int, det, pictures: Path | None, sizes: tuple[int, ...] = ()) -> dict:
     """The same responses for an avatar built by a running server from the photos alone.
 
     The photos are posted without cameras (the server tracks them, as for a user's upload), and the
@@ -111,19 +130,25 @@ def run_set_server(url: str, api_key: str | None, model, folder: Path, size: int
     paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
     client = FastGHAClient(url, api_key=api_key, timeout=600.0)
     avatar = client.create_avatar(paths)
-    try:
-        cam = frontal_camera(model, size)
-        camera = {"K": cam.K.tolist(), "w2c": cam.w2c.tolist(), "width": size, "height": size}
+
+    def frames_at(sz: int) -> dict:
+        cam = frontal_camera(model, sz)
+        camera = {"K": cam.K.tolist(), "w2c": cam.w2c.tolist(), "width": sz, "height": sz}
         requests = [{"expression": w, "camera": camera} for w in EXPRESSIONS.values()]
-        got = client.stream_sync(avatar, requests, options={"jpeg_quality": 100, "max_size": size})
+        got = client.stream_sync(avatar, requests, options={"jpeg_quality": 100, "max_size": sz})
+        frames = {name: f.image() for name, f in zip(EXPRESSIONS, got)}
+        for name, img in frames.items():
+            if img.shape[:2] != (sz, sz):
+                raise RuntimeError(f"the server sent a {img.shape[1]}x{img.shape[0]} frame for {name}, expected {sz}x{sz}")
+        return frames
+
+    try:
+        out: dict = {"photos": [p.name for p in paths], "dropped": [], "gaussians": avatar.num_gaussians, "via": url}
+        out.update(measure_frames(frames_at(size), det, folder.name, pictures))
+        if sizes:
+            out["by_size"] = by_size({sz: measure_frames(frames_at(sz), det, folder.name, None)["responses"] for sz in sizes})
     finally:
         client.delete(avatar)
-    frames = {name: f.image() for name, f in zip(EXPRESSIONS, got)}
-    for name, img in frames.items():
-        if img.shape[:2] != (size, size):
-            raise RuntimeError(f"the server sent a {img.shape[1]}x{img.shape[0]} frame for {name}, expected {size}x{size}")
-    out: dict = {"photos": [p.name for p in paths], "dropped": [], "gaussians": avatar.num_gaussians, "via": url}
-    out.update(measure_frames(frames, det, folder.name, pictures))
     return out
 
 
@@ -167,6 +192,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", default="tiny")
     ap.add_argument("--size", type=int, default=512, help="render side (default 512)")
+    ap.add_argument("--sizes", default=None, help="also measure at these render sides (comma-separated, e.g. 448,512,576) and their mean: dlib's jitter")
     ap.add_argument("--json", default=None, help="write the results here")
     ap.add_argument("--pictures", default=None, help="write the renders here (local look only; never commit pictures of these people)")
     ap.add_argument("--sets", default=None, help="comma-separated set names (default: all)")
@@ -175,6 +201,7 @@ def main(argv=None) -> int:
     ap.add_argument("--server", default=None, metavar="URL", help="build each avatar through this running server from the photos alone (no cameras) and measure its streamed frames")
     ap.add_argument("--api-key", default=os.environ.get("FASTGHA_API_KEY"), help="the server's API key (default: $FASTGHA_API_KEY)")
     args = ap.parse_args(argv)
+    sizes = tuple(int(x) for x in args.sizes.split(",")) if args.sizes else ()
     root = realsets_root()
     if not root.is_dir():
         print(f"no real photo sets at {root}: skipped")
@@ -194,13 +221,15 @@ def main(argv=None) -> int:
         try:
             pictures = Path(args.pictures) if args.pictures else None
             if args.server:
-                report["sets"][s.name] = run_set_server(args.server, args.api_key, model, s, args.size, det, pictures)
+                report["sets"][s.name] = run_set_server(args.server, args.api_key, model, s, args.size, det, pictures, sizes)
             else:
-                report["sets"][s.name] = run_set(model, s, args.size, det, pictures, not args.keep_untracked, not args.no_surface)
+                report["sets"][s.name] = run_set(model, s, args.size, det, pictures, not args.keep_untracked, not args.no_surface, sizes)
         except Exception as e:  # tracking failures name the photo; report and go on
             report["sets"][s.name] = {"error": f"{type(e).__name__}: {e}"}
         r = report["sets"][s.name]
         print(s.name, json.dumps(r.get("responses", r.get("error"))), json.dumps(r.get("targets_met", {})), "dropped:", r.get("dropped"))
+        if "by_size" in r:
+            print("  by size:", json.dumps({k: {q: round(x, 3) for q, x in v.items()} for k, v in r["by_size"].items()}))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(report, indent=2))

@@ -723,3 +723,53 @@ def test_open_mouth_teeth_end_where_the_teeth_end():
     covered = np.flatnonzero((alpha[:, cols] > 0.3).any(1))
     assert len(covered) and covered.max() >= edge - 2 * px_per_mm, "the teeth should be drawn"
     assert (covered.max() - edge) / px_per_mm < 3.0, ((covered.max() - edge) / px_per_mm, "mm past the teeth's edge")
+
+
+def test_open_mouthed_views_lose_their_lips_as_the_avatar_opens_its_mouth():
+    """The lips of an input photo with an open mouth (its teeth and gap, once its expression is undone,
+    lie on the closed neutral lips) fade out as the avatar's mouth opens, on the frame path and the
+    plain path alike; the closed-mouthed photo's lips and the open one's skin away from the lips stay
+    (issue 16: they lined studio-4's opening with a pale band that dlib took for the inner lips)."""
+    from fastgha_core.config import get_preset
+    from fastgha_core.gaussians import Gaussians
+    from fastgha_core.model.avatar import CanonicalAvatar
+    from fastgha_core.model.fastgha import FastGHA, _combine
+    from fastgha_core.model.prior import LIP_RADIUS, lip_hide_group, open_mouth_views
+
+    basis = load_basis("ict53")
+    hm = HeadModel.load()
+    names = hm.expression_names
+    one = lambda **w: torch.tensor([w.get(n, 0.0) for n in names])  # noqa: E731
+    # which views count as open: the gate above OPEN_VIEW_GATE, never the most closed one
+    ve = torch.stack([one(mouthSmile_L=0.8), one(jawOpen=0.6, mouthSmile_L=0.5), one(jawOpen=0.3)])
+    assert open_mouth_views(ve, basis).tolist() == [False, True, True]
+    assert open_mouth_views(torch.stack([one(jawOpen=0.5), one(jawOpen=0.4)]), basis).tolist() == [True, False]
+    with pytest.raises(ValueError, match="view expressions"):
+        open_mouth_views(torch.zeros(2, 7), basis)
+    # two views of the same skin: view 0 closed-mouthed, view 1 open (undone by build_prior)
+    torch.manual_seed(0)
+    model = FastGHA(get_preset("tiny")).eval()
+    v = torch.from_numpy(hm.neutral[:11248:2].copy())
+    n = len(v)
+    g1 = Gaussians(v, torch.tensor([1.0, 0, 0, 0]).expand(n, 4).clone(), torch.full((n, 3), 0.002), torch.full((n,), 0.9), torch.full((n, 3), 0.6), torch.randn(n, 32) * 0.1)
+    jaw = torch.from_numpy(hm.expression_basis[names.index("jawOpen"), :11248:2].copy())
+    g = Gaussians.concat([g1, g1.replace(means=v + 0.7 * jaw)])  # view 1 as photographed: its jaw 0.7 open
+    vi = torch.arange(2).repeat_interleave(n)
+    g2, binding, n_int = model.build_prior(g, vi, torch.stack([torch.zeros(53), one(jawOpen=0.7)]))
+    lips = torch.from_numpy(np.linalg.norm(v.numpy()[:, None] - hm.neutral[hm.landmarks68[48:68]][None], axis=-1).min(1) < 0.5 * LIP_RADIUS)
+    far = torch.from_numpy(np.linalg.norm(v.numpy()[:, None] - hm.neutral[hm.landmarks68[48:68]][None], axis=-1).min(1) > 2 * LIP_RADIUS)
+    assert int(lips.sum()) > 20 and int(far.sum()) > 1000
+    grp = binding.groups()[: 2 * n]
+    hidden = grp == lip_hide_group(basis)
+    assert hidden[n:][lips].all() and not hidden[n:][far].any() and not hidden[:n].any()
+    avatar = CanonicalAvatar(g2, "tiny", "ict53", binding, n_int)
+    for z, open_factor in ((torch.zeros(53), 1.0), (one(mouthSmile_L=1.0, mouthSmile_R=1.0), 1.0), (one(jawOpen=1.0), 0.0)):
+        fast = model.animate(avatar, z)  # CPU, one expression: PriorRuntime.frame
+        rt = avatar.prior_runtime
+        with torch.inference_mode():
+            dxyz, drgb = model.deform.forward_split(model._deform_partial(avatar), z)
+            plain = _combine(g2, dxyz, drgb, rt.displacement(z), n_int, model._gate(z, rt), trim=True, shade=rt.shading(z))
+        for out in (fast, plain):
+            op = out.opacities[: 2 * n]
+            assert torch.allclose(op[n:][lips], torch.full((int(lips.sum()),), 0.9 * open_factor))
+            assert torch.allclose(op[:n][lips], torch.full((int(lips.sum()),), 0.9)) and torch.allclose(op[n:][far], torch.full((int(far.sum()),), 0.9))

@@ -301,7 +301,7 @@ class FastGHA(nn.Module):
             ``(gaussians, binding, num_interior)``; the returned Gaussians keep ``g``'s autograd graph
             (means are shifted by a constant when neutralising).
         """
-        from .prior import PriorBinding, back_shell, back_shell_vertices, bind, fit_head, generic_fit, mouth_interior
+        from .prior import PriorBinding, back_shell, back_shell_vertices, bind, fit_head, generic_fit, hide_open_lips, mouth_interior, open_mouth_views
 
         basis = self.head_basis()
         means = g.means.detach().float().cpu()
@@ -338,6 +338,8 @@ class FastGHA(nn.Module):
                 except (ValueError, np.linalg.LinAlgError):
                     pass
             g = g.replace(means=g.means - shift.to(dev, g.means.dtype))
+            # lips of open-mouthed photos (their teeth and gap undone onto the closed lips) fade out as the mouth opens
+            binding = hide_open_lips(binding, means - shift, vi, open_mouth_views(ve, basis), basis)
         binding = binding.to(dev)
         n_int = 0
         if self.config.deform.back_shell and len(back_shell_vertices(basis)):

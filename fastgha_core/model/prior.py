@@ -30,6 +30,9 @@ Pieces (all numpy/torch on CPU, no learning):
   opacity gate that is 0 while the lips are closed; and Gaussians on the upper eyelids, coloured
   like the avatar's skin, and on the upper lashes, dark (the avatar's darkest colours at the open
   eye's upper lid), that appear as a blink closes the lids (``gate_factors``).
+- ``hide_open_lips(binding, ...)``: the reconstructed Gaussians near the lips from input photos whose
+  (tracked) expression opens the mouth fade out as the avatar's mouth opens: undone onto the closed
+  lips, those photos' teeth and mouth gap lined the opening (``open_mouth_views``).
 - ``back_shell(fit, basis)``: flat, opaque, ungated Gaussians on the fitted head's skin behind the
   ears and above the hairline, a few mm inside it and coloured from the avatar next to them: no
   input photo sees the back of the head, which was otherwise hollow and showed the face from behind.
@@ -59,6 +62,9 @@ __all__ = [
     "back_shell",
     "back_shell_vertices",
     "mouth_gate_vector",
+    "open_mouth_views",
+    "hide_open_lips",
+    "lip_hide_group",
     "generic_fit",
     "gate_factors",
     "shading_basis",
@@ -97,6 +103,12 @@ _LUMA = np.array([0.299, 0.587, 0.114], np.float32)  # Rec. 601 luma weights
 SHADE_AMBIENT = 0.3
 SHADE_LIGHT = np.array([0.0, 0.5, 1.0], np.float64) / np.sqrt(1.25)
 SHADE_RANGE = (0.5, 1.5)  # the per-Gaussian colour factor is clamped to this
+# Lips of input photos with an open mouth (``hide_open_lips``): a view whose tracked expression opens
+# the mouth gate (``gates[0] @ z``) above OPEN_VIEW_GATE has its reconstructed Gaussians within
+# LIP_RADIUS of the lips (the fitted head's 20 lip landmarks, ``HeadBasis.lip_landmarks``) fade out as
+# the avatar's mouth opens; the view with the most closed mouth always keeps its lips.
+OPEN_VIEW_GATE = 0.1
+LIP_RADIUS = 0.008  # metres
 
 
 @dataclass(frozen=True, eq=False)
@@ -133,6 +145,8 @@ class HeadBasis:
     # [F] bool: triangles of ``bind_faces`` inside the mouth (teeth, gums/tongue, socket) that the
     # reconstructed Gaussians do not bind to (``bind``); None: every triangle binds
     mouth_faces: np.ndarray | None = None
+    # [L] vertex ids of the lip landmarks (``hide_open_lips``); None: no lip hiding
+    lip_landmarks: np.ndarray | None = None
 
     @property
     def gate(self) -> np.ndarray:
@@ -260,6 +274,7 @@ def _ict_basis() -> HeadBasis:
         hide_group=hide,
         lash=lash_flag,
         mouth_faces=inside[faces].any(1),
+        lip_landmarks=np.asarray(m.landmarks68[48:68], np.int64),
     )
 
 
@@ -475,7 +490,9 @@ class PriorBinding:
     transform: Tensor
     identity: Tensor
     space: str
-    group: Tensor | None = None  # [N] int64: gate group of interior Gaussians, -1 for the reconstructed ones
+    # [N] int64: gate group of interior Gaussians (0..G-1); reconstructed ones: -1, or a hide group
+    # (G..2G-2: eyes under closing lids, ``bind``; 2G-1: open-mouthed photos' lips, ``hide_open_lips``)
+    group: Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.vertex_ids.shape[0])
@@ -795,6 +812,71 @@ def mouth_gate_vector(basis: HeadBasis) -> Tensor:
     return torch.from_numpy(basis.gate)
 
 
+def open_mouth_views(view_expressions: np.ndarray | Tensor, basis: HeadBasis) -> np.ndarray:
+    """``[V]`` bool: input views whose expression ``view_expressions [V, E]`` opens the mouth gate
+    (``basis.gates[0] @ z``) above ``OPEN_VIEW_GATE``, except the view with the lowest gate, which is
+    never marked (some view always keeps its lips). Raises ``ValueError`` for another shape."""
+    ve = np.asarray(view_expressions.detach().cpu() if isinstance(view_expressions, Tensor) else view_expressions, np.float64)
+    if ve.ndim != 2 or ve.shape[1] != basis.num_expression:
+        raise ValueError(f"open_mouth_views: expected view expressions [V, {basis.num_expression}], got {list(ve.shape)}")
+    gv = ve @ basis.gates[0].astype(np.float64)
+    out = gv > OPEN_VIEW_GATE
+    if len(gv):
+        out[int(np.argmin(gv))] = False
+    return out
+
+
+def lip_hide_group(basis: HeadBasis) -> int:
+    """The binding group of reconstructed Gaussians that fade out as the mouth opens
+    (``1 - gate 0``; its slot is the last of ``factor_table``)."""
+    return 2 * int(basis.gates.shape[0]) - 1
+
+
+def hide_open_lips(binding: PriorBinding, points: np.ndarray | Tensor, view_index: Tensor, open_views: np.ndarray, basis: HeadBasis) -> PriorBinding:
+    """Make the lip Gaussians of open-mouthed input views fade out as the avatar's mouth opens.
+
+    Cause (issue 16, real photo sets): each photo's Gaussians sit on the tracked head at that photo's
+    expression and are moved back by it to the neutral canonical head. Where a photo shows its mouth
+    open or a broad smile, the tracked lips miss the photo's by a few mm: pixels of its teeth, of the
+    dark gap and of the inner lip edges land on the tracked lips and, undone, sit on the closed neutral
+    lips (hidden there behind the other views' lips). With ``jawOpen`` they travel with the lips and
+    line the opening: a pale band over the lower lip and a lower upper-lip edge, which dlib takes for
+    the inner lips (studio-4's lip-gap change +0.18 where its lower lip moves 0.41 interocular
+    distances on screen). Gaussians of such views (``open_views [V]``, ``open_mouth_views``) within
+    ``LIP_RADIUS`` (times the fit's scale) of the fitted head's lip landmarks, with weight > 0 and no
+    gate group, get ``lip_hide_group``: at the neutral expression they draw as before, and the mouth's
+    opening shows the lips of the closed-mouthed views and the avatar's own interior.
+
+    Args:
+        binding: the reconstructed Gaussians' binding (``N``).
+        points: ``[N, 3]`` their neutral positions (those ``binding`` was made from; metres).
+        view_index: ``[N]`` input view of each Gaussian.
+        open_views: ``[V]`` bool.
+        basis: the head basis (without ``lip_landmarks`` the binding is returned unchanged).
+    Raises:
+        ValueError: ``points`` or ``view_index`` not ``[N, 3]`` / ``[N]``.
+    """
+    from scipy.spatial import cKDTree
+
+    p = points.detach().cpu().float().numpy() if isinstance(points, Tensor) else np.asarray(points, np.float32)
+    if view_index.shape != (len(binding),) or p.shape != (len(binding), 3):
+        raise ValueError(f"hide_open_lips: points and view_index must have shapes [{len(binding)}, 3] and [{len(binding)}], got {list(p.shape)} and {list(view_index.shape)}")
+    if basis.lip_landmarks is None or not np.asarray(open_views).any():
+        return binding
+    vi = view_index.detach().cpu().long().numpy()
+    ov = np.asarray(open_views, bool)
+    scale = float(np.cbrt(abs(np.linalg.det(binding.transform[:3, :3].double().cpu().numpy()))))
+    d, _ = cKDTree(binding.fitted_vertices(basis)[basis.lip_landmarks]).query(p)
+    lip = d < LIP_RADIUS * scale
+    grp = binding.groups().cpu().numpy().copy()
+    sel = ov[vi] & lip & (binding.weight.cpu().numpy() > 0) & (grp < 0)
+    grp[sel] = lip_hide_group(basis)
+    return PriorBinding(
+        binding.vertex_ids, binding.bary, binding.weight, binding.transform, binding.identity, binding.space,
+        torch.from_numpy(grp).to(binding.vertex_ids.device),
+    )
+
+
 def mouth_gate(z: Tensor, gate: Tensor) -> Tensor:
     """Opacity factor of the mouth interior for ``z [E]`` or ``[B, E]`` -> ``[]`` / ``[B]`` in [0, 1]."""
     x = ((z @ gate) - GATE_START) / (GATE_FULL - GATE_START)
@@ -805,16 +887,17 @@ def mouth_gate(z: Tensor, gate: Tensor) -> Tensor:
 def opacity_factors(z: Tensor, basis: HeadBasis, index: Tensor) -> Tensor:
     """Per-Gaussian opacity factors ``[N]`` (``[B, N]``) for ``z [E]`` (``[B, E]``); ``index [N]`` =
     ``binding.groups() + 1``. Slot 0 = 1 (no gate), slots 1..G = the gates (interior Gaussians appear),
-    slots G+1.. = 1 - gate k (reconstructed Gaussians that hide, k = 1..)."""
+    slots G+1..2G-1 = 1 - gate k (reconstructed Gaussians that hide, k = 1..G-1: eyes under the
+    lids), slot 2G = 1 - gate 0 (open-mouthed views' lips, ``hide_open_lips``)."""
     gates = torch.as_tensor(basis.gates, device=z.device, dtype=z.dtype)
     return factor_table(z, gates, torch.as_tensor(basis.gate_ranges, device=z.device, dtype=z.dtype))[..., index]
 
 
 def factor_table(z: Tensor, gates: Tensor, ranges: Tensor) -> Tensor:
-    """The opacity factor of each slot of ``opacity_factors``: ``z [E]`` (``[B, E]``) -> ``[2G]`` (``[B, 2G]``)."""
+    """The opacity factor of each slot of ``opacity_factors``: ``z [E]`` (``[B, E]``) -> ``[2G + 1]`` (``[B, 2G + 1]``)."""
     f = gate_factors(z, gates, ranges)
     one = torch.ones_like(f[..., :1])
-    return torch.cat([one, f, 1.0 - f[..., 1:]], dim=-1)  # [G + 1 + (G - 1)]
+    return torch.cat([one, f, 1.0 - f[..., 1:], 1.0 - f[..., :1]], dim=-1)  # [1 + G + (G - 1) + 1]
 
 
 def gate_factors(z: Tensor, gates: Tensor, ranges: Tensor) -> Tensor:
@@ -1016,7 +1099,7 @@ class PriorRuntime:
         return (1.0 + (self.W @ su.T).T).clamp(*SHADE_RANGE)  # [B, N]
 
     def factor_table(self, z: Tensor) -> Tensor:
-        """The opacity factor of each gate slot for ``z [E]`` -> ``[2G]`` (``opacity_factors`` is it at ``group_index``)."""
+        """The opacity factor of each gate slot for ``z [E]`` -> ``[2G + 1]`` (``opacity_factors`` is it at ``group_index``)."""
         return factor_table(z.to(self.gates.dtype), self.gates, self.gate_ranges)
 
     def frame(self, g, n_int: int, dxyz: Tensor, drgb: Tensor, z: Tensor):
@@ -1048,7 +1131,7 @@ class PriorRuntime:
         ts = (g.means, g.colors, g.opacities, dxyz, drgb, z, self.basis_u)
         if any(t.device.type != "cpu" or t.dtype != torch.float32 for t in ts):
             raise ValueError("PriorRuntime.frame: expects float32 CPU tensors, got " + ", ".join(f"{t.dtype} on {t.device}" for t in ts))
-        table = self.factor_table(z).numpy()  # [2G] float32
+        table = self.factor_table(z).numpy()  # [2G + 1] float32
         if self._run_max is None or self._run_max[0] is not g.opacities:
             op = g.opacities
             self._run_max = (op, [np.float32(op[a:b].max()) if b > a else np.float32(0) for a, b, _ in self.runs])
