@@ -943,9 +943,9 @@ class PriorRuntime:
     def __init__(self, binding: PriorBinding, basis: HeadBasis, device=None, shading: bool = True):
         dev = device or binding.vertex_ids.device
         self.shading_on = bool(shading)  # expression shading of the reconstructed Gaussians' colours
+        self.source = binding  # the binding it was built from (``FastGHA.animate`` sets the avatar's own: its cache key)
         self.identity = binding.identity.detach().cpu().numpy()
         self._shade_u: Tensor | None = None  # [E, U] per slot, built on first use (``shade_u``)
-        self._shade_c: Tensor | None = None  # [E, Uc] per used slot, for frame()
         self.basis_u, slot = _shared_basis(basis, dev)
         ids = binding.vertex_ids.cpu().numpy()  # [N, 3]
         local = slot[ids]
@@ -1011,16 +1011,18 @@ class PriorRuntime:
 
     @property
     def compact(self) -> tuple[Tensor, Tensor]:
-        """``(basis [E, Uc*3], slots [N, 3] int32)``: the blendshapes of only the ``Uc`` slots this binding
-        uses, already in the fit's frame (``M`` applied), and each Gaussian's corners as indices into them.
-        What ``frame`` reads per frame: for the shipped ``tiny`` avatar of the sample 11.3k of 19k
-        slots, 7.2 of 12.1 MB (the shared basis is read from memory, not cache, after the MLP)."""
+        """``(basis [E, Uc*4], slots [N, 3] int32)``: for each of the ``Uc`` slots this binding uses, its
+        blendshape displacement already in the fit's frame (``M`` applied) and its expression shading
+        (``shade_u``), side by side (x, y, z, shade), and each Gaussian's corners as indices into them.
+        What ``frame`` reads per frame, in one ``[E] @ [E, Uc*4]`` product whose result the kernel
+        gathers one 16-byte row per corner from: for the shipped ``tiny`` avatar of the sample 11.3k of
+        19k slots. Built once per runtime (per avatar and binding, ``FastGHA.animate``)."""
         if self._compact is None:
             used, inv = torch.unique(self.local, return_inverse=True)
             e = self.basis_u.shape[0]
-            bc = (self.basis_u.view(e, -1, 3)[:, used] @ self.M.T).reshape(e, -1).contiguous()  # [E, Uc*3]
-            self._compact = (bc, inv.view(self.n, 3).to(torch.int32).contiguous())
-            self._shade_c = self.shade_u[:, used].contiguous()  # [E, Uc]
+            bc = self.basis_u.view(e, -1, 3)[:, used] @ self.M.T  # [E, Uc, 3]
+            b4 = torch.cat([bc, self.shade_u[:, used, None].to(bc.dtype)], dim=2)  # [E, Uc, 4]
+            self._compact = (b4.reshape(e, -1).contiguous(), inv.view(self.n, 3).to(torch.int32).contiguous())
         return self._compact
 
     def displacement(self, z: Tensor) -> Tensor:
@@ -1106,8 +1108,9 @@ class PriorRuntime:
             end = a
         basis_c, slots = self.compact
         nz = torch.nonzero(z).flatten()
-        d = z[nz] @ basis_c[nz] if len(nz) * 4 < len(z) else z @ basis_c  # [Uc*3], the fit's frame
-        sh = z[nz] @ self._shade_c[nz] if len(nz) * 4 < len(z) else z @ self._shade_c  # [Uc], the shading per slot
+        # [Uc*4]: per used slot the displacement (the fit's frame) and the shading; a slider frame
+        # drives a few blendshapes: read only their rows
+        d = z[nz] @ basis_c[nz] if len(nz) * 4 < len(z) else z @ basis_c
         out_means, out_colors, out_op = torch.empty(end, 3), torch.empty(end, 3), torch.empty(end)
         import numba
 
@@ -1117,9 +1120,9 @@ class PriorRuntime:
         numba.set_num_threads(num_threads())
         try:
             prior_frame(
-                g.means.numpy(), g.colors.numpy(), g.opacities.numpy(), dxyz.numpy(), drgb.numpy(), d.view(-1, 3).numpy(),
+                g.means.numpy(), g.colors.numpy(), g.opacities.numpy(), dxyz.numpy(), drgb.numpy(), d.view(-1, 4).numpy(),
                 slots.numpy(), self.coef3.numpy(), self.group_index8.numpy(), table, n_rec,
-                sh.numpy(), np.float32(SHADE_RANGE[0]), np.float32(SHADE_RANGE[1]),
+                np.float32(SHADE_RANGE[0]), np.float32(SHADE_RANGE[1]),
                 out_means.numpy(), out_colors.numpy(), out_op.numpy(),
             )
         finally:

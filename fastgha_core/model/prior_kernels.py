@@ -5,7 +5,8 @@ place of the plain torch path (sparse ``[N, U]`` products for the displacement a
 shading, a ``[U, 3] @ [3, 3]`` product, the per-Gaussian opacity gather and ``torch.cat`` of the
 reconstructed and interior parts, each a separate pass over ``N`` with its own allocation). Same
 maths; only the order of the float32 operations differs (the fit's 3x3 matrix is folded into a
-per-avatar copy of the blendshapes of the slots the avatar uses, ``PriorRuntime.compact``), so
+per-avatar copy of the blendshapes of the slots the avatar uses, ``PriorRuntime.compact``, which
+holds each slot's shading next to its displacement), so
 positions and colours agree with the plain path to float32 rounding, opacities exactly. ``tests/test_prior.py`` checks it against the
 plain path.
 """
@@ -19,20 +20,20 @@ __all__ = ["prior_frame", "shading_rows"]
 
 
 @njit(parallel=True, cache=True, fastmath=False)
-def prior_frame(means, colors, opac, dxyz, drgb, du, local, coef, gidx, table, n_rec, shade, lo, hi, out_means, out_colors, out_op):
+def prior_frame(means, colors, opac, dxyz, drgb, du, local, coef, gidx, table, n_rec, lo, hi, out_means, out_colors, out_op):
     """The first ``n = out_means.shape[0]`` deformed Gaussians of one frame.
 
     Args:
         means ``[N, 3]``, colors ``[N, 3]``, opac ``[N]``: canonical Gaussians (float32).
         dxyz, drgb ``[n_rec, 3]``: the MLP's residual of the reconstructed Gaussians (any strides).
-        du ``[U, 3]``: the blendshape displacement of every slot, in the avatar's frame.
+        du ``[U, 4]``: per slot the blendshape displacement, in the avatar's frame (columns 0-2), and
+            the expression shading (column 3, ``z @ shade`` of the slot).
         local ``[N, 3]`` int32 slots and coef ``[N, 3]`` float32 weights (barycentric * fade):
             ``displacement = sum_k coef_k du[local_k]``.
         gidx ``[N]`` int8 index into ``table [T]``, the per-group opacity factors of this frame.
         n_rec: Gaussians ``< n_rec`` get the MLP's residual and a clamped colour times the
             expression shading; the rest (mouth interior, eyelids) keep their colour.
-        shade ``[U]``: the shading of every slot (``z @ shade_c``): the colour factor is
-            ``clamp(1 + sum_k coef_k shade[local_k], lo, hi)``.
+        lo, hi: the colour factor is ``clamp(1 + sum_k coef_k du[local_k, 3], lo, hi)``.
     Writes ``out_means [n, 3]``, ``out_colors [n, 3]``, ``out_op [n]``.
     """
     n = out_means.shape[0]
@@ -47,7 +48,7 @@ def prior_frame(means, colors, opac, dxyz, drgb, du, local, coef, gidx, table, n
             out_means[i, 0] = means[i, 0] + (p0 + dxyz[i, 0])
             out_means[i, 1] = means[i, 1] + (p1 + dxyz[i, 1])
             out_means[i, 2] = means[i, 2] + (p2 + dxyz[i, 2])
-            r = one + (wa * shade[a] + wb * shade[b] + wc * shade[c])
+            r = one + (wa * du[a, 3] + wb * du[b, 3] + wc * du[c, 3])
             r = min(max(r, lo), hi)
             for q in range(3):
                 out_colors[i, q] = min(max(min(max(colors[i, q] + drgb[i, q], zero), one) * r, zero), one)
