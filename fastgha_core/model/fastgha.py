@@ -604,7 +604,7 @@ class FastGHA(nn.Module):
         with ctx:
             dxyz, drgb = self.deform.forward_split(partial, z)
         dxyz, drgb = dxyz.float(), drgb.float()
-        g = avatar.gaussians.to(dev)
+        g = avatar.gaussians if avatar.gaussians.means.device == dev else avatar.gaussians.to(dev)
         n_int = avatar.num_interior
         prior_d = gate = shade = None
         if self.config.deform.prior and avatar.prior is not None:

@@ -971,7 +971,7 @@ class PriorRuntime:
         cuts = np.flatnonzero(np.diff(gi)) + 1
         starts, ends = np.concatenate([[0], cuts]), np.concatenate([cuts, [self.n]])
         self.runs = [(int(a), int(b), int(gi[a])) for a, b in zip(starts, ends)][::-1]
-        self._run_max: tuple | None = None  # (opacities tensor, [max opacity per run]) of the last frame()
+        self._run_max: tuple | None = None  # frame()'s per-avatar constants, keyed on the Gaussians' tensors
 
     @staticmethod
     def estimate_nbytes(binding: PriorBinding, basis: HeadBasis, device: str = "cpu") -> int:
@@ -1096,21 +1096,39 @@ class PriorRuntime:
         ts = (g.means, g.colors, g.opacities, dxyz, drgb, z, self.basis_u)
         if any(t.device.type != "cpu" or t.dtype != torch.float32 for t in ts):
             raise ValueError("PriorRuntime.frame: expects float32 CPU tensors, got " + ", ".join(f"{t.dtype} on {t.device}" for t in ts))
-        table = self.factor_table(z).numpy()  # [2G] float32
-        if self._run_max is None or self._run_max[0] is not g.opacities:
+        # per avatar, kept while g's tensors are the same objects: numpy views of what the kernel
+        # reads (a .numpy() call costs ~20 us), the largest canonical opacity of each gate run, and
+        # the gates' ranges as gate_factors computes them (so the table below is bit-equal to it)
+        c = self._run_max
+        if c is None or c[0] is not g.opacities or c[1] is not g.means or c[2] is not g.colors:
             op = g.opacities
-            self._run_max = (op, [np.float32(op[a:b].max()) if b > a else np.float32(0) for a, b, _ in self.runs])
+            basis_c, slots = self.compact
+            rng = self.gate_ranges
+            c = self._run_max = (
+                op, g.means, g.colors, op.numpy(), g.means.numpy(), g.colors.numpy(),
+                [np.float32(op[a:b].max()) if b > a else np.float32(0) for a, b, _ in self.runs],
+                basis_c, slots.numpy(), self.coef3.numpy(), self.group_index8.numpy(),
+                rng[:, 0].numpy(), (rng[:, 1] - rng[:, 0]).numpy(),
+            )
+        op_np, means_np, colors_np, run_max, basis_c, slots_np, coef_np, gidx_np, r0, span = c[3:]
+        # factor_table(z) in numpy after the same product: the same float32 operations in the same order
+        x = np.clip(((z @ self.gates.T).numpy() - r0) / span, 0.0, 1.0)
+        f = x * x * (3.0 - 2.0 * x)
+        table = np.concatenate([np.ones(1, np.float32), f, 1.0 - f[1:]])  # [2G] float32
         end = n
-        for (a, b, slot), omax in zip(self.runs, self._run_max[1]):
+        for (a, b, slot), omax in zip(self.runs, run_max):
             # the rasterizer keeps a splat when float(opacity) >= ALPHA_MIN; float32 products are monotonic
             if a < n_rec or slot == 0 or not (float(omax * table[slot]) < ALPHA_MIN):
                 break
             end = a
-        basis_c, slots = self.compact
-        nz = torch.nonzero(z).flatten()
+        nz = np.flatnonzero(z.numpy())
         # [Uc*4]: per used slot the displacement (the fit's frame) and the shading; a slider frame
         # drives a few blendshapes: read only their rows
-        d = z[nz] @ basis_c[nz] if len(nz) * 4 < len(z) else z @ basis_c
+        if len(nz) * 4 < len(z):
+            nzt = torch.from_numpy(nz)
+            d = z[nzt] @ basis_c[nzt]
+        else:
+            d = z @ basis_c
         out_means, out_colors, out_op = torch.empty(end, 3), torch.empty(end, 3), torch.empty(end)
         import numba
 
@@ -1120,8 +1138,8 @@ class PriorRuntime:
         numba.set_num_threads(num_threads())
         try:
             prior_frame(
-                g.means.numpy(), g.colors.numpy(), g.opacities.numpy(), dxyz.numpy(), drgb.numpy(), d.view(-1, 4).numpy(),
-                slots.numpy(), self.coef3.numpy(), self.group_index8.numpy(), table, n_rec,
+                means_np, colors_np, op_np, dxyz.numpy(), drgb.numpy(), d.view(-1, 4).numpy(),
+                slots_np, coef_np, gidx_np, table, n_rec,
                 np.float32(SHADE_RANGE[0]), np.float32(SHADE_RANGE[1]),
                 out_means.numpy(), out_colors.numpy(), out_op.numpy(),
             )
