@@ -859,9 +859,17 @@ def shading_basis(identity: np.ndarray, basis: HeadBasis) -> np.ndarray:
 def shading_at(identity: np.ndarray, basis: HeadBasis, vertices: np.ndarray) -> np.ndarray:
     """``shading_basis(identity, basis)[:, vertices]`` (``[E, M]`` float32, to float rounding) computed
     only at ``vertices [M]`` (head-model vertex ids): each blendshape's normals on just the triangles
-    that touch them, all blendshapes in one numba call (``prior_kernels.shading_rows``). ~20 ms
-    instead of ~0.3 s for the 53 ICT-FaceKit shapes at the ~11k vertices an avatar binds to; the
-    training forward with the prior pays it per sample, a served avatar once (``PriorRuntime.shade_u``).
+    that touch them, all blendshapes in one numba call (``prior_kernels.shading_rows``, compiled on
+    first use and cached). 35-50 ms instead of 0.3-0.4 s (2 cores) for the 53 ICT-FaceKit shapes at
+    the ~11k vertices an avatar binds to; the training forward with the prior pays it per sample, a
+    served avatar once (``PriorRuntime.shade_u``).
+
+    Args:
+        identity: ``[K]`` identity coefficients of the fitted head (``HeadFit.identity``).
+        basis: the head model (its ``neutral``, ``identity_basis``, ``expression_basis``, ``bind_faces``).
+        vertices: ``[M]`` vertex ids (repeats allowed).
+    Returns:
+        ``[E, M]`` float32; 0 at vertices no blendshape moves.
     """
     from .prior_kernels import shading_rows
 

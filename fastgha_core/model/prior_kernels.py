@@ -79,7 +79,7 @@ def shading_rows(neutral, id_basis, identity, dbasis, rows, faces, vmap, light, 
     with ``b`` the brightness of ``prior._brightness``: per vertex the area-weighted normal summed
     per triangle corner in float64 and rounded to float32 as ``headmodel.vertex_normals`` does (the
     same triangles in the same order). The head's identity sum and the final dot products may round
-    differently from numpy's (``tests/test_prior.py`` compares the result with ``shading_basis``).
+    differently from numpy's (``tests/test_prior_runtime.py`` compares the result with ``shading_basis``).
     """
     nv = neutral.shape[0]
     m = out.shape[1]
