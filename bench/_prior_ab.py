@@ -36,3 +36,54 @@ def write_json(path: str | None, report: dict) -> None:
     if path:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         Path(path).write_text(json.dumps(report, indent=2))
+
+
+def rev_package(rev: str, tmp: str) -> str:
+    """Export ``fastgha_core`` of git revision ``rev`` into ``tmp`` as the package ``fastgha_rev`` (its
+    modules import each other relatively) and put ``tmp`` on ``sys.path``; returns the package name.
+    Raises ``ValueError`` when git cannot export the revision."""
+    import subprocess
+    import sys
+
+    dest = Path(tmp)
+    try:
+        data = subprocess.run(["git", "-C", str(REPO), "archive", rev, "fastgha_core"], check=True, capture_output=True).stdout
+        subprocess.run(["tar", "-x", "-C", str(dest)], input=data, check=True, capture_output=True)
+    except subprocess.CalledProcessError as e:
+        raise ValueError(f"cannot export fastgha_core of revision {rev!r}: {e.stderr.decode(errors='replace').strip()}") from None
+    (dest / "fastgha_core").rename(dest / "fastgha_rev")
+    sys.path.insert(0, str(dest))
+    return "fastgha_rev"
+
+
+def rev_frame(pkg: str, model_name: str, camera):
+    """The prior path of another revision's package ``pkg`` (``rev_package``): its model with its
+    avatar of the same sample, and ``frame(z, size, quality)`` doing what ``server.frames.FrameRenderer.render``
+    does (animate, render, quantise, JPEG) with that package's code."""
+    import importlib
+
+    import numpy as np
+    import torch
+    from PIL import Image
+
+    from fastgha_core.constants import BACKGROUND_RGB
+    from server.imaging import encode_jpeg, frame_to_uint8
+
+    fg = importlib.import_module(f"{pkg}.model.fastgha")
+    cmod = importlib.import_module(f"{pkg}.cameras")
+    render = importlib.import_module(f"{pkg}.render").render
+    model = fg.load_model(model_name)
+    paths, cams = cmod.load_request_folder(REPO / "fastgha_core" / "assets" / "samples" / "synth_1000001" / "request")
+    imgs = [torch.from_numpy(np.array(Image.open(p).convert("RGB"))).permute(2, 0, 1) for p in paths[:4]]
+    x, c = model.prepare(imgs, cams[:4])
+    avatar = model.reconstruct(x, c)
+    base = cmod.Cameras(camera.K, camera.w2c, camera.width, camera.height)
+
+    def frame(z, size: int, quality: int) -> bytes:
+        cam = base.resize(size, size)
+        with torch.inference_mode():
+            g = model.animate(avatar, z)
+            img = frame_to_uint8(render(g, cam, background=BACKGROUND_RGB).rgb[0])
+        return encode_jpeg(img, quality)
+
+    return model, avatar, frame

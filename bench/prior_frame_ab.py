@@ -15,7 +15,14 @@ raster medians of each.
 imported torch first, and idle OpenMP threads then spun for longer after each parallel region.
 ``bench/prior_frame_profile.py`` splits the same frames into stages.
 
+``--rev REV`` adds a third path to the same rounds: the prior path of git revision ``REV`` (its
+``fastgha_core`` exported into a temporary folder and imported as another package; its model, its
+avatar of the same sample and its animate/render code, quantised and encoded by this tree's server
+functions), so that a change to the prior's frame path is measured before and after in one process:
+reported as ``rev`` (ms, fps), its ratio to the old path, and ``rev / prior`` (> 1: this tree faster).
+
     python bench/prior_frame_ab.py --rounds 40 --json out/prior_ab.json
+    python bench/prior_frame_ab.py --rounds 30 --rev e77b094
 """
 
 from __future__ import annotations
@@ -35,12 +42,15 @@ def main(argv=None) -> int:
     ap.add_argument("--rounds", type=int, default=40)
     ap.add_argument("--sizes", default="256,512")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--rev", default=None, help="also time the prior path of this git revision (before/after in one process)")
     args = ap.parse_args(argv)
     sys.path.insert(0, str(REPO))
     import fastgha_core  # noqa: F401  (sets the OpenMP defaults before torch is imported, as the server does)
     import torch
 
-    from _prior_ab import prior_on_off, write_json
+    import tempfile
+
+    from _prior_ab import prior_on_off, rev_frame, rev_package, write_json
     from server.frames import FrameRenderer
 
     try:
@@ -49,32 +59,53 @@ def main(argv=None) -> int:
         print(e)
         return 1
     ra, rb = FrameRenderer(model_a, "cpu"), FrameRenderer(model_b, "cpu")
+    tmp = tempfile.TemporaryDirectory(prefix="prior_ab_rev_") if args.rev else None
+    rev = None
+    if args.rev:
+        try:
+            _, _, rev = rev_frame(rev_package(args.rev, tmp.name), args.model, ra.default_camera)
+        except ValueError as e:
+            print(e)
+            return 1
     g = torch.Generator().manual_seed(0)
-    out = {"model": args.model, "gaussians_a": len(av_a), "gaussians_b": len(av_b), "threads": torch.get_num_threads(), "sizes": {}}
+    out = {"model": args.model, "gaussians_a": len(av_a), "gaussians_b": len(av_b), "threads": torch.get_num_threads(), "rev": args.rev, "sizes": {}}
     for size in [int(s) for s in args.sizes.split(",")]:
         cam = ra.default_camera.resize(size, size)
-        ta, tb, da, db, xa, xb = [], [], [], [], [], []
+        t = {"a": [], "b": [], "rev": []}
+        dx = {"da": [], "db": [], "xa": [], "xb": []}
+        paths = ["a", "b"] + (["rev"] if rev else [])
         for r in range(args.rounds + 3):
             z = torch.rand(53, generator=g) * 0.6
-            order = [(ra, av_a, ta, da, xa), (rb, av_b, tb, db, xb)] if r % 2 == 0 else [(rb, av_b, tb, db, xb), (ra, av_a, ta, da, xa)]
-            for rend, av, acc, dacc, xacc in order:
+            order = paths[r % len(paths):] + paths[: r % len(paths)]  # each path first in turn
+            for p in order:
                 t0 = time.perf_counter()
-                fr = rend.render(av, z, cam, 85)
+                if p == "rev":
+                    rev(z, size, 85)
+                else:
+                    fr = (ra if p == "a" else rb).render(av_a if p == "a" else av_b, z, cam, 85)
                 if r >= 3:  # warm-up rounds not counted
-                    acc.append(1e3 * (time.perf_counter() - t0))
-                    dacc.append(fr.deform_ms)
-                    xacc.append(fr.raster_ms)
-        ma, mb = statistics.median(ta), statistics.median(tb)
+                    t[p].append(1e3 * (time.perf_counter() - t0))
+                    if p != "rev":
+                        dx["d" + p].append(fr.deform_ms)
+                        dx["x" + p].append(fr.raster_ms)
+        ma, mb = statistics.median(t["a"]), statistics.median(t["b"])
+        dm = {k: statistics.median(v) for k, v in dx.items()}
         out["sizes"][size] = {
             "prior_ms": ma, "old_ms": mb, "prior_fps": 1e3 / ma, "old_fps": 1e3 / mb, "fps_ratio_prior_over_old": mb / ma,
-            "deform_ms_prior": statistics.median(da), "deform_ms_old": statistics.median(db),
-            "raster_ms_prior": statistics.median(xa), "raster_ms_old": statistics.median(xb),
+            "deform_ms_prior": dm["da"], "deform_ms_old": dm["db"], "raster_ms_prior": dm["xa"], "raster_ms_old": dm["xb"],
         }
-        print(
+        line = (
             f"{size}²: prior {ma:.1f} ms ({1e3 / ma:.1f} fps), old path {mb:.1f} ms ({1e3 / mb:.1f} fps), fps ratio {mb / ma:.3f}; "
-            f"deform {statistics.median(da):.1f} vs {statistics.median(db):.1f} ms, raster {statistics.median(xa):.1f} vs {statistics.median(xb):.1f} ms"
+            f"deform {dm['da']:.1f} vs {dm['db']:.1f} ms, raster {dm['xa']:.1f} vs {dm['xb']:.1f} ms"
         )
+        if rev:
+            mr = statistics.median(t["rev"])
+            out["sizes"][size].update({"rev_ms": mr, "rev_fps": 1e3 / mr, "fps_ratio_rev_over_old": mb / mr, "rev_over_prior": mr / ma})
+            line += f"; {args.rev}: {mr:.1f} ms ({1e3 / mr:.1f} fps), fps ratio {mb / mr:.3f}, {args.rev} / prior {mr / ma:.3f}"
+        print(line)
     write_json(args.json, out)
+    if tmp is not None:
+        tmp.cleanup()
     return 0
 
 

@@ -36,10 +36,14 @@ class CanonicalAvatar:
         expression_space: the model's expression space (``"ict53"`` / ``"flame120"``).
         deform_cache: ``[N, H]`` first-layer partial of the deformation MLP (not saved).
         deform_cache_owner: ``id`` of the deformation MLP that filled the cache.
+        deform_cache_source: the ``gaussians`` object the cache was computed from (assigning new
+            Gaussians to the avatar recomputes it; changing its tensors in place does not).
         prior: ``PriorBinding`` of every Gaussian (``None`` without the expression prior).
         num_interior: mouth-interior Gaussians at the end of ``gaussians`` (no MLP residual; their
             opacity follows how far the lips are open).
-        prior_runtime: the binding's per-frame compact basis (a cache, not saved).
+        prior_runtime: the binding's per-frame compact basis (a cache, not saved; ``FastGHA.animate``
+            rebuilds it when ``prior`` is replaced, the Gaussian count or device changes, or the
+            model's ``prior_shading`` differs).
     """
 
     gaussians: Gaussians
@@ -49,6 +53,7 @@ class CanonicalAvatar:
     num_interior: int = 0
     deform_cache: Tensor | None = field(default=None, repr=False, compare=False)
     deform_cache_owner: int | None = field(default=None, repr=False, compare=False)
+    deform_cache_source: Gaussians | None = field(default=None, repr=False, compare=False)
     prior_runtime: object | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:

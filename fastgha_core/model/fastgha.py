@@ -522,12 +522,13 @@ class FastGHA(nn.Module):
         if (
             cache is None
             or avatar.deform_cache_owner != id(self.deform)
+            or avatar.deform_cache_source is not avatar.gaussians  # Gaussians replaced since (same count or not)
             or cache.shape != (len(g), self.config.deform.hidden_size)
             or cache.device != self.device
         ):
             with torch.no_grad():
                 cache = self.deform.precompute(g.features.to(self.device), g.means.to(self.device))
-            avatar.deform_cache, avatar.deform_cache_owner = cache, id(self.deform)
+            avatar.deform_cache, avatar.deform_cache_owner, avatar.deform_cache_source = cache, id(self.deform), avatar.gaussians
         return cache
 
     def serving_nbytes(self, avatar: CanonicalAvatar) -> int:
@@ -605,14 +606,21 @@ class FastGHA(nn.Module):
         with ctx:
             dxyz, drgb = self.deform.forward_split(partial, z)
         dxyz, drgb = dxyz.float(), drgb.float()
-        g = avatar.gaussians.to(dev)
+        g = avatar.gaussians if avatar.gaussians.means.device == dev else avatar.gaussians.to(dev)
         n_int = avatar.num_interior
         prior_d = gate = shade = None
         if self.config.deform.prior and avatar.prior is not None:
             rt = avatar.prior_runtime
-            if rt is None or rt.n != len(g) or rt.basis_u.device != dev:
+            if (
+                rt is None
+                or rt.source is not avatar.prior  # another binding (same size or not)
+                or rt.n != len(g)
+                or rt.basis_u.device != dev
+                or rt.shading_on != bool(self.config.deform.prior_shading)
+            ):
                 with torch.inference_mode(False):
                     rt = avatar.prior_runtime = self._runtime(avatar.prior.to(dev))
+                rt.source = avatar.prior  # what this per-avatar cache was built from
             if prior and z.ndim == 1 and dev.type == "cpu" and g.means.dtype == torch.float32:
                 return rt.frame(g, n_int, dxyz, drgb, z)  # one numba pass, the same Gaussians as below
             if prior:

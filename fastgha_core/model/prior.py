@@ -68,6 +68,7 @@ __all__ = [
     "generic_fit",
     "gate_factors",
     "shading_basis",
+    "shading_at",
     "FLAME_ENV",
 ]
 
@@ -922,7 +923,8 @@ def shading_basis(identity: np.ndarray, basis: HeadBasis) -> np.ndarray:
     ``1 + z @ shading_basis`` (linear in ``z``: exact for one blendshape at weight 1, interpolated
     below it, a sum for several), clamped to ``SHADE_RANGE`` per Gaussian. 0 where no
     blendshape moves a vertex. ~0.3 s for the 53 ICT-FaceKit shapes (2 cores), once per avatar on its
-    first frame (``PriorRuntime.shade_u``); the training forward with the prior builds it per sample."""
+    first frame (``PriorRuntime.shade_u``, which evaluates only the vertices its binding uses with
+    ``shading_at``); the plain reference for it."""
     k = len(identity)
     v = basis.neutral.astype(np.float64) + np.tensordot(np.asarray(identity, np.float64), basis.identity_basis[:k], axes=1)
     f = basis.bind_faces
@@ -934,6 +936,55 @@ def shading_basis(identity: np.ndarray, basis: HeadBasis) -> np.ndarray:
         if not np.abs(d).max() > 1e-4:
             continue
         out[e] = np.where(moving, _brightness(v + d, f) / b0 - 1.0, 0.0)
+    return out
+
+
+def shading_at(identity: np.ndarray, basis: HeadBasis, vertices: np.ndarray) -> np.ndarray:
+    """``shading_basis(identity, basis)[:, vertices]`` (``[E, M]`` float32, to float rounding) computed
+    only at ``vertices [M]`` (head-model vertex ids): each blendshape's normals on just the triangles
+    that touch them, all blendshapes in one numba call (``prior_kernels.shading_rows``, compiled on
+    first use and cached). 35-50 ms instead of 0.3-0.4 s (2 cores) for the 53 ICT-FaceKit shapes at
+    the ~11k vertices an avatar binds to; the training forward with the prior pays it per sample, a
+    served avatar once (``PriorRuntime.shade_u``).
+
+    Args:
+        identity: ``[K]`` identity coefficients of the fitted head (``HeadFit.identity``).
+        basis: the head model (its ``neutral``, ``identity_basis``, ``expression_basis``, ``bind_faces``).
+        vertices: ``[M]`` vertex ids (repeats allowed).
+    Returns:
+        ``[E, M]`` float32; 0 at vertices no blendshape moves.
+    """
+    from .prior_kernels import shading_rows
+
+    import numba
+
+    from ..render.cpu_backend import num_threads
+
+    vertices = np.asarray(vertices, np.int64).reshape(-1)
+    nv = len(basis.neutral)
+    e_n = basis.num_expression
+    moving = _moving_vertices(basis)
+    sel = moving[vertices]  # 0 where no blendshape moves a vertex, as in shading_basis
+    want = np.unique(vertices[sel])
+    out = np.zeros((e_n, len(vertices)), np.float32)
+    if len(want) == 0:
+        return out
+    vmap = np.full(nv, -1, np.int64)
+    vmap[want] = np.arange(len(want))
+    f = basis.bind_faces
+    faces = np.ascontiguousarray(f[(vmap[f] >= 0).any(axis=1)], dtype=np.int64)  # the normals at `want` need only these
+    eb = np.ascontiguousarray(basis.expression_basis, dtype=np.float32)
+    rows = np.array([e for e in range(e_n) if np.abs(eb[e]).max() > 1e-4], np.int64)
+    got = np.zeros((e_n, len(want)), np.float32)
+    identity = np.asarray(identity, np.float64).reshape(-1)
+    ib = np.ascontiguousarray(basis.identity_basis[: len(identity)], dtype=np.float32)
+    prev = numba.get_num_threads()
+    numba.set_num_threads(num_threads())
+    try:
+        shading_rows(np.ascontiguousarray(basis.neutral, dtype=np.float32), ib, identity, eb, rows, faces, vmap, SHADE_LIGHT, float(SHADE_AMBIENT), 0.05, got)
+    finally:
+        numba.set_num_threads(prev)
+    out[:, sel] = got[:, vmap[vertices[sel]]]
     return out
 
 
@@ -983,9 +1034,9 @@ class PriorRuntime:
     def __init__(self, binding: PriorBinding, basis: HeadBasis, device=None, shading: bool = True):
         dev = device or binding.vertex_ids.device
         self.shading_on = bool(shading)  # expression shading of the reconstructed Gaussians' colours
+        self.source = binding  # the binding it was built from (``FastGHA.animate`` sets the avatar's own: its cache key)
         self.identity = binding.identity.detach().cpu().numpy()
         self._shade_u: Tensor | None = None  # [E, U] per slot, built on first use (``shade_u``)
-        self._shade_c: Tensor | None = None  # [E, Uc] per used slot, for frame()
         self.basis_u, slot = _shared_basis(basis, dev)
         ids = binding.vertex_ids.cpu().numpy()  # [N, 3]
         local = slot[ids]
@@ -1011,7 +1062,7 @@ class PriorRuntime:
         cuts = np.flatnonzero(np.diff(gi)) + 1
         starts, ends = np.concatenate([[0], cuts]), np.concatenate([cuts, [self.n]])
         self.runs = [(int(a), int(b), int(gi[a])) for a, b in zip(starts, ends)][::-1]
-        self._run_max: tuple | None = None  # (opacities tensor, [max opacity per run]) of the last frame()
+        self._run_max: tuple | None = None  # frame()'s per-avatar constants, keyed on the Gaussians' tensors
 
     @staticmethod
     def estimate_nbytes(binding: PriorBinding, basis: HeadBasis, device: str = "cpu") -> int:
@@ -1051,16 +1102,18 @@ class PriorRuntime:
 
     @property
     def compact(self) -> tuple[Tensor, Tensor]:
-        """``(basis [E, Uc*3], slots [N, 3] int32)``: the blendshapes of only the ``Uc`` slots this binding
-        uses, already in the fit's frame (``M`` applied), and each Gaussian's corners as indices into them.
-        What ``frame`` reads per frame: for the shipped ``tiny`` avatar of the sample 11.3k of 19k
-        slots, 7.2 of 12.1 MB (the shared basis is read from memory, not cache, after the MLP)."""
+        """``(basis [E, Uc*4], slots [N, 3] int32)``: for each of the ``Uc`` slots this binding uses, its
+        blendshape displacement already in the fit's frame (``M`` applied) and its expression shading
+        (``shade_u``), side by side (x, y, z, shade), and each Gaussian's corners as indices into them.
+        What ``frame`` reads per frame, in one ``[E] @ [E, Uc*4]`` product whose result the kernel
+        gathers one 16-byte row per corner from: for the shipped ``tiny`` avatar of the sample 11.3k of
+        19k slots. Built once per runtime (per avatar and binding, ``FastGHA.animate``)."""
         if self._compact is None:
             used, inv = torch.unique(self.local, return_inverse=True)
             e = self.basis_u.shape[0]
-            bc = (self.basis_u.view(e, -1, 3)[:, used] @ self.M.T).reshape(e, -1).contiguous()  # [E, Uc*3]
-            self._compact = (bc, inv.view(self.n, 3).to(torch.int32).contiguous())
-            self._shade_c = self.shade_u[:, used].contiguous()  # [E, Uc]
+            bc = self.basis_u.view(e, -1, 3)[:, used] @ self.M.T  # [E, Uc, 3]
+            b4 = torch.cat([bc, self.shade_u[:, used, None].to(bc.dtype)], dim=2)  # [E, Uc, 4]
+            self._compact = (b4.reshape(e, -1).contiguous(), inv.view(self.n, 3).to(torch.int32).contiguous())
         return self._compact
 
     def displacement(self, z: Tensor) -> Tensor:
@@ -1078,12 +1131,15 @@ class PriorRuntime:
 
     @property
     def shade_u(self) -> Tensor:
-        """``[E, U]``: ``shading_basis`` of this avatar's fitted identity per slot of ``basis_u`` (0 off)."""
+        """``[E, U]``: ``shading_basis`` of this avatar's fitted identity per slot of ``basis_u`` (0 off,
+        and 0 at the slots the binding does not read: ``shading_at`` evaluates only the used ones)."""
         if self._shade_u is None:
             moving = _moving_vertices(self.basis)
             t = np.zeros((self.basis.num_expression, int(moving.sum()) + 1), np.float32)
             if self.shading_on and self.basis.space == "ict53":
-                t[:, 1:] = shading_basis(self.identity, self.basis)[:, moving]
+                used = np.unique(self.local.cpu().numpy())
+                used = used[used > 0]  # slots the binding reads (slot s is moving vertex s - 1)
+                t[:, used] = shading_at(self.identity, self.basis, np.flatnonzero(moving)[used - 1])
             with torch.inference_mode(False):
                 self._shade_u = torch.from_numpy(t).to(self.basis_u.device)
         return self._shade_u
@@ -1131,20 +1187,39 @@ class PriorRuntime:
         ts = (g.means, g.colors, g.opacities, dxyz, drgb, z, self.basis_u)
         if any(t.device.type != "cpu" or t.dtype != torch.float32 for t in ts):
             raise ValueError("PriorRuntime.frame: expects float32 CPU tensors, got " + ", ".join(f"{t.dtype} on {t.device}" for t in ts))
-        table = self.factor_table(z).numpy()  # [2G + 1] float32
-        if self._run_max is None or self._run_max[0] is not g.opacities:
+        # per avatar, kept while g's tensors are the same objects: numpy views of what the kernel
+        # reads (a .numpy() call costs ~20 us), the largest canonical opacity of each gate run, and
+        # the gates' ranges as gate_factors computes them (so the table below is bit-equal to it)
+        c = self._run_max
+        if c is None or c[0] is not g.opacities or c[1] is not g.means or c[2] is not g.colors:
             op = g.opacities
-            self._run_max = (op, [np.float32(op[a:b].max()) if b > a else np.float32(0) for a, b, _ in self.runs])
+            basis_c, slots = self.compact
+            rng = self.gate_ranges
+            c = self._run_max = (
+                op, g.means, g.colors, op.numpy(), g.means.numpy(), g.colors.numpy(),
+                [np.float32(op[a:b].max()) if b > a else np.float32(0) for a, b, _ in self.runs],
+                basis_c, slots.numpy(), self.coef3.numpy(), self.group_index8.numpy(),
+                rng[:, 0].numpy(), (rng[:, 1] - rng[:, 0]).numpy(),
+            )
+        op_np, means_np, colors_np, run_max, basis_c, slots_np, coef_np, gidx_np, r0, span = c[3:]
+        # factor_table(z) in numpy after the same product: the same float32 operations in the same order
+        x = np.clip(((z @ self.gates.T).numpy() - r0) / span, 0.0, 1.0)
+        f = x * x * (3.0 - 2.0 * x)
+        table = np.concatenate([np.ones(1, np.float32), f, 1.0 - f[1:], 1.0 - f[:1]])  # [2G + 1] float32
         end = n
-        for (a, b, slot), omax in zip(self.runs, self._run_max[1]):
+        for (a, b, slot), omax in zip(self.runs, run_max):
             # the rasterizer keeps a splat when float(opacity) >= ALPHA_MIN; float32 products are monotonic
             if a < n_rec or slot == 0 or not (float(omax * table[slot]) < ALPHA_MIN):
                 break
             end = a
-        basis_c, slots = self.compact
-        nz = torch.nonzero(z).flatten()
-        d = z[nz] @ basis_c[nz] if len(nz) * 4 < len(z) else z @ basis_c  # [Uc*3], the fit's frame
-        sh = z[nz] @ self._shade_c[nz] if len(nz) * 4 < len(z) else z @ self._shade_c  # [Uc], the shading per slot
+        nz = np.flatnonzero(z.numpy())
+        # [Uc*4]: per used slot the displacement (the fit's frame) and the shading; a slider frame
+        # drives a few blendshapes: read only their rows
+        if len(nz) * 4 < len(z):
+            nzt = torch.from_numpy(nz)
+            d = z[nzt] @ basis_c[nzt]
+        else:
+            d = z @ basis_c
         out_means, out_colors, out_op = torch.empty(end, 3), torch.empty(end, 3), torch.empty(end)
         import numba
 
@@ -1154,9 +1229,9 @@ class PriorRuntime:
         numba.set_num_threads(num_threads())
         try:
             prior_frame(
-                g.means.numpy(), g.colors.numpy(), g.opacities.numpy(), dxyz.numpy(), drgb.numpy(), d.view(-1, 3).numpy(),
-                slots.numpy(), self.coef3.numpy(), self.group_index8.numpy(), table, n_rec,
-                sh.numpy(), np.float32(SHADE_RANGE[0]), np.float32(SHADE_RANGE[1]),
+                means_np, colors_np, op_np, dxyz.numpy(), drgb.numpy(), d.view(-1, 4).numpy(),
+                slots_np, coef_np, gidx_np, table, n_rec,
+                np.float32(SHADE_RANGE[0]), np.float32(SHADE_RANGE[1]),
                 out_means.numpy(), out_colors.numpy(), out_op.numpy(),
             )
         finally:

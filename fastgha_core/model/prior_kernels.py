@@ -5,7 +5,8 @@ place of the plain torch path (sparse ``[N, U]`` products for the displacement a
 shading, a ``[U, 3] @ [3, 3]`` product, the per-Gaussian opacity gather and ``torch.cat`` of the
 reconstructed and interior parts, each a separate pass over ``N`` with its own allocation). Same
 maths; only the order of the float32 operations differs (the fit's 3x3 matrix is folded into a
-per-avatar copy of the blendshapes of the slots the avatar uses, ``PriorRuntime.compact``), so
+per-avatar copy of the blendshapes of the slots the avatar uses, ``PriorRuntime.compact``, which
+holds each slot's shading next to its displacement), so
 positions and colours agree with the plain path to float32 rounding, opacities exactly. ``tests/test_prior.py`` checks it against the
 plain path.
 """
@@ -15,24 +16,24 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["prior_frame"]
+__all__ = ["prior_frame", "shading_rows"]
 
 
 @njit(parallel=True, cache=True, fastmath=False)
-def prior_frame(means, colors, opac, dxyz, drgb, du, local, coef, gidx, table, n_rec, shade, lo, hi, out_means, out_colors, out_op):
+def prior_frame(means, colors, opac, dxyz, drgb, du, local, coef, gidx, table, n_rec, lo, hi, out_means, out_colors, out_op):
     """The first ``n = out_means.shape[0]`` deformed Gaussians of one frame.
 
     Args:
         means ``[N, 3]``, colors ``[N, 3]``, opac ``[N]``: canonical Gaussians (float32).
         dxyz, drgb ``[n_rec, 3]``: the MLP's residual of the reconstructed Gaussians (any strides).
-        du ``[U, 3]``: the blendshape displacement of every slot, in the avatar's frame.
+        du ``[U, 4]``: per slot the blendshape displacement, in the avatar's frame (columns 0-2), and
+            the expression shading (column 3, ``z @ shade`` of the slot).
         local ``[N, 3]`` int32 slots and coef ``[N, 3]`` float32 weights (barycentric * fade):
             ``displacement = sum_k coef_k du[local_k]``.
         gidx ``[N]`` int8 index into ``table [T]``, the per-group opacity factors of this frame.
         n_rec: Gaussians ``< n_rec`` get the MLP's residual and a clamped colour times the
             expression shading; the rest (mouth interior, eyelids) keep their colour.
-        shade ``[U]``: the shading of every slot (``z @ shade_c``): the colour factor is
-            ``clamp(1 + sum_k coef_k shade[local_k], lo, hi)``.
+        lo, hi: the colour factor is ``clamp(1 + sum_k coef_k du[local_k, 3], lo, hi)``.
     Writes ``out_means [n, 3]``, ``out_colors [n, 3]``, ``out_op [n]``.
     """
     n = out_means.shape[0]
@@ -47,7 +48,7 @@ def prior_frame(means, colors, opac, dxyz, drgb, du, local, coef, gidx, table, n
             out_means[i, 0] = means[i, 0] + (p0 + dxyz[i, 0])
             out_means[i, 1] = means[i, 1] + (p1 + dxyz[i, 1])
             out_means[i, 2] = means[i, 2] + (p2 + dxyz[i, 2])
-            r = one + (wa * shade[a] + wb * shade[b] + wc * shade[c])
+            r = one + (wa * du[a, 3] + wb * du[b, 3] + wc * du[c, 3])
             r = min(max(r, lo), hi)
             for q in range(3):
                 out_colors[i, q] = min(max(min(max(colors[i, q] + drgb[i, q], zero), one) * r, zero), one)
@@ -59,3 +60,84 @@ def prior_frame(means, colors, opac, dxyz, drgb, du, local, coef, gidx, table, n
                 out_colors[i, q] = colors[i, q]
         out_op[i] = opac[i] * table[gidx[i]]
     return 0
+
+
+@njit(parallel=True, cache=True, fastmath=False)
+def shading_rows(neutral, id_basis, identity, dbasis, rows, faces, vmap, light, ambient, floor, out):
+    """The expression shading (``prior.shading_basis``) at a subset of the head model's vertices.
+
+    Args:
+        neutral ``[Nv, 3]``, id_basis ``[K, Nv, 3]`` float32 and identity ``[K]`` float64: the fitted
+            head at neutral is ``neutral + sum_k identity_k id_basis_k`` (float64, model frame).
+        dbasis ``[E, Nv, 3]`` float32: the expression blendshapes.
+        rows ``[R]`` int64: the blendshapes to evaluate (the other rows of ``out`` are left alone).
+        faces ``[F, 3]`` int64: every triangle that touches a wanted vertex, in ``bind_faces`` order.
+        vmap ``[Nv]`` int64: column of ``out`` of each wanted vertex, -1 elsewhere.
+        light ``[3]`` float64, ambient, floor: ``SHADE_LIGHT``, ``SHADE_AMBIENT`` and the floor of the
+            neutral brightness (0.05).
+    Writes ``out[e, vmap[i]] = b(v + dbasis[e])[i] / max(b(v)[i], floor) - 1`` for ``e`` in ``rows``,
+    with ``b`` the brightness of ``prior._brightness``: per vertex the area-weighted normal summed
+    per triangle corner in float64 and rounded to float32 as ``headmodel.vertex_normals`` does (the
+    same triangles in the same order). The head's identity sum and the final dot products may round
+    differently from numpy's (``tests/test_prior_runtime.py`` compares the result with ``shading_basis``).
+    """
+    nv = neutral.shape[0]
+    m = out.shape[1]
+    used = np.zeros(nv, np.bool_)
+    for f in range(faces.shape[0]):
+        for k in range(3):
+            used[faces[f, k]] = True
+    v = np.zeros((nv, 3), np.float64)
+    for i in prange(nv):
+        if used[i]:
+            for q in range(3):
+                s = np.float64(neutral[i, q])
+                t = 0.0
+                for k in range(identity.shape[0]):
+                    t += identity[k] * np.float64(id_basis[k, i, q])
+                v[i, q] = s + t
+    zero3 = np.zeros((1, 3), np.float32)
+    base = _brightness_at(v, zero3, faces, vmap, m, light, ambient)  # [m] float64
+    for c in range(m):
+        base[c] = max(base[c], floor)
+    for t in prange(rows.shape[0]):
+        e = rows[t]
+        b = _brightness_at(v, dbasis[e], faces, vmap, m, light, ambient)
+        for c in range(m):
+            out[e, c] = np.float32(b[c] / base[c] - 1.0)
+    return 0
+
+
+@njit(cache=True, fastmath=False)
+def _brightness_at(v, d, faces, vmap, m, light, ambient):
+    """``prior._brightness`` of ``v + d`` (``d [Nv, 3]``, or ``[1, 3]`` zeros) at the wanted vertices -> ``[m]`` float64."""
+    acc = np.zeros((3, m, 3), np.float64)  # per triangle corner k, as vertex_normals' three bincount passes
+    one_d = d.shape[0] == 1
+    p = np.empty((3, 3), np.float32)
+    for f in range(faces.shape[0]):
+        for k in range(3):
+            i = faces[f, k]
+            for q in range(3):
+                p[k, q] = np.float32(v[i, q] + (np.float64(d[0, q]) if one_d else np.float64(d[i, q])))
+        ux, uy, uz = p[1, 0] - p[0, 0], p[1, 1] - p[0, 1], p[1, 2] - p[0, 2]
+        wx, wy, wz = p[2, 0] - p[0, 0], p[2, 1] - p[0, 1], p[2, 2] - p[0, 2]
+        n0 = uy * wz - uz * wy
+        n1 = uz * wx - ux * wz
+        n2 = ux * wy - uy * wx
+        for k in range(3):
+            c = vmap[faces[f, k]]
+            if c >= 0:
+                acc[k, c, 0] += np.float64(n0)
+                acc[k, c, 1] += np.float64(n1)
+                acc[k, c, 2] += np.float64(n2)
+    out = np.empty(m, np.float64)
+    for c in range(m):
+        x = np.float32(0.0) + np.float32(acc[0, c, 0]) + np.float32(acc[1, c, 0]) + np.float32(acc[2, c, 0])
+        y = np.float32(0.0) + np.float32(acc[0, c, 1]) + np.float32(acc[1, c, 1]) + np.float32(acc[2, c, 1])
+        z = np.float32(0.0) + np.float32(acc[0, c, 2]) + np.float32(acc[1, c, 2]) + np.float32(acc[2, c, 2])
+        ln = np.float32(np.sqrt(x * x + y * y + z * z))
+        ln = max(ln, np.float32(1e-12))
+        x, y, z = x / ln, y / ln, z / ln
+        s = np.float64(x) * light[0] + np.float64(y) * light[1] + np.float64(z) * light[2]
+        out[c] = ambient + (1.0 - ambient) * max(s, 0.0)
+    return out
