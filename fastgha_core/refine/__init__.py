@@ -54,7 +54,7 @@ from ..constants import BACKGROUND_RGB
 from ..gaussians import Gaussians
 from ..model.avatar import CanonicalAvatar
 
-__all__ = ["RefineConfig", "RefineResult", "REFINE_PRESETS", "refine_avatar", "prepare_targets", "source_views", "masked_psnr", "lr_factor"]
+__all__ = ["RefineConfig", "RefineResult", "REFINE_PRESETS", "refine_avatar", "prepare_targets", "source_views", "masked_psnr", "lr_factor", "scaled_conics"]
 
 
 @dataclass
@@ -91,6 +91,15 @@ class RefineConfig:
             fall in its decay).
         views_per_step: render this many input views per step, in turn (0 = all of them every step);
             the loss is averaged over the views rendered.
+        lr_xyz: step size (metres) of a free 3D offset of every Gaussian (0 = off); it costs
+            ``w_reg_xyz * (|d| / xyz_sigma)^2`` (``xyz_sigma`` in metres). Per-Gaussian corrections
+            only (not with ``smooth_grid``).
+        lr_scale: step size of an isotropic log-scale correction of every Gaussian (0 = off; the
+            3D scales are multiplied by ``exp(d)``), costing ``w_reg_scale * d^2``. Per-Gaussian only.
+        match_animation: render the inputs as ``FastGHA.animate`` draws a frame: the expression
+            prior's shading factor on the colours, and the avatar's appended Gaussians (back-of-head
+            shell, mouth interior, lids, with their expression gates) drawn as fixed Gaussians
+            (False: the network's Gaussians alone, without the shading).
     """
 
     steps: int = 40
@@ -124,6 +133,12 @@ class RefineConfig:
     prune_opacity: float = 0.005
     phase_schedule: bool = False
     views_per_step: int = 2  # was all: half the cost per step, more steps in the same time
+    lr_xyz: float = 0.0
+    xyz_sigma: float = 0.002
+    w_reg_xyz: float = 1e-3
+    lr_scale: float = 0.0
+    w_reg_scale: float = 1e-3
+    match_animation: bool = False
 
     def __post_init__(self) -> None:
         if self.steps < 0:
@@ -134,6 +149,10 @@ class RefineConfig:
                 raise ValueError(f"{name} must be a multiple of 16 (>= 16), got {r}")
         if self.views_per_step < 0:
             raise ValueError(f"views_per_step must be >= 0, got {self.views_per_step}")
+        if self.smooth_grid > 0 and (self.lr_xyz > 0 or self.lr_scale > 0):
+            raise ValueError(f"lr_xyz and lr_scale need per-Gaussian corrections (smooth_grid 0), got smooth_grid {self.smooth_grid}")
+        if self.xyz_sigma <= 0:
+            raise ValueError(f"xyz_sigma must be > 0, got {self.xyz_sigma}")
         if self.smooth_grid < 0 or self.noise_floor < 0:
             raise ValueError(f"smooth_grid and noise_floor must be >= 0, got {self.smooth_grid} and {self.noise_floor}")
         if not 0.0 <= self.coarse_fraction <= 1.0:
@@ -274,23 +293,60 @@ def corrected_w2c(w2c: Tensor, rot: Tensor, trans: Tensor) -> Tensor:
     return torch.cat([top, w2c[:, 3:4]], dim=1)
 
 
-def _render_view(g: Gaussians, means: Tensor, colors: Tensor, opac: Tensor, K: Tensor, w2c: Tensor, size: int, bg: Tensor):
-    """Differentiable render of one view with fixed screen-space covariances.
+def scaled_conics(conics: Tensor, log_scale: Tensor, eps2d: float | None = None) -> Tensor:
+    """Conics ``[N, 3]`` (a, b, c) of Gaussians whose 3D scales are multiplied by ``exp(log_scale [N])``
+    (isotropically), from the conics ``conics [N, 3]`` projected at the current scales.
+
+    The projected 2D covariance is ``Sigma2d = J W Sigma W^T J^T + EPS2D I`` (``render.projection``);
+    an isotropic factor ``s`` on the 3D scales multiplies its first term by ``s^2``. The value is the
+    input conic where ``log_scale`` is 0 (it is meant to be called with ``log_scale - log_scale.detach()``
+    so that the forward pass keeps the exact projection and only the gradient comes from here); conics
+    of culled Gaussians (all zero) stay zero.
+    """
+    from ..render.projection import EPS2D
+
+    eps = EPS2D if eps2d is None else eps2d
+    a, b, c = conics.unbind(-1)
+    det = a * c - b * b
+    ok = det > 0
+    inv = torch.where(ok, 1.0 / torch.where(ok, det, torch.ones_like(det)), torch.zeros_like(det))
+    # covariance of the current projection without the low-pass term, scaled by s^2, low-pass added back
+    s2 = torch.exp(2.0 * log_scale)
+    ca, cb, cc = (c * inv - eps) * s2 + eps, -b * inv * s2, (a * inv - eps) * s2 + eps
+    d2 = ca * cc - cb * cb
+    d2 = torch.where(ok & (d2 > 0), d2, torch.ones_like(d2))
+    out = torch.stack([cc / d2, -cb / d2, ca / d2], dim=-1)
+    return torch.where(ok[:, None], out, conics)
+
+
+def _render_view(
+    g: Gaussians, means: Tensor, colors: Tensor, opac: Tensor, K: Tensor, w2c: Tensor, size: int, bg: Tensor,
+    log_scale: Tensor | None = None,
+):
+    """Differentiable render of one view.
 
     ``means [N, 3]``, ``colors [N, 3]``, ``opac [N]`` carry gradients, ``K [3, 3]`` and ``w2c [4, 4]``
-    too (through the projected centres). Returns rgb ``[3, S, S]``, alpha ``[1, S, S]``, depth
-    ``[1, S, S]`` and the camera z ``[N]`` of every Gaussian.
+    too (through the projected centres); ``g`` gives the quaternions and scales. The screen-space
+    covariances are those of the current positions, treated as constants, except for an isotropic
+    scale correction ``log_scale [N]`` (or None): the scales are multiplied by ``exp(log_scale)`` and
+    its gradient flows through the conics (``scaled_conics``). Returns rgb ``[3, S, S]``, alpha
+    ``[1, S, S]``, depth ``[1, S, S]``, the camera z ``[N]`` and the pixel positions ``[N, 2]``.
     """
     from ..render.cpu_backend import project_cpu, rasterize_cpu
     from ..render.projection import Projected
 
+    scales = g.scales if log_scale is None else g.scales * torch.exp(log_scale.detach())[:, None]
     with torch.no_grad():
-        proj, rects = project_cpu(means.detach(), g.quats, g.scales, K.detach()[None], w2c.detach()[None], size, size)
+        proj, rects = project_cpu(means.detach(), g.quats, scales, K.detach()[None], w2c.detach()[None], size, size)
     pc = means @ w2c[:3, :3].T + w2c[:3, 3]  # [N, 3]
     z = pc[:, 2]
     zs = torch.where(z > 1e-3, z, torch.ones_like(z))
     uv = torch.stack([K[0, 0] * pc[:, 0] / zs + K[0, 2], K[1, 1] * pc[:, 1] / zs + K[1, 2]], dim=-1)  # [N, 2]
-    p = Projected(uv[None], proj.conics, z.detach()[None], proj.radii)
+    conics = proj.conics
+    if log_scale is not None and log_scale.requires_grad:
+        sc = scaled_conics(proj.conics[0], log_scale - log_scale.detach())[None]
+        conics = proj.conics + (sc - sc.detach())  # the exact projection forward, the scale's gradient backward
+    p = Projected(uv[None], conics, z.detach()[None], proj.radii)
     values = torch.cat([colors, z[:, None]], dim=-1)[None]  # [1, N, 4]
     acc, alpha = rasterize_cpu(p, opac, values, size, size, rects)
     rgb = acc[0, ..., :3] + (1.0 - alpha[0])[..., None] * bg
@@ -377,6 +433,9 @@ def _refine_avatar(
     # fixed per-view deformation at the predicted centres
     dxyz = torch.zeros(v, n, 3)
     drgb = torch.zeros(v, n, 3)
+    shade = torch.ones(v, n)  # the prior's colour factor per view (match_animation)
+    gate_rec = torch.ones(v, n)  # the expression gate of the network's own Gaussians (match_animation)
+    extra: list[Gaussians] = []  # fixed appended Gaussians per view, deformed (match_animation)
     if expressions is not None:
         with torch.no_grad():
             dev = model.device
@@ -386,7 +445,22 @@ def _refine_avatar(
                 dxyz[i], drgb[i] = a.float().cpu(), b.float().cpu()
             if avatar.prior is not None:  # the head model's displacement under the MLP's residual
                 rt = model._runtime(avatar.prior)
-                dxyz += rt.displacement(expressions.to(rt.basis_u.device)).float().cpu()[:, :n]
+                prior_d = rt.displacement(expressions.to(rt.basis_u.device)).float().cpu()  # [V, N_all, 3]
+                dxyz += prior_d[:, :n]
+                if config.match_animation:
+                    from ..render.projection import ALPHA_MIN
+
+                    gi = avatar.gaussians[n:].detach().to("cpu").to(dtype=torch.float32)
+                    for i in range(v):
+                        zi = expressions[i].to(rt.basis_u.device)
+                        gate = model._gate(zi, rt)
+                        gate = torch.ones(len(avatar.gaussians)) if gate is None else gate.float().cpu()
+                        gate_rec[i] = gate[:n]
+                        if rt.shading_on:
+                            shade[i] = rt.shading(zi).float().cpu()[:n]
+                        op = gi.opacities * gate[n:]
+                        keep = op >= ALPHA_MIN
+                        extra.append(gi.replace(means=gi.means + prior_d[i, n:], opacities=op)[keep])
 
     if config.realign and expressions is not None:
         # Pixel re-alignment: the network predicts each Gaussian on its own pixel ray (and with its
@@ -429,6 +503,8 @@ def _refine_avatar(
             return p_dt, p_o, p_c
 
         params = (p_dt, p_o, p_c)
+    p_xyz = torch.zeros(n, 3, requires_grad=config.lr_xyz > 0)
+    p_ls = torch.zeros(n, requires_grad=config.lr_scale > 0)
     rot = torch.zeros(v, 3, requires_grad=True)
     trans = torch.zeros(v, 3, requires_grad=True)
     groups = [
@@ -438,11 +514,24 @@ def _refine_avatar(
     ]
     if config.optimize_cameras:
         groups += [{"params": [rot], "lr": config.lr_rotation}, {"params": [trans], "lr": config.lr_translation}]
+    if config.lr_xyz > 0:
+        groups.append({"params": [p_xyz], "lr": config.lr_xyz})
+    if config.lr_scale > 0:
+        groups.append({"params": [p_ls], "lr": config.lr_scale})
     opt = torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-12)
     base_lr = [gr["lr"] for gr in opt.param_groups]
     bg = torch.tensor(BACKGROUND_RGB, dtype=torch.float32)
     w2c0 = tcams.w2c.float()
     own = [(src == i).nonzero().squeeze(1) for i in range(v)]
+    # per view: the network's Gaussians followed by that view's fixed appended ones (quats, scales)
+    extra_all = [
+        Gaussians(
+            means=torch.cat([g0.means, ex.means]), quats=torch.cat([g0.quats, ex.quats]),
+            scales=torch.cat([g0.scales, ex.scales]), opacities=torch.cat([g0.opacities, ex.opacities]),
+            colors=torch.cat([g0.colors, ex.colors]),
+        )
+        for ex in extra
+    ]
     t_setup = time.perf_counter() - t_start
     losses: list[float] = []
     t0 = time.perf_counter()
@@ -456,15 +545,25 @@ def _refine_avatar(
         targets, tmasks, lcams = levels[size]
         K = lcams.K.float()
         dt, d_o, d_c = corrections()
-        means = g0.means + dt[:, None] * ray
+        means = g0.means + dt[:, None] * ray + p_xyz
         opac = torch.sigmoid(o_logit0 + d_o)
         colors = torch.sigmoid(c_logit0 + d_c)
         w2c = corrected_w2c(w2c0, rot, trans)
+        log_scale = p_ls if config.lr_scale > 0 else None
         total = torch.zeros(())
         for i in ((step * nv + j) % v for j in range(nv)):  # all views, or nv of them in turn
-            rgb, alpha, depth, z, uv = _render_view(
-                g0, means + dxyz[i], (colors + drgb[i]).clamp(0, 1), opac, K[i], w2c[i], size, bg
-            )
+            col_i = (colors + drgb[i]).clamp(0, 1)
+            if extra:
+                col_i = (col_i * shade[i][:, None]).clamp(0, 1)
+                ex, gv = extra[i], extra_all[i]
+                ls_i = None if log_scale is None else torch.cat([log_scale, torch.zeros(len(ex))])
+                rgb, alpha, depth, z, uv = _render_view(
+                    gv, torch.cat([means + dxyz[i], ex.means]), torch.cat([col_i, ex.colors]),
+                    torch.cat([opac * gate_rec[i], ex.opacities]), K[i], w2c[i], size, bg, ls_i,
+                )
+                z, uv = z[:n], uv[:n]
+            else:
+                rgb, alpha, depth, z, uv = _render_view(g0, means + dxyz[i], col_i, opac, K[i], w2c[i], size, bg, log_scale)
             l_photo = (rgb - targets[i]).abs().mean()
             l_sil = ((alpha - tmasks[i]) ** 2).mean()
             loss = config.w_photo * l_photo + config.w_silhouette * l_sil
@@ -480,6 +579,10 @@ def _refine_avatar(
             total = total + loss / nv
         reg = config.w_reg_depth * (dt / config.depth_sigma).pow(2).mean()
         reg = reg + config.w_reg_opacity * d_o.pow(2).mean() + config.w_reg_color * d_c.pow(2).mean()
+        if config.lr_xyz > 0:
+            reg = reg + config.w_reg_xyz * (p_xyz / config.xyz_sigma).pow(2).sum(-1).mean()
+        if config.lr_scale > 0:
+            reg = reg + config.w_reg_scale * p_ls.pow(2).mean()
         if config.optimize_cameras:
             reg = reg + config.w_reg_camera * ((rot / config.rot_sigma).pow(2).sum(-1) + (trans / config.trans_sigma).pow(2).sum(-1)).mean()
         total = total + reg
@@ -501,9 +604,10 @@ def _refine_avatar(
 
     with torch.no_grad():
         dt, d_o, d_c = corrections()
-        means = g0.means + dt[:, None] * ray
+        means = g0.means + dt[:, None] * ray + p_xyz
         g = g0.replace(
             means=means,
+            scales=g0.scales * torch.exp(p_ls)[:, None],
             opacities=torch.sigmoid(o_logit0 + d_o),
             colors=torch.sigmoid(c_logit0 + d_c),
         )
