@@ -265,3 +265,52 @@ def test_refinement_render_matches_a_plain_reference_on_outputs_and_gradients():
         assert y.abs().max() > 0, name
         scale = y.abs().max()
         torch.testing.assert_close(x / scale, y / scale, rtol=0, atol=2e-4, msg=name)
+
+
+@pytest.mark.parametrize("match_animation", [True, False])
+def test_refinement_renders_the_inputs_as_animate_draws_them(sample, monkeypatch, match_animation):
+    """With ``match_animation`` the first step's render of an input view (no corrections yet) is the
+    frame ``FastGHA.animate`` + ``render`` draws at that view's expression (the prior's shading, the
+    back-of-head shell and gated interior included); without it, it is not."""
+    import fastgha_core.refine as refine_mod
+
+    model, avatar, images, masks, cams, expr = sample
+    first = []
+    real = refine_mod._render_view
+
+    def spy(*a):
+        out = real(*a)
+        first.append(out[0].detach())
+        return out
+
+    monkeypatch.setattr(refine_mod, "_render_view", spy)
+    cfg = RefineConfig(steps=1, resolution=64, views_per_step=1, match_animation=match_animation)
+    refine_avatar(model, avatar, images, cams, masks, config=cfg, expressions=expr)
+    frame = render_inputs(model, avatar, prepare_targets(images, cams, masks, 64)[2][0:1], expr[0:1], 64)[0][0]
+    err = (first[0] - frame).abs().max()
+    if match_animation:
+        assert float(err) < 2e-3
+    else:
+        assert float(err) > 0.05
+
+
+def test_refined_avatar_keeps_the_binding_it_was_refined_with(sample):
+    """With zero step sizes the refined avatar animates like the feed-forward one (``keep_binding``);
+    refitting the head to it instead (``keep_binding=False``) moves Gaussians (the feed-forward fit was
+    made on the cloud before the inputs' expressions were undone, as ``fastgha eval`` reconstructs)."""
+    model, _, images, masks, cams, expr = sample
+    imgs, in_cams = model.prepare(list(images), [cams[i : i + 1] for i in range(len(cams.K))], list(masks))
+    avatar = model.reconstruct(imgs, in_cams, expressions=expr)
+    zero = dict(steps=1, resolution=64, lr_opacity=0.0, lr_color=0.0, lr_scale=0.0, prune_opacity=0.0)
+    kept = refine_avatar(model, avatar, images, cams, masks, config=RefineConfig(**zero), expressions=expr).avatar
+    refit = refine_avatar(model, avatar, images, cams, masks, config=RefineConfig(**zero, keep_binding=False), expressions=expr).avatar
+    assert kept.num_interior == avatar.num_interior and len(kept.gaussians) == len(avatar.gaussians)
+    for i in range(len(expr)):
+        a, k, r = (model.animate(x, expr[i]) for x in (avatar, kept, refit))
+        assert len(a) == len(k)
+        torch.testing.assert_close(k.means, a.means, rtol=0, atol=1e-6)
+        torch.testing.assert_close(k.colors, a.colors, rtol=0, atol=2e-3)  # logit round trip, colours clamped to [1e-3, 1 - 1e-3]
+        torch.testing.assert_close(k.opacities, a.opacities, rtol=0, atol=2e-4)
+    n = avatar.num_reconstructed
+    moved = max(float((model.animate(refit, z).means[:n] - model.animate(avatar, z).means[:n]).norm(dim=-1).max()) for z in expr)
+    assert moved > 5e-4  # the refit binding moves some Gaussians by over half a millimetre

@@ -100,6 +100,10 @@ class RefineConfig:
             prior's shading factor on the colours, and the avatar's appended Gaussians (back-of-head
             shell, mouth interior, lids, with their expression gates) drawn as fixed Gaussians
             (False: the network's Gaussians alone, without the shading).
+        keep_binding: the refined avatar keeps the feed-forward avatar's expression-prior binding
+            and appended Gaussians (shell, mouth interior, lids), so it animates exactly as the
+            refinement rendered it (False: the head is refitted to the refined Gaussians and the
+            appended Gaussians are rebuilt, ``FastGHA.attach_prior``).
     """
 
     steps: int = 40
@@ -133,12 +137,19 @@ class RefineConfig:
     prune_opacity: float = 0.005
     phase_schedule: bool = False
     views_per_step: int = 2  # was all: half the cost per step, more steps in the same time
+    # 0: free 3D offsets lowered the sample's inputs (60 steps: 25.59 dB at 2e-4 m, 28.03 at 5e-5 with
+    # scale corrections against 29.16 without; docs/model-card.md, test-time refinement)
     lr_xyz: float = 0.0
     xyz_sigma: float = 0.002
     w_reg_xyz: float = 1e-3
-    lr_scale: float = 0.0
+    # was 0 (no scale corrections): 60 steps on the sample's inputs 26.80 -> 29.33 dB, held-out
+    # (docs/model-card.md, test-time refinement); 0.03 / 0.1: 29.21 / 29.40 dB on the inputs
+    lr_scale: float = 0.05
     w_reg_scale: float = 1e-3
-    match_animation: bool = False
+    match_animation: bool = True  # was False: the shading was not applied and the shell not drawn
+    # was a refit: the refit binding moved some neck Gaussians in view 1 of the sample, which showed as
+    # coloured splats the refinement never saw (29.16 -> 29.21 dB kept)
+    keep_binding: bool = True
 
     def __post_init__(self) -> None:
         if self.steps < 0:
@@ -170,7 +181,10 @@ REFINE_PRESETS: dict[str, RefineConfig] = {
     # the defaults before 2026-11-30 (night): smooth 32x32 correction grids, 75% of the steps at 128²,
     # every view every step; lower on synthetic inputs and novel views, a little higher on real photos
     # (docs/model-card.md, test-time refinement)
-    "smooth": RefineConfig(steps=60, coarse_fraction=0.75, smooth_grid=32, lr_color=0.08, lr_opacity=0.08, noise_floor=1.0, views_per_step=0),
+    "smooth": RefineConfig(steps=60, coarse_fraction=0.75, smooth_grid=32, lr_color=0.08, lr_opacity=0.08, noise_floor=1.0, views_per_step=0, lr_scale=0.0, match_animation=False),
+    # the defaults of 2026-11-30 (night) before the scale corrections: colour and opacity only, the
+    # network's Gaussians without the prior's shading
+    "colour": RefineConfig(steps=60, lr_scale=0.0, match_animation=False),
 }
 
 
@@ -421,8 +435,8 @@ def _refine_avatar(
         levels[size] = prepare_targets(images.cpu(), cams_in.to("cpu", torch.float32), None if masks is None else masks.cpu(), size)
     tcams = levels[config.resolution][2]
     n_coarse = int(round(config.coarse_fraction * config.steps))
-    # only the network's Gaussians are refined; a model with the expression prior rebinds the head
-    # surface and appends its mouth interior / eyelids to the result (``FastGHA.attach_prior``)
+    # only the network's Gaussians are refined; the result keeps the avatar's binding and appended
+    # Gaussians (``keep_binding``), or refits them (``FastGHA.attach_prior``)
     g0 = avatar.gaussians[: avatar.num_reconstructed].detach().to("cpu").to(dtype=torch.float32)
     n = len(g0)
     grid = model.config.input_size
@@ -611,12 +625,21 @@ def _refine_avatar(
             opacities=torch.sigmoid(o_logit0 + d_o),
             colors=torch.sigmoid(c_logit0 + d_c),
         )
-        if config.prune_opacity > 0:
-            g = g.prune(config.prune_opacity)
+        kept = g.opacities >= config.prune_opacity if config.prune_opacity > 0 else torch.ones(n, dtype=torch.bool)
+        g = g[kept]
         w2c_full = corrected_w2c(cams_in.w2c.float().cpu(), rot.detach(), trans.detach())
-    out = CanonicalAvatar(g.to(avatar.gaussians.device), avatar.model_name, avatar.expression_space)
-    if avatar.prior is not None:
-        model.attach_prior(out)
+    dev = avatar.gaussians.device
+    if config.keep_binding and avatar.prior is not None and len(avatar.prior) == len(avatar.gaussians):
+        # the feed-forward binding and appended Gaussians, as the refinement rendered them
+        b = avatar.prior
+        kept_d = kept.to(b.vertex_ids.device)
+        binding = b.concat(b.index(torch.nonzero(kept_d).squeeze(1)), b.index(torch.arange(n, len(b), device=b.vertex_ids.device)))
+        g_all = Gaussians.concat([g.to(dev), avatar.gaussians[n:].detach().to(dev, g.means.dtype)])
+        out = CanonicalAvatar(g_all, avatar.model_name, avatar.expression_space, binding, avatar.num_interior)
+    else:
+        out = CanonicalAvatar(g.to(dev), avatar.model_name, avatar.expression_space)
+        if avatar.prior is not None:
+            model.attach_prior(out)
     cams_out = Cameras(cams_in.K.float().cpu(), w2c_full, cams_in.width, cams_in.height)
     timings = {"setup": t_setup, "optimize": t_opt, "total": time.perf_counter() - t_start, "steps": config.steps}
     return RefineResult(out, cams_out, rot.detach().clone(), trans.detach().clone(), losses, timings)
