@@ -6,9 +6,10 @@ faces and reproduces its inputs poorly. ``refine_avatar`` then runs ``RefineConf
 Adam on small corrections, rendering every input view with its known expression and comparing it
 with the photo:
 
-- per Gaussian: an opacity logit offset, a colour logit offset and (``RefineConfig.lr_depth`` > 0,
-  off by default) a displacement along its own pixel ray (metres); scale, rotation and the
-  per-Gaussian features stay as predicted. With ``RefineConfig.smooth_grid`` > 0 these live on a
+- per Gaussian: an opacity logit offset, a colour logit offset, an isotropic log-scale offset
+  (``RefineConfig.lr_scale``; its three scales multiplied by ``exp(d)``) and, off by default, a
+  displacement along its own pixel ray (``lr_depth``, metres) or a free 3D offset (``lr_xyz``,
+  metres); rotation and the per-Gaussian features stay as predicted. With ``RefineConfig.smooth_grid`` > 0 these live on a
   coarse grid per view instead, sampled at each Gaussian's pixel in its own view, so neighbouring
   Gaussians move together (the default before 2026-11-30: it held the colours to the 128² detail of
   the network's input, while the 256² photos show more);
@@ -28,12 +29,21 @@ them, in turn; images at ``RefineConfig.resolution``, or ``coarse_resolution`` i
   whole avatar renders at its pixel in view ``v`` (a stop-gradient target), where that pixel is
   foreground, so the surfaces predicted from different views merge into one;
 - regularisers keeping the corrections near the network's prediction: ``(dt / depth_sigma)^2``,
-  squared logit offsets, ``(|omega| / rot_sigma)^2 + (|tau| / trans_sigma)^2``.
+  squared logit and log-scale offsets, ``(|d_xyz| / xyz_sigma)^2``,
+  ``(|omega| / rot_sigma)^2 + (|tau| / trans_sigma)^2``.
+
+Each input view is drawn as ``FastGHA.animate`` draws a frame at its expression
+(``RefineConfig.match_animation``): the deformation MLP's and the expression prior's displacement,
+the prior's shading factor on the colours, and the avatar's appended Gaussians (back-of-head shell,
+mouth interior, lids, with their expression gates) as fixed Gaussians that are not refined. The
+refined avatar keeps the feed-forward avatar's binding and appended Gaussians
+(``RefineConfig.keep_binding``), so it animates as it was refined.
 
 The deformation to each input's expression is evaluated once at the predicted centres and kept fixed
 (the corrections are small), and the render uses the rasterizer's float32 gradient path, with the
-screen-space covariances of the current positions treated as constants (gradients flow through the
-projected centres and depths only), which keeps a 4-view step at 256^2 in the tens of milliseconds.
+screen-space covariances of the current positions treated as constants except for the isotropic
+scale factor (gradients flow through the projected centres and depths, and through the conics to
+the scale offsets, ``scaled_conics``), which keeps a 4-view step at 256^2 in the tens of milliseconds.
 
 This runs once when an avatar is created; the per-frame path is unchanged (the refined avatar is an
 ordinary ``CanonicalAvatar``).
@@ -92,10 +102,11 @@ class RefineConfig:
         views_per_step: render this many input views per step, in turn (0 = all of them every step);
             the loss is averaged over the views rendered.
         lr_xyz: step size (metres) of a free 3D offset of every Gaussian (0 = off); it costs
-            ``w_reg_xyz * (|d| / xyz_sigma)^2`` (``xyz_sigma`` in metres). Per-Gaussian corrections
-            only (not with ``smooth_grid``).
+            ``w_reg_xyz * (|d| / xyz_sigma)^2`` (``xyz_sigma`` in metres). Per Gaussian, also with
+            ``smooth_grid``.
         lr_scale: step size of an isotropic log-scale correction of every Gaussian (0 = off; the
-            3D scales are multiplied by ``exp(d)``), costing ``w_reg_scale * d^2``. Per-Gaussian only.
+            3D scales are multiplied by ``exp(d)``), costing ``w_reg_scale * d^2``. Per Gaussian, also
+            with ``smooth_grid``.
         match_animation: render the inputs as ``FastGHA.animate`` draws a frame: the expression
             prior's shading factor on the colours, and the avatar's appended Gaussians (back-of-head
             shell, mouth interior, lids, with their expression gates) drawn as fixed Gaussians
@@ -160,8 +171,6 @@ class RefineConfig:
                 raise ValueError(f"{name} must be a multiple of 16 (>= 16), got {r}")
         if self.views_per_step < 0:
             raise ValueError(f"views_per_step must be >= 0, got {self.views_per_step}")
-        if self.smooth_grid > 0 and (self.lr_xyz > 0 or self.lr_scale > 0):
-            raise ValueError(f"lr_xyz and lr_scale need per-Gaussian corrections (smooth_grid 0), got smooth_grid {self.smooth_grid}")
         if self.xyz_sigma <= 0:
             raise ValueError(f"xyz_sigma must be > 0, got {self.xyz_sigma}")
         if self.smooth_grid < 0 or self.noise_floor < 0:
