@@ -190,10 +190,10 @@ REFINE_PRESETS: dict[str, RefineConfig] = {
     # the defaults before 2026-11-30 (night): smooth 32x32 correction grids, 75% of the steps at 128²,
     # every view every step; lower on synthetic inputs and novel views, a little higher on real photos
     # (docs/model-card.md, test-time refinement)
-    "smooth": RefineConfig(steps=60, coarse_fraction=0.75, smooth_grid=32, lr_color=0.08, lr_opacity=0.08, noise_floor=1.0, views_per_step=0, lr_scale=0.0, match_animation=False),
+    "smooth": RefineConfig(steps=60, coarse_fraction=0.75, smooth_grid=32, lr_color=0.08, lr_opacity=0.08, noise_floor=1.0, views_per_step=0, lr_scale=0.0, match_animation=False, keep_binding=False),
     # the defaults of 2026-11-30 (night) before the scale corrections: colour and opacity only, the
-    # network's Gaussians without the prior's shading
-    "colour": RefineConfig(steps=60, lr_scale=0.0, match_animation=False),
+    # network's Gaussians without the prior's shading, the head refitted to the result
+    "colour": RefineConfig(steps=60, lr_scale=0.0, match_animation=False, keep_binding=False),
 }
 
 
