@@ -9,8 +9,9 @@ with the photo:
 - per Gaussian: an opacity logit offset, a colour logit offset, an isotropic log-scale offset
   (``RefineConfig.lr_scale``; its three scales multiplied by ``exp(d)``) and, off by default, a
   displacement along its own pixel ray (``lr_depth``, metres) or a free 3D offset (``lr_xyz``,
-  metres); rotation and the per-Gaussian features stay as predicted. With ``RefineConfig.smooth_grid`` > 0 these live on a
-  coarse grid per view instead, sampled at each Gaussian's pixel in its own view, so neighbouring
+  metres); rotation and the per-Gaussian features stay as predicted. With
+  ``RefineConfig.smooth_grid`` > 0 the opacity, colour and ray offsets live on a coarse grid per
+  view instead, sampled at each Gaussian's pixel in its own view, so neighbouring
   Gaussians move together (the default before 2026-11-30: it held the colours to the 128² detail of
   the network's input, while the 256² photos show more);
 - per view (``RefineConfig.optimize_cameras``, off by default): a camera correction
