@@ -149,8 +149,8 @@ class RefineConfig:
     trans_sigma: float = 0.01
     optimize_cameras: bool = False
     realign: bool = False
-    # 0 (off): 6 mm gave 29.46 against 29.33 dB on the sample's inputs, novel views not measured
-    # (docs/model-card.md, test-time refinement)
+    # 0 (off): 6 mm gave 29.46 against 29.33 dB on the sample's inputs but lowered held-out PSNR
+    # (21.47 / 21.84 against 21.74 / 22.15 dB; docs/model-card.md, test-time refinement)
     realign_cap: float = 0.0
     noise_floor: float = 0.0  # was 1.0, and smooth_grid 32: both held the per-Gaussian colours to the 128² detail
     smooth_grid: int = 0
