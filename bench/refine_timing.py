@@ -1,14 +1,16 @@
 """Test-time refinement cost, side by side in one process (timings on a shared machine are noisy:
 compare the ratios, and prefer the CPU-time columns).
 
-    python bench/refine_timing.py [--repeats 5] [--steps 40] [--skip-raster] [--previous]
+    python bench/refine_timing.py [--repeats 5] [--steps 40] [--skip-raster] [--previous] [--against PRESET]
 
 1. Rasterizer forward+backward of ``fastgha bench render``'s 65,536-Gaussian head scene at 256²
    (loss on rgb, alpha and depth): the float64 kernels (``FASTGHA_RASTER_FAST=0``, the path before
    the float32 backward existed) against the float32 gradient path, interleaved, median of repeats.
 2. ``refine_avatar`` of the shipped sample's 4-view avatar with the default ``RefineConfig`` (and
    ``--steps``): wall and process CPU seconds, and seconds per step; ``--previous`` also times the
-   defaults before 2026-11-30 (night), interleaved with the current ones, and prints the ratio.
+   defaults before 2026-11-30 (night), interleaved with the current ones, and prints the ratio;
+   ``--against PRESET`` does the same for ``REFINE_PRESETS[PRESET]`` (e.g. ``colour``: the defaults
+   before the scale corrections).
 """
 
 from __future__ import annotations
@@ -34,7 +36,10 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--skip-raster", action="store_true")
     ap.add_argument("--previous", action="store_true", help="also time the defaults before 2026-11-30 night (REFINE_PRESETS['smooth']), interleaved")
+    ap.add_argument("--against", default=None, help="also time REFINE_PRESETS[PRESET], interleaved, and print the ratio")
     args = ap.parse_args()
+    if args.previous and not args.against:
+        args.against = "smooth"
     from fastgha_core.bench.render import bench_camera, head_scene
     from fastgha_core.gaussians import Gaussians
     from fastgha_core.render import render
@@ -71,8 +76,8 @@ def main() -> None:
     imgs, in_cams = model.prepare(list(images), [cams[i : i + 1] for i in range(len(cams.K))], list(masks))
     avatar = model.reconstruct(imgs, in_cams)
     configs = {"default config": RefineConfig(steps=args.steps)}
-    if args.previous:
-        configs["previous defaults"] = RefineConfig(**{**REFINE_PRESETS["smooth"].__dict__, "steps": args.steps})
+    if args.against:
+        configs[f"preset {args.against}"] = RefineConfig(**{**REFINE_PRESETS[args.against].__dict__, "steps": args.steps})
     for cfg in configs.values():  # warm-up
         refine_avatar(model, avatar, images, cams, masks, config=RefineConfig(**{**cfg.__dict__, "steps": 2}), expressions=expr)
     runs: dict[str, list] = {k: [] for k in configs}
@@ -84,8 +89,10 @@ def main() -> None:
         wall = walls[name] = statistics.median(a for a, _ in r)
         cpu = statistics.median(b for _, b in r)
         print(f"refine_avatar 4 views, {len(avatar)} Gaussians, {args.steps} steps ({name}): {wall:.2f} s wall, {cpu:.2f} s cpu, {wall / args.steps * 1e3:.0f} ms/step")
-    if args.previous:
-        print(f"ratio default / previous (wall) {walls['default config'] / walls['previous defaults']:.2f}")
+    if args.against:
+        cpus = {name: statistics.median(b for _, b in r) for name, r in runs.items()}
+        other = f"preset {args.against}"
+        print(f"ratio default / {other} (wall) {walls['default config'] / walls[other]:.2f}, (cpu) {cpus['default config'] / cpus[other]:.2f}")
 
 if __name__ == "__main__":
     main()

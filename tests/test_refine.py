@@ -120,9 +120,9 @@ def test_views_per_step_renders_the_views_in_turn(sample, monkeypatch):
     seen = []
     real = refine_mod._render_view
 
-    def spy(g, means, colors, opac, K, w2c, size, bg):
+    def spy(g, means, colors, opac, K, w2c, size, bg, *rest):
         seen.append(int((cams.w2c.float() - w2c.detach()[None]).abs().flatten(1).sum(1).argmin()))
-        return real(g, means, colors, opac, K, w2c, size, bg)
+        return real(g, means, colors, opac, K, w2c, size, bg, *rest)
 
     monkeypatch.setattr(refine_mod, "_render_view", spy)
     cfg = RefineConfig(steps=3, resolution=64, coarse_resolution=64, views_per_step=2)
@@ -145,9 +145,9 @@ def test_smooth_preset_keeps_the_previous_schedule(sample, monkeypatch):
     sizes = []
     real = refine_mod._render_view
 
-    def spy(g, means, colors, opac, K, w2c, size, bg):
+    def spy(g, means, colors, opac, K, w2c, size, bg, *rest):
         sizes.append(size)
-        return real(g, means, colors, opac, K, w2c, size, bg)
+        return real(g, means, colors, opac, K, w2c, size, bg, *rest)
 
     monkeypatch.setattr(refine_mod, "_render_view", spy)
     cfg = RefineConfig(**{**REFINE_PRESETS["smooth"].__dict__, "steps": 4, "resolution": 64, "coarse_resolution": 32})
@@ -174,3 +174,172 @@ def test_phase_schedule_restarts_the_step_size_at_the_fine_phase(sample, monkeyp
     refine_avatar(model, avatar, images, cams, masks, config=cfg, expressions=expr)
     want = [1.0, 0.1, 1.0, 0.1] if phase_schedule else [1.0, 1.0, 0.7, 0.1]
     assert lrs == pytest.approx(want)
+
+
+def _small_scene(seed: int, n: int = 300):
+    """Float32 Gaussians around the origin seen by one 48x48 camera at z = 1."""
+    g = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=g) * 0.06
+    quats = torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=-1)
+    scales = torch.exp(torch.rand(n, 3, generator=g) * 1.5 - 5.5)
+    opac = torch.rand(n, generator=g) * 0.9 + 0.05
+    colors = torch.rand(n, 3, generator=g)
+    cams = Cameras.look_at(torch.tensor([[0.05, -0.03, 1.0]]), fov_deg=20.0, width=48, height=48)
+    from fastgha_core import Gaussians
+
+    return Gaussians(means, quats, scales, opac, colors), cams
+
+
+def test_scaled_conics_match_the_projection_of_scaled_gaussians():
+    """An isotropic factor exp(d) on the 3D scales: the conics from scaled_conics equal those of the
+    full projection of the scaled Gaussians, and so do their gradients with respect to d."""
+    from fastgha_core.refine import scaled_conics
+    from fastgha_core.render.projection import project_gaussians
+
+    g, cams = _small_scene(1)
+    g = g.to(dtype=torch.float64)
+    d0 = torch.randn(len(g), dtype=torch.float64, generator=torch.Generator().manual_seed(2)) * 0.3
+    ref_d = d0.clone().requires_grad_(True)
+    ref = project_gaussians(g.means, g.quats, g.scales * torch.exp(ref_d)[:, None], cams.K.double(), cams.w2c.double(), 48, 48)
+    vis = ref.radii[0] > 0
+    assert vis.sum() > 100
+    # the current projection (at d0, no gradient) + a differentiable increment around it
+    with torch.no_grad():
+        cur = project_gaussians(g.means, g.quats, g.scales * torch.exp(d0)[:, None], cams.K.double(), cams.w2c.double(), 48, 48)
+    d = d0.clone().requires_grad_(True)
+    out = scaled_conics(cur.conics[0], d - d.detach())
+    torch.testing.assert_close(out[vis], ref.conics[0][vis], rtol=1e-9, atol=1e-9)
+    w = torch.rand(out.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    (out[vis] * w[vis]).sum().backward()
+    (ref.conics[0][vis] * w[vis]).sum().backward()
+    assert ref_d.grad[vis].abs().max() > 0
+    torch.testing.assert_close(d.grad[vis], ref_d.grad[vis], rtol=1e-7, atol=1e-9)
+    # a finite increment too: the conics of Gaussians twice as large
+    torch.testing.assert_close(
+        scaled_conics(cur.conics[0], torch.full_like(d0, math.log(2.0)))[vis],
+        project_gaussians(g.means, g.quats, g.scales * (2 * torch.exp(d0))[:, None], cams.K.double(), cams.w2c.double(), 48, 48).conics[0][vis],
+        rtol=1e-9, atol=1e-9,
+    )
+
+
+def test_refinement_render_matches_a_plain_reference_on_outputs_and_gradients():
+    """``_render_view`` (numba projection without gradients, float32 tile kernels, the centres and the
+    isotropic scale correction differentiated in torch) against the dense reference compositor fed by
+    the torch projection: the same images, and the same gradients of positions, colours, opacities
+    and scale corrections. The reference holds the screen-space covariance fixed with respect to the
+    positions, as refinement does (its documented approximation)."""
+    from fastgha_core.refine import _render_view
+    from fastgha_core.render.projection import Projected, project_gaussians
+    from fastgha_core.render.reference import rasterize_reference
+
+    g, cams = _small_scene(4)
+    n = len(g)
+    bg = torch.tensor([1.0, 1.0, 1.0])
+    gen = torch.Generator().manual_seed(5)
+    ls0 = torch.randn(n, generator=gen) * 0.2
+    w = [torch.rand(s, generator=gen) for s in ((3, 48, 48), (1, 48, 48), (1, 48, 48))]
+
+    def leaves():
+        return [t.detach().clone().requires_grad_(True) for t in (g.means, g.colors, g.opacities, ls0)]
+
+    def loss(rgb, alpha, depth):
+        return (rgb * w[0]).sum() + (alpha * w[1]).sum() + 0.1 * (depth * alpha * w[2]).sum()
+
+    m, c, o, ls = leaves()
+    rgb, alpha, depth, z, uv = _render_view(g, m, c, o, cams.K[0], cams.w2c[0], 48, bg, ls)
+    loss(rgb, alpha, depth).backward()
+    fast = (rgb.detach(), alpha.detach(), (depth * alpha).detach(), m.grad, c.grad, o.grad, ls.grad)
+
+    m, c, o, ls = leaves()
+    pos = project_gaussians(m, g.quats, g.scales.detach(), cams.K, cams.w2c, 48, 48)  # centres and depths
+    cov = project_gaussians(m.detach(), g.quats, g.scales * torch.exp(ls)[:, None], cams.K, cams.w2c, 48, 48)
+    p = Projected(pos.means2d, cov.conics, pos.depths.detach(), cov.radii)
+    acc, a = rasterize_reference(p, o, torch.cat([c, pos.depths[0][:, None]], -1)[None], 48, 48)
+    rgb_r = (acc[0, ..., :3] + (1 - a[0])[..., None] * bg).permute(2, 0, 1)
+    depth_r = (acc[0, ..., 3] / a[0].clamp_min(1e-6))[None]
+    loss(rgb_r, a[0][None], depth_r).backward()
+    ref = (rgb_r.detach(), a[0][None].detach(), (depth_r * a[0][None]).detach(), m.grad, c.grad, o.grad, ls.grad)
+
+    names = ("rgb", "alpha", "depth x alpha", "grad means", "grad colors", "grad opacities", "grad log-scale")
+    for name, x, y in zip(names, fast, ref):
+        assert y.abs().max() > 0, name
+        scale = y.abs().max()
+        torch.testing.assert_close(x / scale, y / scale, rtol=0, atol=2e-4, msg=name)
+
+
+@pytest.mark.parametrize("match_animation", [True, False])
+def test_refinement_renders_the_inputs_as_animate_draws_them(sample, monkeypatch, match_animation):
+    """With ``match_animation`` the first step's render of an input view (no corrections yet) is the
+    frame ``FastGHA.animate`` + ``render`` draws at that view's expression (the prior's shading, the
+    back-of-head shell and gated interior included); without it, it is not."""
+    import fastgha_core.refine as refine_mod
+
+    model, avatar, images, masks, cams, expr = sample
+    first = []
+    real = refine_mod._render_view
+
+    def spy(*a):
+        out = real(*a)
+        first.append(out[0].detach())
+        return out
+
+    monkeypatch.setattr(refine_mod, "_render_view", spy)
+    cfg = RefineConfig(steps=1, resolution=64, views_per_step=1, match_animation=match_animation)
+    refine_avatar(model, avatar, images, cams, masks, config=cfg, expressions=expr)
+    frame = render_inputs(model, avatar, prepare_targets(images, cams, masks, 64)[2][0:1], expr[0:1], 64)[0][0]
+    err = (first[0] - frame).abs().max()
+    if match_animation:
+        assert float(err) < 2e-3
+    else:
+        assert float(err) > 0.05
+
+
+def test_refined_avatar_keeps_the_binding_it_was_refined_with(sample):
+    """With zero step sizes the refined avatar animates like the feed-forward one (``keep_binding``);
+    refitting the head to it instead (``keep_binding=False``) moves Gaussians (the feed-forward fit was
+    made on the cloud before the inputs' expressions were undone, as ``fastgha eval`` reconstructs)."""
+    model, _, images, masks, cams, expr = sample
+    imgs, in_cams = model.prepare(list(images), [cams[i : i + 1] for i in range(len(cams.K))], list(masks))
+    avatar = model.reconstruct(imgs, in_cams, expressions=expr)
+    zero = dict(steps=1, resolution=64, lr_opacity=0.0, lr_color=0.0, lr_scale=0.0, prune_opacity=0.0)
+    kept = refine_avatar(model, avatar, images, cams, masks, config=RefineConfig(**zero), expressions=expr).avatar
+    refit = refine_avatar(model, avatar, images, cams, masks, config=RefineConfig(**zero, keep_binding=False), expressions=expr).avatar
+    assert kept.num_interior == avatar.num_interior and len(kept.gaussians) == len(avatar.gaussians)
+    for i in range(len(expr)):
+        a, k, r = (model.animate(x, expr[i]) for x in (avatar, kept, refit))
+        assert len(a) == len(k)
+        torch.testing.assert_close(k.means, a.means, rtol=0, atol=1e-6)
+        torch.testing.assert_close(k.colors, a.colors, rtol=0, atol=2e-3)  # logit round trip, colours clamped to [1e-3, 1 - 1e-3]
+        torch.testing.assert_close(k.opacities, a.opacities, rtol=0, atol=2e-4)
+    n = avatar.num_reconstructed
+    moved = max(float((model.animate(refit, z).means[:n] - model.animate(avatar, z).means[:n]).norm(dim=-1).max()) for z in expr)
+    assert moved > 5e-4  # the refit binding moves some Gaussians by over half a millimetre
+
+
+def test_realign_to_pixels_undoes_the_mlp_residual_of_the_own_expression(sample):
+    """Moved Gaussians, deformed by the MLP's residual at their own view's expression, land back on
+    the network's centres (better than before the move); those that would move beyond the cap stay."""
+    from fastgha_core.refine import realign_to_pixels
+
+    model, avatar, images, masks, cams, expr = sample
+    n = avatar.num_reconstructed
+    g = avatar.gaussians[:n]
+    tcams = prepare_targets(images, cams, masks, 64)[2]
+    src = source_views(g.means, tcams, model.config.input_size)
+    cap = 0.006
+    m, stay = realign_to_pixels(model, g, src, expr, cap)
+    assert 0 < int(stay.sum()) < n
+    assert torch.equal(m[stay], g.means[stay])
+    assert float((m - g.means).norm(dim=-1).max()) <= cap + 1e-6
+
+    def landed(pos):
+        out = torch.empty_like(pos)
+        with torch.no_grad():
+            for i in range(len(expr)):
+                sel = src == i
+                out[sel] = pos[sel] + model.deform(g.features[sel], pos[sel], expr[i])[0]
+        return (out - g.means).norm(dim=-1)
+
+    moved = ~stay
+    before, after = landed(g.means)[moved], landed(m)[moved]
+    assert float(after.median()) < 0.25 * float(before.median())

@@ -6,10 +6,12 @@ faces and reproduces its inputs poorly. ``refine_avatar`` then runs ``RefineConf
 Adam on small corrections, rendering every input view with its known expression and comparing it
 with the photo:
 
-- per Gaussian: an opacity logit offset, a colour logit offset and (``RefineConfig.lr_depth`` > 0,
-  off by default) a displacement along its own pixel ray (metres); scale, rotation and the
-  per-Gaussian features stay as predicted. With ``RefineConfig.smooth_grid`` > 0 these live on a
-  coarse grid per view instead, sampled at each Gaussian's pixel in its own view, so neighbouring
+- per Gaussian: an opacity logit offset, a colour logit offset, an isotropic log-scale offset
+  (``RefineConfig.lr_scale``; its three scales multiplied by ``exp(d)``) and, off by default, a
+  displacement along its own pixel ray (``lr_depth``, metres) or a free 3D offset (``lr_xyz``,
+  metres); rotation and the per-Gaussian features stay as predicted. With
+  ``RefineConfig.smooth_grid`` > 0 the opacity, colour and ray offsets live on a coarse grid per
+  view instead, sampled at each Gaussian's pixel in its own view, so neighbouring
   Gaussians move together (the default before 2026-11-30: it held the colours to the 128² detail of
   the network's input, while the 256² photos show more);
 - per view (``RefineConfig.optimize_cameras``, off by default): a camera correction
@@ -28,12 +30,21 @@ them, in turn; images at ``RefineConfig.resolution``, or ``coarse_resolution`` i
   whole avatar renders at its pixel in view ``v`` (a stop-gradient target), where that pixel is
   foreground, so the surfaces predicted from different views merge into one;
 - regularisers keeping the corrections near the network's prediction: ``(dt / depth_sigma)^2``,
-  squared logit offsets, ``(|omega| / rot_sigma)^2 + (|tau| / trans_sigma)^2``.
+  squared logit and log-scale offsets, ``(|d_xyz| / xyz_sigma)^2``,
+  ``(|omega| / rot_sigma)^2 + (|tau| / trans_sigma)^2``.
+
+Each input view is drawn as ``FastGHA.animate`` draws a frame at its expression
+(``RefineConfig.match_animation``): the deformation MLP's and the expression prior's displacement,
+the prior's shading factor on the colours, and the avatar's appended Gaussians (back-of-head shell,
+mouth interior, lids, with their expression gates) as fixed Gaussians that are not refined. The
+refined avatar keeps the feed-forward avatar's binding and appended Gaussians
+(``RefineConfig.keep_binding``), so it animates as it was refined.
 
 The deformation to each input's expression is evaluated once at the predicted centres and kept fixed
 (the corrections are small), and the render uses the rasterizer's float32 gradient path, with the
-screen-space covariances of the current positions treated as constants (gradients flow through the
-projected centres and depths only), which keeps a 4-view step at 256^2 in the tens of milliseconds.
+screen-space covariances of the current positions treated as constants except for the isotropic
+scale factor (gradients flow through the projected centres and depths, and through the conics to
+the scale offsets, ``scaled_conics``), which keeps a 4-view step at 256^2 in the tens of milliseconds.
 
 This runs once when an avatar is created; the per-frame path is unchanged (the refined avatar is an
 ordinary ``CanonicalAvatar``).
@@ -54,7 +65,7 @@ from ..constants import BACKGROUND_RGB
 from ..gaussians import Gaussians
 from ..model.avatar import CanonicalAvatar
 
-__all__ = ["RefineConfig", "RefineResult", "REFINE_PRESETS", "refine_avatar", "prepare_targets", "source_views", "masked_psnr", "lr_factor"]
+__all__ = ["RefineConfig", "RefineResult", "REFINE_PRESETS", "refine_avatar", "prepare_targets", "source_views", "masked_psnr", "lr_factor", "scaled_conics", "realign_to_pixels"]
 
 
 @dataclass
@@ -84,6 +95,11 @@ class RefineConfig:
         realign: before optimising, move every Gaussian (and its colour) back by the deformation of
             its own view's expression, so that deformed to that expression it lies on its pixel ray
             again with its pixel's colour (needs ``expressions``).
+        realign_cap: metres; > 0 moves every Gaussian, before optimising, so that the deformation
+            MLP's residual at its own view's expression takes it back to where the network put it
+            (``realign_to_pixels``: three fixed-point steps; the expression prior's displacement is
+            left alone, reconstruction undoes it), except Gaussians that would move further than
+            this, which stay (the fixed point does not converge for them). 0 = off (the default).
         prune_opacity: drop Gaussians whose refined opacity falls below this (0 = keep all).
         phase_schedule: run the step-size schedule (constant, then a linear decay to 10% over the
             second half) separately in the coarse and in the fine phase, so the fine steps start
@@ -91,6 +107,20 @@ class RefineConfig:
             fall in its decay).
         views_per_step: render this many input views per step, in turn (0 = all of them every step);
             the loss is averaged over the views rendered.
+        lr_xyz: step size (metres) of a free 3D offset of every Gaussian (0 = off); it costs
+            ``w_reg_xyz * (|d| / xyz_sigma)^2`` (``xyz_sigma`` in metres). Per Gaussian, also with
+            ``smooth_grid``.
+        lr_scale: step size of an isotropic log-scale correction of every Gaussian (0 = off; the
+            3D scales are multiplied by ``exp(d)``), costing ``w_reg_scale * d^2``. Per Gaussian, also
+            with ``smooth_grid``.
+        match_animation: render the inputs as ``FastGHA.animate`` draws a frame: the expression
+            prior's shading factor on the colours, and the avatar's appended Gaussians (back-of-head
+            shell, mouth interior, lids, with their expression gates) drawn as fixed Gaussians
+            (False: the network's Gaussians alone, without the shading).
+        keep_binding: the refined avatar keeps the feed-forward avatar's expression-prior binding
+            and appended Gaussians (shell, mouth interior, lids), so it animates exactly as the
+            refinement rendered it (False: the head is refitted to the refined Gaussians and the
+            appended Gaussians are rebuilt, ``FastGHA.attach_prior``).
     """
 
     steps: int = 40
@@ -119,11 +149,27 @@ class RefineConfig:
     trans_sigma: float = 0.01
     optimize_cameras: bool = False
     realign: bool = False
+    # 0 (off): 6 mm gave 29.46 against 29.33 dB on the sample's inputs but lowered held-out PSNR
+    # (21.47 / 21.84 against 21.74 / 22.15 dB; docs/model-card.md, test-time refinement)
+    realign_cap: float = 0.0
     noise_floor: float = 0.0  # was 1.0, and smooth_grid 32: both held the per-Gaussian colours to the 128² detail
     smooth_grid: int = 0
     prune_opacity: float = 0.005
     phase_schedule: bool = False
     views_per_step: int = 2  # was all: half the cost per step, more steps in the same time
+    # 0: free 3D offsets lowered the sample's inputs (60 steps: 25.59 dB at 2e-4 m, 28.03 at 5e-5 with
+    # scale corrections against 29.16 without; docs/model-card.md, test-time refinement)
+    lr_xyz: float = 0.0
+    xyz_sigma: float = 0.002
+    w_reg_xyz: float = 1e-3
+    # was 0 (no scale corrections): 60 steps on the sample's inputs 26.80 -> 29.33 dB, held-out
+    # (docs/model-card.md, test-time refinement); 0.03 / 0.1: 29.21 / 29.40 dB on the inputs
+    lr_scale: float = 0.05
+    w_reg_scale: float = 1e-3
+    match_animation: bool = True  # was False: the shading was not applied and the shell not drawn
+    # was a refit: the refit binding moved some neck Gaussians in view 1 of the sample, which showed as
+    # coloured splats the refinement never saw (29.16 -> 29.21 dB kept)
+    keep_binding: bool = True
 
     def __post_init__(self) -> None:
         if self.steps < 0:
@@ -134,6 +180,10 @@ class RefineConfig:
                 raise ValueError(f"{name} must be a multiple of 16 (>= 16), got {r}")
         if self.views_per_step < 0:
             raise ValueError(f"views_per_step must be >= 0, got {self.views_per_step}")
+        if self.realign_cap < 0:
+            raise ValueError(f"realign_cap must be >= 0, got {self.realign_cap}")
+        if self.xyz_sigma <= 0:
+            raise ValueError(f"xyz_sigma must be > 0, got {self.xyz_sigma}")
         if self.smooth_grid < 0 or self.noise_floor < 0:
             raise ValueError(f"smooth_grid and noise_floor must be >= 0, got {self.smooth_grid} and {self.noise_floor}")
         if not 0.0 <= self.coarse_fraction <= 1.0:
@@ -151,7 +201,10 @@ REFINE_PRESETS: dict[str, RefineConfig] = {
     # the defaults before 2026-11-30 (night): smooth 32x32 correction grids, 75% of the steps at 128²,
     # every view every step; lower on synthetic inputs and novel views, a little higher on real photos
     # (docs/model-card.md, test-time refinement)
-    "smooth": RefineConfig(steps=60, coarse_fraction=0.75, smooth_grid=32, lr_color=0.08, lr_opacity=0.08, noise_floor=1.0, views_per_step=0),
+    "smooth": RefineConfig(steps=60, coarse_fraction=0.75, smooth_grid=32, lr_color=0.08, lr_opacity=0.08, noise_floor=1.0, views_per_step=0, lr_scale=0.0, match_animation=False, keep_binding=False),
+    # the defaults of 2026-11-30 (night) before the scale corrections: colour and opacity only, the
+    # network's Gaussians without the prior's shading, the head refitted to the result
+    "colour": RefineConfig(steps=60, lr_scale=0.0, match_animation=False, keep_binding=False),
 }
 
 
@@ -274,23 +327,87 @@ def corrected_w2c(w2c: Tensor, rot: Tensor, trans: Tensor) -> Tensor:
     return torch.cat([top, w2c[:, 3:4]], dim=1)
 
 
-def _render_view(g: Gaussians, means: Tensor, colors: Tensor, opac: Tensor, K: Tensor, w2c: Tensor, size: int, bg: Tensor):
-    """Differentiable render of one view with fixed screen-space covariances.
+def scaled_conics(conics: Tensor, log_scale: Tensor, eps2d: float | None = None) -> Tensor:
+    """Conics ``[N, 3]`` (a, b, c) of Gaussians whose 3D scales are multiplied by ``exp(log_scale [N])``
+    (isotropically), from the conics ``conics [N, 3]`` projected at the current scales.
+
+    The projected 2D covariance is ``Sigma2d = J W Sigma W^T J^T + EPS2D I`` (``render.projection``);
+    an isotropic factor ``s`` on the 3D scales multiplies its first term by ``s^2``. The value is the
+    input conic where ``log_scale`` is 0 (it is meant to be called with ``log_scale - log_scale.detach()``
+    so that the forward pass keeps the exact projection and only the gradient comes from here); conics
+    of culled Gaussians (all zero) stay zero.
+    """
+    from ..render.projection import EPS2D
+
+    eps = EPS2D if eps2d is None else eps2d
+    a, b, c = conics.unbind(-1)
+    det = a * c - b * b
+    ok = det > 0
+    inv = torch.where(ok, 1.0 / torch.where(ok, det, torch.ones_like(det)), torch.zeros_like(det))
+    # covariance of the current projection without the low-pass term, scaled by s^2, low-pass added back
+    s2 = torch.exp(2.0 * log_scale)
+    ca, cb, cc = (c * inv - eps) * s2 + eps, -b * inv * s2, (a * inv - eps) * s2 + eps
+    d2 = ca * cc - cb * cb
+    d2 = torch.where(ok & (d2 > 0), d2, torch.ones_like(d2))
+    out = torch.stack([cc / d2, -cb / d2, ca / d2], dim=-1)
+    return torch.where(ok[:, None], out, conics)
+
+
+def realign_to_pixels(model, g: Gaussians, src: Tensor, expressions: Tensor, cap: float, iters: int = 3) -> tuple[Tensor, Tensor]:
+    """Canonical centres ``[N, 3]`` that the deformation MLP's residual at each Gaussian's own view's
+    expression takes back to ``g.means`` (where the network put it, on its pixel ray), and the
+    ``[N]`` bool mask of the Gaussians left in place.
+
+    Solves ``m + mlp(m, z_src) = g.means`` by ``iters`` fixed-point steps ``m <- g.means - mlp(m, z_src)``
+    (``src [N]``: each Gaussian's input view, ``expressions [V, E]``). For a part of the Gaussians the
+    iteration does not converge and moves them by centimetres (on the shipped sample 23 mm at the
+    90th percentile, up to 17 cm, without a cap); those whose move exceeds ``cap`` metres keep
+    ``g.means``. The expression prior's displacement is not touched (reconstruction undoes it).
+    """
+    dev = model.device
+    target = g.means.detach().float().cpu()
+    m = target.clone()
+    feats = g.features.detach().to(dev)
+    with torch.no_grad():
+        for _ in range(iters):
+            res = torch.zeros_like(m)
+            for i in range(len(expressions)):
+                sel = (src == i).nonzero().squeeze(1)
+                if len(sel):
+                    res[sel] = model.deform(feats[sel.to(dev)], m[sel].to(dev), expressions[i].to(dev))[0].float().cpu()
+            m = target - res
+    stay = (m - target).norm(dim=-1) > cap
+    return torch.where(stay[:, None], target, m), stay
+
+
+def _render_view(
+    g: Gaussians, means: Tensor, colors: Tensor, opac: Tensor, K: Tensor, w2c: Tensor, size: int, bg: Tensor,
+    log_scale: Tensor | None = None,
+):
+    """Differentiable render of one view.
 
     ``means [N, 3]``, ``colors [N, 3]``, ``opac [N]`` carry gradients, ``K [3, 3]`` and ``w2c [4, 4]``
-    too (through the projected centres). Returns rgb ``[3, S, S]``, alpha ``[1, S, S]``, depth
-    ``[1, S, S]`` and the camera z ``[N]`` of every Gaussian.
+    too (through the projected centres); ``g`` gives the quaternions and scales. The screen-space
+    covariances are those of the current positions, treated as constants, except for an isotropic
+    scale correction ``log_scale [N]`` (or None): the scales are multiplied by ``exp(log_scale)`` and
+    its gradient flows through the conics (``scaled_conics``). Returns rgb ``[3, S, S]``, alpha
+    ``[1, S, S]``, depth ``[1, S, S]``, the camera z ``[N]`` and the pixel positions ``[N, 2]``.
     """
     from ..render.cpu_backend import project_cpu, rasterize_cpu
     from ..render.projection import Projected
 
+    scales = g.scales if log_scale is None else g.scales * torch.exp(log_scale.detach())[:, None]
     with torch.no_grad():
-        proj, rects = project_cpu(means.detach(), g.quats, g.scales, K.detach()[None], w2c.detach()[None], size, size)
+        proj, rects = project_cpu(means.detach(), g.quats, scales, K.detach()[None], w2c.detach()[None], size, size)
     pc = means @ w2c[:3, :3].T + w2c[:3, 3]  # [N, 3]
     z = pc[:, 2]
     zs = torch.where(z > 1e-3, z, torch.ones_like(z))
     uv = torch.stack([K[0, 0] * pc[:, 0] / zs + K[0, 2], K[1, 1] * pc[:, 1] / zs + K[1, 2]], dim=-1)  # [N, 2]
-    p = Projected(uv[None], proj.conics, z.detach()[None], proj.radii)
+    conics = proj.conics
+    if log_scale is not None and log_scale.requires_grad:
+        sc = scaled_conics(proj.conics[0], log_scale - log_scale.detach())[None]
+        conics = proj.conics + (sc - sc.detach())  # the exact projection forward, the scale's gradient backward
+    p = Projected(uv[None], conics, z.detach()[None], proj.radii)
     values = torch.cat([colors, z[:, None]], dim=-1)[None]  # [1, N, 4]
     acc, alpha = rasterize_cpu(p, opac, values, size, size, rects)
     rgb = acc[0, ..., :3] + (1.0 - alpha[0])[..., None] * bg
@@ -365,8 +482,8 @@ def _refine_avatar(
         levels[size] = prepare_targets(images.cpu(), cams_in.to("cpu", torch.float32), None if masks is None else masks.cpu(), size)
     tcams = levels[config.resolution][2]
     n_coarse = int(round(config.coarse_fraction * config.steps))
-    # only the network's Gaussians are refined; a model with the expression prior rebinds the head
-    # surface and appends its mouth interior / eyelids to the result (``FastGHA.attach_prior``)
+    # only the network's Gaussians are refined; the result keeps the avatar's binding and appended
+    # Gaussians (``keep_binding``), or refits them (``FastGHA.attach_prior``)
     g0 = avatar.gaussians[: avatar.num_reconstructed].detach().to("cpu").to(dtype=torch.float32)
     n = len(g0)
     grid = model.config.input_size
@@ -374,9 +491,15 @@ def _refine_avatar(
     centers = tcams.centers  # [V, 3]
     ray = F.normalize(g0.means - centers[src], dim=-1)  # [N, 3]
 
+    if config.realign_cap > 0 and expressions is not None:
+        g0 = g0.replace(means=realign_to_pixels(model, g0, src, expressions, config.realign_cap)[0])
+
     # fixed per-view deformation at the predicted centres
     dxyz = torch.zeros(v, n, 3)
     drgb = torch.zeros(v, n, 3)
+    shade = torch.ones(v, n)  # the prior's colour factor per view (match_animation)
+    gate_rec = torch.ones(v, n)  # the expression gate of the network's own Gaussians (match_animation)
+    extra: list[Gaussians] = []  # fixed appended Gaussians per view, deformed (match_animation)
     if expressions is not None:
         with torch.no_grad():
             dev = model.device
@@ -386,7 +509,22 @@ def _refine_avatar(
                 dxyz[i], drgb[i] = a.float().cpu(), b.float().cpu()
             if avatar.prior is not None:  # the head model's displacement under the MLP's residual
                 rt = model._runtime(avatar.prior)
-                dxyz += rt.displacement(expressions.to(rt.basis_u.device)).float().cpu()[:, :n]
+                prior_d = rt.displacement(expressions.to(rt.basis_u.device)).float().cpu()  # [V, N_all, 3]
+                dxyz += prior_d[:, :n]
+                if config.match_animation:
+                    from ..render.projection import ALPHA_MIN
+
+                    gi = avatar.gaussians[n:].detach().to("cpu").to(dtype=torch.float32)
+                    for i in range(v):
+                        zi = expressions[i].to(rt.basis_u.device)
+                        gate = model._gate(zi, rt)
+                        gate = torch.ones(len(avatar.gaussians)) if gate is None else gate.float().cpu()
+                        gate_rec[i] = gate[:n]
+                        if rt.shading_on:
+                            shade[i] = rt.shading(zi).float().cpu()[:n]
+                        op = gi.opacities * gate[n:]
+                        keep = op >= ALPHA_MIN
+                        extra.append(gi.replace(means=gi.means + prior_d[i, n:], opacities=op)[keep])
 
     if config.realign and expressions is not None:
         # Pixel re-alignment: the network predicts each Gaussian on its own pixel ray (and with its
@@ -429,6 +567,8 @@ def _refine_avatar(
             return p_dt, p_o, p_c
 
         params = (p_dt, p_o, p_c)
+    p_xyz = torch.zeros(n, 3, requires_grad=config.lr_xyz > 0)
+    p_ls = torch.zeros(n, requires_grad=config.lr_scale > 0)
     rot = torch.zeros(v, 3, requires_grad=True)
     trans = torch.zeros(v, 3, requires_grad=True)
     groups = [
@@ -438,11 +578,24 @@ def _refine_avatar(
     ]
     if config.optimize_cameras:
         groups += [{"params": [rot], "lr": config.lr_rotation}, {"params": [trans], "lr": config.lr_translation}]
+    if config.lr_xyz > 0:
+        groups.append({"params": [p_xyz], "lr": config.lr_xyz})
+    if config.lr_scale > 0:
+        groups.append({"params": [p_ls], "lr": config.lr_scale})
     opt = torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-12)
     base_lr = [gr["lr"] for gr in opt.param_groups]
     bg = torch.tensor(BACKGROUND_RGB, dtype=torch.float32)
     w2c0 = tcams.w2c.float()
     own = [(src == i).nonzero().squeeze(1) for i in range(v)]
+    # per view: the network's Gaussians followed by that view's fixed appended ones (quats, scales)
+    extra_all = [
+        Gaussians(
+            means=torch.cat([g0.means, ex.means]), quats=torch.cat([g0.quats, ex.quats]),
+            scales=torch.cat([g0.scales, ex.scales]), opacities=torch.cat([g0.opacities, ex.opacities]),
+            colors=torch.cat([g0.colors, ex.colors]),
+        )
+        for ex in extra
+    ]
     t_setup = time.perf_counter() - t_start
     losses: list[float] = []
     t0 = time.perf_counter()
@@ -456,15 +609,25 @@ def _refine_avatar(
         targets, tmasks, lcams = levels[size]
         K = lcams.K.float()
         dt, d_o, d_c = corrections()
-        means = g0.means + dt[:, None] * ray
+        means = g0.means + dt[:, None] * ray + p_xyz
         opac = torch.sigmoid(o_logit0 + d_o)
         colors = torch.sigmoid(c_logit0 + d_c)
         w2c = corrected_w2c(w2c0, rot, trans)
+        log_scale = p_ls if config.lr_scale > 0 else None
         total = torch.zeros(())
         for i in ((step * nv + j) % v for j in range(nv)):  # all views, or nv of them in turn
-            rgb, alpha, depth, z, uv = _render_view(
-                g0, means + dxyz[i], (colors + drgb[i]).clamp(0, 1), opac, K[i], w2c[i], size, bg
-            )
+            col_i = (colors + drgb[i]).clamp(0, 1)
+            if extra:
+                col_i = (col_i * shade[i][:, None]).clamp(0, 1)
+                ex, gv = extra[i], extra_all[i]
+                ls_i = None if log_scale is None else torch.cat([log_scale, torch.zeros(len(ex))])
+                rgb, alpha, depth, z, uv = _render_view(
+                    gv, torch.cat([means + dxyz[i], ex.means]), torch.cat([col_i, ex.colors]),
+                    torch.cat([opac * gate_rec[i], ex.opacities]), K[i], w2c[i], size, bg, ls_i,
+                )
+                z, uv = z[:n], uv[:n]
+            else:
+                rgb, alpha, depth, z, uv = _render_view(g0, means + dxyz[i], col_i, opac, K[i], w2c[i], size, bg, log_scale)
             l_photo = (rgb - targets[i]).abs().mean()
             l_sil = ((alpha - tmasks[i]) ** 2).mean()
             loss = config.w_photo * l_photo + config.w_silhouette * l_sil
@@ -480,6 +643,10 @@ def _refine_avatar(
             total = total + loss / nv
         reg = config.w_reg_depth * (dt / config.depth_sigma).pow(2).mean()
         reg = reg + config.w_reg_opacity * d_o.pow(2).mean() + config.w_reg_color * d_c.pow(2).mean()
+        if config.lr_xyz > 0:
+            reg = reg + config.w_reg_xyz * (p_xyz / config.xyz_sigma).pow(2).sum(-1).mean()
+        if config.lr_scale > 0:
+            reg = reg + config.w_reg_scale * p_ls.pow(2).mean()
         if config.optimize_cameras:
             reg = reg + config.w_reg_camera * ((rot / config.rot_sigma).pow(2).sum(-1) + (trans / config.trans_sigma).pow(2).sum(-1)).mean()
         total = total + reg
@@ -501,18 +668,28 @@ def _refine_avatar(
 
     with torch.no_grad():
         dt, d_o, d_c = corrections()
-        means = g0.means + dt[:, None] * ray
+        means = g0.means + dt[:, None] * ray + p_xyz
         g = g0.replace(
             means=means,
+            scales=g0.scales * torch.exp(p_ls)[:, None],
             opacities=torch.sigmoid(o_logit0 + d_o),
             colors=torch.sigmoid(c_logit0 + d_c),
         )
-        if config.prune_opacity > 0:
-            g = g.prune(config.prune_opacity)
+        kept = g.opacities >= config.prune_opacity if config.prune_opacity > 0 else torch.ones(n, dtype=torch.bool)
+        g = g[kept]
         w2c_full = corrected_w2c(cams_in.w2c.float().cpu(), rot.detach(), trans.detach())
-    out = CanonicalAvatar(g.to(avatar.gaussians.device), avatar.model_name, avatar.expression_space)
-    if avatar.prior is not None:
-        model.attach_prior(out)
+    dev = avatar.gaussians.device
+    if config.keep_binding and avatar.prior is not None and len(avatar.prior) == len(avatar.gaussians):
+        # the feed-forward binding and appended Gaussians, as the refinement rendered them
+        b = avatar.prior
+        kept_d = kept.to(b.vertex_ids.device)
+        binding = b.concat(b.index(torch.nonzero(kept_d).squeeze(1)), b.index(torch.arange(n, len(b), device=b.vertex_ids.device)))
+        g_all = Gaussians.concat([g.to(dev), avatar.gaussians[n:].detach().to(dev, g.means.dtype)])
+        out = CanonicalAvatar(g_all, avatar.model_name, avatar.expression_space, binding, avatar.num_interior)
+    else:
+        out = CanonicalAvatar(g.to(dev), avatar.model_name, avatar.expression_space)
+        if avatar.prior is not None:
+            model.attach_prior(out)
     cams_out = Cameras(cams_in.K.float().cpu(), w2c_full, cams_in.width, cams_in.height)
     timings = {"setup": t_setup, "optimize": t_opt, "total": time.perf_counter() - t_start, "steps": config.steps}
     return RefineResult(out, cams_out, rot.detach().clone(), trans.detach().clone(), losses, timings)
