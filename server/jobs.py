@@ -283,6 +283,7 @@ class Job:
         self.result: dict | None = None
         self.error: ApiError | None = None
         self.cancel_requested = False
+        self._failed_at = 0.0  # progress when the job failed
         self._changed = asyncio.Event()
         self._done = asyncio.Event()
 
@@ -294,6 +295,8 @@ class Job:
     def progress(self) -> float:
         if self.status == "ready":
             return 1.0
+        if self.status == "failed":  # where it stopped: the whole job's progress never decreases
+            return self._failed_at
         if self.stage not in self.stages:
             return 0.0
         w = {s: _WEIGHTS.get(s, _EXTRA_WEIGHT) for s in self.stages}
@@ -317,6 +320,7 @@ class Job:
 
     def finish(self, result: dict | None, error: ApiError | None) -> None:
         self.finished = time.time()
+        self._failed_at = self.progress if error is not None else 0.0
         self.result, self.error = result, error
         self.status = "failed" if error is not None else "ready"
         self.stage = self.status

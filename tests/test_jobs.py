@@ -148,9 +148,13 @@ def test_job_progress_is_monotonic_over_its_stages():
         assert seen == sorted(seen) and seen[0] == 0.0 and seen[-1] == 1.0 and len(set(seen)) > 8
         assert job.snapshot()["status"] == "ready" and job.snapshot()["avatar"] == {"avatar_id": job.id}
         job2 = Job("B" * 22, "h", "c", 1, req, stages)
+        job2.update("tracking", 0.0)
+        before = job2.progress
+        assert before > 0.0
         job2.finish(None, ApiError(422, "no_face", "no face in me.jpg"))
         snap = job2.snapshot()
         assert snap["status"] == "failed" and snap["error"] == {"status": 422, "code": "no_face", "message": "no face in me.jpg"}
+        assert snap["progress"] == before  # a failed job keeps where it stopped (was 0.0: progress fell back)
 
     asyncio.run(run())
 

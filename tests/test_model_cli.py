@@ -87,10 +87,14 @@ def test_reconstruct_with_refinement_writes_avatar_and_corrected_cameras(tmp_pat
     (req / "info.json").write_text(json.dumps(info))
     out, cams_out = tmp_path / "avatar.safetensors", tmp_path / "cams.json"
     args = ["reconstruct", "--input", str(req), "--model", str(model_dir), "--out", str(out), "--refine-steps", "2", "--cameras-out", str(cams_out)]
-    assert main(args) == 0
+    assert main(args) == 2  # without --refine-cameras the cameras are not refined: refused, not written unchanged
+    assert "--refine-cameras" in capsys.readouterr().err and not cams_out.exists()
+    assert main(args + ["--refine-cameras"]) == 0
     printed = capsys.readouterr().out
     assert "refined in" in printed and "(2 steps)" in printed
     assert len(CanonicalAvatar.load(out)) > 0
     cams = json.loads(cams_out.read_text())
+    given = json.loads((req / "cameras.json").read_text())
     assert len(cams) == 3 and (cams[0]["width"], cams[0]["height"]) == (40, 36)
+    assert max(np.abs(np.array(c["w2c"]) - np.array(g["w2c"])).max() for c, g in zip(cams, given)) > 1e-5  # corrected
     assert main(["reconstruct", "--input", str(req), "--model", str(model_dir), "--out", str(out), "--refine-steps", "-1"]) != 0
