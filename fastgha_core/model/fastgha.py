@@ -505,9 +505,17 @@ class FastGHA(nn.Module):
         view_index = torch.arange(v, device=dev).repeat_interleave(len(g) // v)  # Gaussians are V*S*S, view-major
         margin = self.config.gaussians.edge_margin_px
         if margin > 0:  # matte-outline pixels are part wall: on profiles they would draw a streak down the face's midline
-            from .gaussian_head import edge_weight
+            from .gaussian_head import edge_source_index, edge_weight
 
-            g = g.replace(opacities=g.opacities * edge_weight(images.to(dev, torch.float32), margin).reshape(-1).to(g.opacities.dtype))
+            mode = self.config.gaussians.edge_mode
+            if mode == "fade":
+                g = g.replace(opacities=g.opacities * edge_weight(images.to(dev, torch.float32), margin).reshape(-1).to(g.opacities.dtype))
+            elif mode == "colour":
+                n = len(g) // v
+                src = (edge_source_index(images, margin).reshape(v, -1).to(dev) + torch.arange(v, device=dev)[:, None] * n).reshape(-1)
+                g = g.replace(colors=g.colors[src])
+            else:
+                raise ValueError(f"reconstruct: gaussians.edge_mode must be 'colour' or 'fade', got {mode!r}")
         if surface is not None:  # off the head next to the face is air: drop what a matte left there
             g = g.replace(opacities=g.opacities * (~sd.beyond_face).reshape(-1).to(dev, g.opacities.dtype))
         thr = self.config.gaussians.prune_opacity

@@ -38,7 +38,7 @@ from ..config import GaussianHeadConfig
 from ..constants import BACKGROUND_RGB
 from ..gaussians import Gaussians
 
-__all__ = ["GaussianLayout", "GaussianHead", "edge_weight", "foreground_weight", "matrix_to_quaternion", "quaternion_multiply"]
+__all__ = ["GaussianLayout", "GaussianHead", "edge_source_index", "edge_weight", "foreground_weight", "matrix_to_quaternion", "quaternion_multiply"]
 
 FOREGROUND_SOFTNESS = 0.03  # colour distance from the background at which a pixel counts as fully foreground
 
@@ -83,6 +83,38 @@ def edge_weight(images: Tensor, margin_px: float) -> Tensor:
             d = torch.from_numpy(ndimage.distance_transform_edt(~b)).float()  # to the nearest background pixel
             out[i] = (d - float(margin_px)).clamp(0.0, 1.0)
     return out.reshape(images.shape[:-3] + (h, w)).to(images.device, images.dtype)
+
+
+def edge_source_index(images: Tensor, margin_px: float) -> Tensor:
+    """For each pixel, the flat index ``y * W + x`` ``[..., H, W]`` (long) of the pixel whose colour it takes.
+
+    A foreground pixel within ``margin_px`` of the background (``edge_weight < 1``, background being
+    ``foreground_weight < 0.5``) takes the nearest pixel at least ``margin_px + 1`` from the background
+    (the matte's interior, Euclidean distance); every other pixel, and every pixel of an image with
+    no such interior, keeps its own index. The colour de-mixing counterpart of ``edge_weight``:
+    outline pixels keep their coverage but lose the wall colour mixed into them.
+    Raises ``ValueError`` when ``images`` is not ``[..., 3, H, W]``.
+    """
+    if images.ndim < 3 or images.shape[-3] != 3:
+        raise ValueError(f"edge_source_index: images must have shape [..., 3, H, W], got {list(images.shape)}")
+    h, w = images.shape[-2:]
+    own = torch.arange(h * w).view(h, w)
+    bg = (foreground_weight(images.detach().float()) < 0.5).reshape(-1, h, w).cpu().numpy()
+    out = own.repeat(bg.shape[0], 1, 1)
+    if margin_px > 0:
+        from scipy import ndimage
+
+        for i, b in enumerate(bg):
+            if not b.any():
+                continue
+            d = ndimage.distance_transform_edt(~b)
+            interior = d >= margin_px + 1
+            if not interior.any():
+                continue
+            _, (iy, ix) = ndimage.distance_transform_edt(~interior, return_indices=True)
+            band = torch.from_numpy((~b) & ~interior)
+            out[i][band] = torch.from_numpy(iy * w + ix).long()[band]
+    return out.reshape(images.shape[:-3] + (h, w)).to(images.device)
 
 
 @dataclass(frozen=True)
