@@ -481,3 +481,105 @@ def test_training_forward_under_bf16_autocast(toy_model):
     err = (low.means - ref.means).norm(dim=-1)  # metres; the depth range is 0.35
     assert err.mean() < 5e-3 and err.max() < 0.05, (float(err.mean()), float(err.max()))
     assert (low.opacities - ref.opacities).abs().mean() < 0.01
+
+
+def _disc_on_background(v: int = 2) -> torch.Tensor:
+    """``[v, 3, S, S]``: a random-coloured disc (radius 10 px) on ``BACKGROUND_RGB``, shifted per view."""
+    gen = torch.Generator().manual_seed(3)
+    yy, xx = torch.meshgrid(torch.arange(S).float(), torch.arange(S).float(), indexing="ij")
+    imgs = torch.tensor(BACKGROUND_RGB).view(1, 3, 1, 1).repeat(v, 1, S, S)
+    for i in range(v):
+        disc = (yy - 15 - i) ** 2 + (xx - 14 + 2 * i) ** 2 <= 100
+        imgs[i][:, disc] = 0.2 + 0.3 * torch.rand(3, int(disc.sum()), generator=gen)
+    return imgs
+
+
+def test_edge_weight_matches_brute_force_distance():
+    from fastgha_core.model.gaussian_head import edge_weight, foreground_weight
+
+    imgs = _disc_on_background(2)
+    w = edge_weight(imgs, 3.0)
+    assert w.shape == (2, S, S)
+    pix = torch.stack(torch.meshgrid(torch.arange(S).float(), torch.arange(S).float(), indexing="ij"), -1).reshape(-1, 2)
+    for i in range(2):
+        bg = (foreground_weight(imgs[i]) < 0.5).reshape(-1)
+        d = torch.cdist(pix, pix[bg]).min(dim=1).values.reshape(S, S)  # to the nearest background pixel centre
+        assert_close(w[i], (d - 3.0).clamp(0, 1), atol=1e-5, rtol=0)
+    assert float(w[0][15, 14]) == 1.0 and float(w[0][15, 14 + 9]) == 0.0  # centre kept, 1 px inside the rim faded
+    assert float(w[0][0, 0]) == 0.0  # background itself
+    assert torch.equal(edge_weight(imgs, 0.0), torch.ones(2, S, S))
+    assert torch.equal(edge_weight(torch.full((1, 3, S, S), 0.3), 3.0), torch.ones(1, S, S))  # no background: nothing fades
+    with pytest.raises(ValueError, match=r"\[\.\.\., 3, H, W\]"):
+        edge_weight(torch.zeros(S, S), 3.0)
+
+
+def test_edge_source_index_takes_the_nearest_interior_pixel():
+    from fastgha_core.model.gaussian_head import edge_source_index, edge_weight, foreground_weight
+
+    imgs = _disc_on_background(2)
+    idx = edge_source_index(imgs, 3.0)
+    assert idx.shape == (2, S, S) and idx.dtype == torch.long
+    pix = torch.stack(torch.meshgrid(torch.arange(S).float(), torch.arange(S).float(), indexing="ij"), -1).reshape(-1, 2)
+    own = torch.arange(S * S)
+    for i in range(2):
+        fg = (foreground_weight(imgs[i]) >= 0.5).reshape(-1)
+        bg_d = torch.cdist(pix, pix[~fg]).min(dim=1).values
+        interior = bg_d >= 4.0
+        band = fg & ~interior
+        assert int(band.sum()) > 20 and int(interior.sum()) > 20
+        src = idx[i].reshape(-1)
+        assert torch.equal(src[~band], own[~band])  # interior and background keep their own pixel
+        assert bool(interior[src[band]].all())  # outline pixels take an interior one ...
+        got = (pix[band] - pix[src[band]]).norm(dim=1)
+        best = torch.cdist(pix[band], pix[interior]).min(dim=1).values
+        assert_close(got, best, atol=1e-5, rtol=0)  # ... the nearest
+        assert bool((edge_weight(imgs[i], 3.0).reshape(-1)[band] < 1).all())
+    assert torch.equal(edge_source_index(imgs, 0.0), own.view(S, S).expand(2, S, S))
+    assert torch.equal(edge_source_index(torch.full((1, 3, S, S), 0.3), 3.0), own.view(1, S, S))  # no background
+    with pytest.raises(ValueError, match=r"\[\.\.\., 3, H, W\]"):
+        edge_source_index(torch.zeros(S, S), 3.0)
+
+
+def _edge_models(toy_model, **gcfg):
+    out = []
+    for kw in ({"edge_margin_px": 0.0}, gcfg):
+        m = FastGHA(toy_config(gaussians=GaussianHeadConfig(feature_dim=8, prune_opacity=0.0, **kw)))
+        m.load_state_dict(toy_model.state_dict())
+        out.append(m.eval())
+    return out
+
+
+def test_reconstruct_recolours_gaussians_at_the_matte_outline(toy_model):
+    from fastgha_core.model.gaussian_head import edge_source_index
+
+    imgs = _disc_on_background(2)
+    cams = orbit_cameras(2, width=S, height=S)
+    off, on = _edge_models(toy_model, edge_margin_px=3.0, edge_mode="colour")
+    a0, a1 = off.reconstruct(imgs, cams), on.reconstruct(imgs, cams)
+    n = 2 * S * S
+    c0, c1 = a0.gaussians.colors[:n], a1.gaussians.colors[:n]
+    src = (edge_source_index(imgs, 3.0).reshape(2, -1) + torch.arange(2)[:, None] * S * S).reshape(-1)
+    moved = src != torch.arange(n)
+    assert int(moved.sum()) > 40
+    assert torch.equal(c1, c0[src])  # each outline Gaussian takes its view's nearest interior colour
+    assert not torch.equal(c1[moved], c0[moved]) and torch.equal(c1[~moved], c0[~moved])
+    assert torch.equal(a1.gaussians.opacities, a0.gaussians.opacities) and torch.equal(a1.gaussians.means, a0.gaussians.means)
+    bad = _edge_models(toy_model, edge_margin_px=3.0, edge_mode="blur")[1]
+    with pytest.raises(ValueError, match="edge_mode must be 'colour' or 'fade', got 'blur'"):
+        bad.reconstruct(imgs, cams)
+
+
+def test_reconstruct_fades_gaussians_at_the_matte_outline(toy_model):
+    from fastgha_core.model.gaussian_head import edge_weight
+
+    imgs = _disc_on_background(2)
+    cams = orbit_cameras(2, width=S, height=S)
+    off, on = _edge_models(toy_model, edge_margin_px=3.0, edge_mode="fade")
+    a0, a1 = off.reconstruct(imgs, cams), on.reconstruct(imgs, cams)
+    o0, o1 = a0.gaussians.opacities[: 2 * S * S], a1.gaussians.opacities[: 2 * S * S]
+    w = edge_weight(imgs, 3.0).reshape(-1)
+    assert_close(o1, o0 * w)
+    assert bool((o1[w == 0] == 0).all()) and bool((o0[w == 0] > 0).all())  # the outline band goes, ...
+    inner = w == 1
+    assert int(inner.sum()) > 100 and torch.equal(o1[inner], o0[inner])  # ... the interior is untouched
+    assert torch.equal(a1.gaussians.means, a0.gaussians.means) and torch.equal(a1.gaussians.colors, a0.gaussians.colors)

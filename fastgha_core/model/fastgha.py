@@ -440,7 +440,9 @@ class FastGHA(nn.Module):
 
         ``S`` is ``config.input_size`` and ``1 <= V <= config.max_views``. Other sizes raise a
         ``ValueError``: use ``prepare()`` to crop and resize. Gaussians with opacity below
-        ``config.gaussians.prune_opacity`` are dropped. With the expression prior
+        ``config.gaussians.prune_opacity`` are dropped, after the Gaussians of pixels within
+        ``config.gaussians.edge_margin_px`` of their view's background are faded out
+        (``gaussian_head.edge_weight``: matte-outline pixels are part wall). With the expression prior
         (``config.deform.prior``), ``expressions [V, E]`` (each photo's known or tracked expression,
         optional) are undone so the canonical head is neutral, and the avatar gets its head-surface
         binding and mouth interior.
@@ -501,6 +503,19 @@ class FastGHA(nn.Module):
             images.to(dev, torch.float32)[None], cameras.to(dev, torch.float32)[None], ray_depth if ray_depth is None or callable(ray_depth) else ray_depth.to(dev)
         )[0]
         view_index = torch.arange(v, device=dev).repeat_interleave(len(g) // v)  # Gaussians are V*S*S, view-major
+        margin = self.config.gaussians.edge_margin_px
+        if margin > 0:  # matte-outline pixels are part wall: on profiles they would draw a streak down the face's midline
+            from .gaussian_head import edge_source_index, edge_weight
+
+            mode = self.config.gaussians.edge_mode
+            if mode == "fade":
+                g = g.replace(opacities=g.opacities * edge_weight(images.to(dev, torch.float32), margin).reshape(-1).to(g.opacities.dtype))
+            elif mode == "colour":
+                n = len(g) // v
+                src = (edge_source_index(images, margin).reshape(v, -1).to(dev) + torch.arange(v, device=dev)[:, None] * n).reshape(-1)
+                g = g.replace(colors=g.colors[src])
+            else:
+                raise ValueError(f"reconstruct: gaussians.edge_mode must be 'colour' or 'fade', got {mode!r}")
         if surface is not None:  # off the head next to the face is air: drop what a matte left there
             g = g.replace(opacities=g.opacities * (~sd.beyond_face).reshape(-1).to(dev, g.opacities.dtype))
         thr = self.config.gaussians.prune_opacity

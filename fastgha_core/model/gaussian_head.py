@@ -38,7 +38,7 @@ from ..config import GaussianHeadConfig
 from ..constants import BACKGROUND_RGB
 from ..gaussians import Gaussians
 
-__all__ = ["GaussianLayout", "GaussianHead", "foreground_weight", "matrix_to_quaternion", "quaternion_multiply"]
+__all__ = ["GaussianLayout", "GaussianHead", "edge_source_index", "edge_weight", "foreground_weight", "matrix_to_quaternion", "quaternion_multiply"]
 
 FOREGROUND_SOFTNESS = 0.03  # colour distance from the background at which a pixel counts as fully foreground
 
@@ -51,6 +51,70 @@ def foreground_weight(images: Tensor) -> Tensor:
     """
     bg = images.new_tensor(BACKGROUND_RGB).view(3, 1, 1)
     return ((images - bg).abs().amax(dim=-3) / FOREGROUND_SOFTNESS).clamp(0.0, 1.0)
+
+
+def edge_weight(images: Tensor, margin_px: float) -> Tensor:
+    """Opacity factor ``[..., H, W]`` in [0, 1] that fades out the pixels next to the matte's outline.
+
+    ``images [..., 3, H, W]`` are matted on ``BACKGROUND_RGB``; a pixel is background where
+    ``foreground_weight < 0.5``. With ``d`` the Euclidean distance, in pixels of ``images``, from a
+    pixel's centre to the nearest background pixel's centre, the factor is
+    ``clamp(d - margin_px, 0, 1)``: 0 within ``margin_px`` of the background, 1 a pixel further in.
+    An image without background pixels gets 1 everywhere; ``margin_px <= 0`` gives 1 everywhere.
+
+    Why: a pixel on a photo's matte outline mixes the wall behind the person with the face (the
+    matte keeps it, its colour is part wall). On a profile view such pixels lie on the face's front
+    outline (nose ridge, chin), so their Gaussians land on the midline and a frontal render shows a
+    wall-coloured streak down the nose (measured on the real photo sets: the streak Gaussians are
+    those within 3 px of their view's background at 128 px input).
+    Raises ``ValueError`` when ``images`` is not ``[..., 3, H, W]``.
+    """
+    if images.ndim < 3 or images.shape[-3] != 3:
+        raise ValueError(f"edge_weight: images must have shape [..., 3, H, W], got {list(images.shape)}")
+    h, w = images.shape[-2:]
+    if margin_px <= 0:
+        return images.new_ones(images.shape[:-3] + (h, w))
+    from scipy import ndimage
+
+    bg = (foreground_weight(images.detach().float()) < 0.5).reshape(-1, h, w).cpu().numpy()
+    out = torch.ones(bg.shape, dtype=torch.float32)
+    for i, b in enumerate(bg):
+        if b.any():
+            d = torch.from_numpy(ndimage.distance_transform_edt(~b)).float()  # to the nearest background pixel
+            out[i] = (d - float(margin_px)).clamp(0.0, 1.0)
+    return out.reshape(images.shape[:-3] + (h, w)).to(images.device, images.dtype)
+
+
+def edge_source_index(images: Tensor, margin_px: float) -> Tensor:
+    """For each pixel, the flat index ``y * W + x`` ``[..., H, W]`` (long) of the pixel whose colour it takes.
+
+    A foreground pixel within ``margin_px`` of the background (``edge_weight < 1``, background being
+    ``foreground_weight < 0.5``) takes the nearest pixel at least ``margin_px + 1`` from the background
+    (the matte's interior, Euclidean distance); every other pixel, and every pixel of an image with
+    no such interior, keeps its own index. The colour de-mixing counterpart of ``edge_weight``:
+    outline pixels keep their coverage but lose the wall colour mixed into them.
+    Raises ``ValueError`` when ``images`` is not ``[..., 3, H, W]``.
+    """
+    if images.ndim < 3 or images.shape[-3] != 3:
+        raise ValueError(f"edge_source_index: images must have shape [..., 3, H, W], got {list(images.shape)}")
+    h, w = images.shape[-2:]
+    own = torch.arange(h * w).view(h, w)
+    bg = (foreground_weight(images.detach().float()) < 0.5).reshape(-1, h, w).cpu().numpy()
+    out = own.repeat(bg.shape[0], 1, 1)
+    if margin_px > 0:
+        from scipy import ndimage
+
+        for i, b in enumerate(bg):
+            if not b.any():
+                continue
+            d = ndimage.distance_transform_edt(~b)
+            interior = d >= margin_px + 1
+            if not interior.any():
+                continue
+            _, (iy, ix) = ndimage.distance_transform_edt(~interior, return_indices=True)
+            band = torch.from_numpy((~b) & ~interior)
+            out[i][band] = torch.from_numpy(iy * w + ix).long()[band]
+    return out.reshape(images.shape[:-3] + (h, w)).to(images.device)
 
 
 @dataclass(frozen=True)
