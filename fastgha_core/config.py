@@ -109,7 +109,7 @@ class GaussianHeadConfig:
     prune_opacity: float = 0.005  # reconstruct() drops Gaussians less opaque than this (0 = keep all)
     rgb_residual: bool = False  # colour = sigmoid(raw + logit(input pixel)): predict a residual on the pixel's own colour
     foreground_opacity: bool = False  # opacity *= foreground of the (matted) input pixel: background pixels make no Gaussians
-    edge_margin_px: float = 3.0  # reconstruct(): Gaussians of input pixels within this many pixels of their view's background fade out (0 = off; model/gaussian_head.py edge_weight)
+    edge_margin_px: float = 3.0  # reconstruct(): Gaussians of input pixels within this many pixels of their view's background are treated by edge_mode (0 = off; model/gaussian_head.py edge_weight)
     edge_mode: str = "colour"  # what edge_margin_px does to outline Gaussians: "colour" (take the nearest interior pixel's colour) or "fade" (opacity)
 
     @property

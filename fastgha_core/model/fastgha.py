@@ -441,8 +441,9 @@ class FastGHA(nn.Module):
         ``S`` is ``config.input_size`` and ``1 <= V <= config.max_views``. Other sizes raise a
         ``ValueError``: use ``prepare()`` to crop and resize. Gaussians with opacity below
         ``config.gaussians.prune_opacity`` are dropped, after the Gaussians of pixels within
-        ``config.gaussians.edge_margin_px`` of their view's background are faded out
-        (``gaussian_head.edge_weight``: matte-outline pixels are part wall). With the expression prior
+        ``config.gaussians.edge_margin_px`` of their view's background take the colour of the
+        nearest pixel further in (``edge_mode="colour"``, the default) or are faded out
+        (``"fade"``; ``gaussian_head.edge_weight``): matte-outline pixels are part wall. With the expression prior
         (``config.deform.prior``), ``expressions [V, E]`` (each photo's known or tracked expression,
         optional) are undone so the canonical head is neutral, and the avatar gets its head-surface
         binding and mouth interior.
