@@ -9,7 +9,9 @@ left-out photo's tracked camera with its tracked expression, and compare with th
   background colour, so SSIM sees only the head);
 - dlib identity distance: Euclidean distance between dlib's 128-d face descriptors of the render and
   of the photo (``face_recognition_models``; 0.6 is dlib's same-person threshold);
-- the number of faces dlib's HOG detector finds in the render (1 is right; 2 means a doubled face).
+- the number of faces dlib's HOG detector finds in the render (1 is right; 2 means a doubled face),
+  and in the left-out photo itself (``faces_in_photo``): the frontal HOG detector misses most
+  profiles, so a render without a face of a photo without one says nothing about doubling.
 
 ``python -m fastgha_core.refine.realsets --refine-steps 0,40 --grid OUT.png`` prints a markdown
 table and writes a grid picture (per set: photo, then one render per step count). The sets are not
@@ -116,7 +118,7 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
         target = matted[k : k + 1]
         m = (masks[k : k + 1] > 0.5).float()
         t_img = to_uint8_hwc(target[0])
-        t_desc, _, t_box = _identity(faces, t_img) if faces is not None else (None, 0, None)
+        t_desc, n_photo, t_box = _identity(faces, t_img) if faces is not None else (None, None, None)
         for steps in steps_list:
             t1 = time.perf_counter()
             res = refine_avatar(
@@ -135,6 +137,7 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
                 "masked_ssim": float(ssim(pm, tm)[0]),
                 "identity_distance": None,
                 "faces_in_render": None,
+                "faces_in_photo": n_photo,
                 "refine_s": round(dt, 2),
             }
             if faces is not None:
@@ -154,7 +157,10 @@ def _mean(vals):
 
 def summary_table(rows: list[dict]) -> str:
     """Markdown table: one line per (set, steps) with the means over left-out photos."""
-    head = "| set | refine steps | photos | masked PSNR ↑ | masked SSIM ↑ | identity distance ↓ | renders with exactly 1 face |\n|---|---:|---:|---:|---:|---:|---:|\n"
+    head = (
+        "| set | refine steps | photos | masked PSNR ↑ | masked SSIM ↑ | identity distance ↓ | renders with exactly 1 face | left-out photos with exactly 1 face |\n"
+        "|---|---:|---:|---:|---:|---:|---:|---:|\n"
+    )
     body = ""
     keys = sorted({(r["set"], r["steps"]) for r in rows})
     for s, st in keys:
@@ -162,9 +168,11 @@ def summary_table(rows: list[dict]) -> str:
         idd = _mean([r["identity_distance"] for r in rs])
         one = sum(1 for r in rs if r["faces_in_render"] == 1)
         faces = "n/a" if all(r["faces_in_render"] is None for r in rs) else f"{one}/{len(rs)}"
+        one_p = sum(1 for r in rs if r.get("faces_in_photo") == 1)
+        faces_p = "n/a" if all(r.get("faces_in_photo") is None for r in rs) else f"{one_p}/{len(rs)}"
         body += (
             f"| {s} | {st} | {len(rs)} | {_mean([r['masked_psnr'] for r in rs]):.2f} | {_mean([r['masked_ssim'] for r in rs]):.3f} | "
-            f"{'n/a' if idd is None else f'{idd:.3f}'} | {faces} |\n"
+            f"{'n/a' if idd is None else f'{idd:.3f}'} | {faces} | {faces_p} |\n"
         )
     return head + body
 
