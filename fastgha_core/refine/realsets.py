@@ -13,7 +13,7 @@ left-out photo's tracked camera with its tracked expression, and compare with th
   and in the left-out photo itself (``faces_in_photo``): the frontal HOG detector misses most
   profiles, so a render without a face of a photo without one says nothing about doubling.
 
-``python -m fastgha_core.refine.realsets --refine-steps 0,40 --grid OUT.png`` prints a markdown
+``python -m fastgha_core.refine.realsets --refine-steps 0,60 --grid OUT.png`` prints a markdown
 table and writes a grid picture (per set: photo, then one render per step count). The sets are not
 ours to publish: write the grid outside the repository. Sets that fail to track are reported and
 skipped, and a photo the tracker cannot handle is dropped from its set (reported) while at least 3 remain;
@@ -182,7 +182,7 @@ def main(argv=None) -> int:
     ap.add_argument("--root", default=None, help="folder of sets (default $FASTGHA_REALSETS or ../shared/realsets)")
     ap.add_argument("--sets", default=None, help="comma-separated set names (default: all)")
     ap.add_argument("--model", default="tiny")
-    ap.add_argument("--refine-steps", default="0,40", help="comma-separated refinement step counts to compare")
+    ap.add_argument("--refine-steps", default="0,60", help="comma-separated refinement step counts to compare (default 0,60)")
     ap.add_argument("--no-refine-cameras", action="store_true", help="refine without per-view camera corrections")
     ap.add_argument("--no-surface", action="store_true", help="use the network's depth instead of the tracked head surface")
     ap.add_argument("--size", type=int, default=256, help="crop side of the tracked photos and of the renders")
