@@ -87,17 +87,17 @@ def _combine(g: Gaussians, dxyz: Tensor, drgb: Tensor, prior_d: Tensor | None, n
             prior_d = None if prior_d is None else prior_d[:end]
     n_rec = len(g) - n_int
     if shade is not None:
-        drgb_col = ((g.colors[:n_rec] + drgb).clamp(0.0, 1.0) * shade[:n_rec, None]).clamp(0.0, 1.0)
+        rec_colors = ((g.colors[:n_rec] + drgb).clamp(0.0, 1.0) * shade[:n_rec, None]).clamp(0.0, 1.0)
     else:
-        drgb_col = (g.colors[:n_rec] + drgb).clamp(0.0, 1.0)
+        rec_colors = (g.colors[:n_rec] + drgb).clamp(0.0, 1.0)
     if prior_d is None:
         prior_d = dxyz.new_zeros(len(g), 3)
     op = g.opacities if gate is None else g.opacities * gate
     if n_int:
         means = g.means + torch.cat([prior_d[:n_rec] + dxyz, prior_d[n_rec:]])
-        colors = torch.cat([drgb_col, g.colors[n_rec:]])
+        colors = torch.cat([rec_colors, g.colors[n_rec:]])
         return g.replace(means=means, colors=colors, opacities=op)
-    return g.replace(means=g.means + prior_d + dxyz, colors=drgb_col, opacities=op)
+    return g.replace(means=g.means + prior_d + dxyz, colors=rec_colors, opacities=op)
 
 
 class FastGHA(nn.Module):

@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -69,19 +70,12 @@ def edge_weight(images: Tensor, margin_px: float) -> Tensor:
     those within 3 px of their view's background at 128 px input).
     Raises ``ValueError`` when ``images`` is not ``[..., 3, H, W]``.
     """
-    if images.ndim < 3 or images.shape[-3] != 3:
-        raise ValueError(f"edge_weight: images must have shape [..., 3, H, W], got {list(images.shape)}")
-    h, w = images.shape[-2:]
-    if margin_px <= 0:
-        return images.new_ones(images.shape[:-3] + (h, w))
-    from scipy import ndimage
-
-    bg = (foreground_weight(images.detach().float()) < 0.5).reshape(-1, h, w).cpu().numpy()
-    out = torch.ones(bg.shape, dtype=torch.float32)
-    for i, b in enumerate(bg):
-        if b.any():
-            d = torch.from_numpy(ndimage.distance_transform_edt(~b)).float()  # to the nearest background pixel
-            out[i] = (d - float(margin_px)).clamp(0.0, 1.0)
+    h, w = _check_images(images, "edge_weight")
+    out = torch.ones((int(np.prod(images.shape[:-3], dtype=np.int64)), h, w), dtype=torch.float32)
+    if margin_px > 0:
+        for i, d in enumerate(_background_distances(images)):
+            if d is not None:
+                out[i] = (torch.from_numpy(d).float() - float(margin_px)).clamp(0.0, 1.0)
     return out.reshape(images.shape[:-3] + (h, w)).to(images.device, images.dtype)
 
 
@@ -95,26 +89,39 @@ def edge_source_index(images: Tensor, margin_px: float) -> Tensor:
     outline pixels keep their coverage but lose the wall colour mixed into them.
     Raises ``ValueError`` when ``images`` is not ``[..., 3, H, W]``.
     """
-    if images.ndim < 3 or images.shape[-3] != 3:
-        raise ValueError(f"edge_source_index: images must have shape [..., 3, H, W], got {list(images.shape)}")
-    h, w = images.shape[-2:]
+    h, w = _check_images(images, "edge_source_index")
     own = torch.arange(h * w).view(h, w)
-    bg = (foreground_weight(images.detach().float()) < 0.5).reshape(-1, h, w).cpu().numpy()
-    out = own.repeat(bg.shape[0], 1, 1)
+    out = own.repeat(int(np.prod(images.shape[:-3], dtype=np.int64)), 1, 1)
     if margin_px > 0:
         from scipy import ndimage
 
-        for i, b in enumerate(bg):
-            if not b.any():
+        for i, d in enumerate(_background_distances(images)):
+            if d is None:
                 continue
-            d = ndimage.distance_transform_edt(~b)
             interior = d >= margin_px + 1
             if not interior.any():
                 continue
             _, (iy, ix) = ndimage.distance_transform_edt(~interior, return_indices=True)
-            band = torch.from_numpy((~b) & ~interior)
+            band = torch.from_numpy((d > 0) & ~interior)
             out[i][band] = torch.from_numpy(iy * w + ix).long()[band]
     return out.reshape(images.shape[:-3] + (h, w)).to(images.device)
+
+
+def _check_images(images: Tensor, name: str) -> tuple[int, int]:
+    if images.ndim < 3 or images.shape[-3] != 3:
+        raise ValueError(f"{name}: images must have shape [..., 3, H, W], got {list(images.shape)}")
+    return int(images.shape[-2]), int(images.shape[-1])
+
+
+def _background_distances(images: Tensor) -> list[np.ndarray | None]:
+    """Per image of ``images [..., 3, H, W]`` (flattened), the Euclidean distance ``[H, W]`` in pixels
+    from each pixel's centre to the nearest background pixel's (``foreground_weight < 0.5``; 0 on the
+    background), or None for an image without background."""
+    from scipy import ndimage
+
+    h, w = images.shape[-2:]
+    bg = (foreground_weight(images.detach().float()) < 0.5).reshape(-1, h, w).cpu().numpy()
+    return [ndimage.distance_transform_edt(~b) if b.any() else None for b in bg]
 
 
 @dataclass(frozen=True)
