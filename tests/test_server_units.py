@@ -358,3 +358,22 @@ def test_settings_from_env_and_serve_flags(monkeypatch, tmp_path):
     assert (args.port, args.model, args.data_dir, args.host) == (9001, "tiny", str(tmp_path), "127.0.0.1")
     assert main(["serve", "--model", "no-such-model"]) == 2
     assert main(["serve", "--port", "0"]) == 2
+
+
+@pytest.mark.parametrize("stmt", ["import server.app", "from server.protocol import unpack_frame"])
+def test_server_imports_set_openmp_defaults_before_torch(stmt):
+    """Importing the server (plain uvicorn, or the protocol helpers as in docs/protocol.md) applies
+    fastgha_core's OpenMP defaults before torch loads: GOMP_SPINCOUNT is set and no warning says
+    it came too late."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = {k: v for k, v in os.environ.items() if k not in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")}
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1])
+    code = f"{stmt}\nimport os, torch; print(os.environ.get('GOMP_SPINCOUNT'))"
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "10000"
+    assert "ran after torch was imported" not in r.stderr, r.stderr
