@@ -364,6 +364,17 @@ def _camera_from_obj(obj: Any, index: int) -> tuple[Tensor, Tensor, int, int]:
     return K, w2c, w, h
 
 
+def _json_kind(value: Any) -> str:
+    """JSON's name for a parsed value's type (``str`` -> ``string``), for error messages."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "boolean"
+    if isinstance(value, (int, float)):
+        return "number"
+    return {"str": "string", "dict": "object", "list": "array"}.get(type(value).__name__, type(value).__name__)
+
+
 def cameras_from_json(data: Any) -> list[Cameras]:
     """Parse our camera schema: one object or an array of ``{"K", "w2c", "width", "height"}``.
 
@@ -377,7 +388,8 @@ def cameras_from_json(data: Any) -> list[Cameras]:
     if isinstance(data, dict):
         data = [data]
     if not isinstance(data, list) or not data:
-        raise ValueError(f"cameras must be a non-empty JSON array of camera objects, got {type(data).__name__}")
+        got = "an empty array" if isinstance(data, list) else f"a JSON {_json_kind(data)}"
+        raise ValueError(f"cameras must be a non-empty JSON array of camera objects, got {got}")
     out = []
     for i, obj in enumerate(data):
         K, w2c, w, h = _camera_from_obj(obj, i)

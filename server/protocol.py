@@ -238,9 +238,22 @@ def parse_camera(value: Any) -> Cameras:
 def parse_cameras_json(text: str | bytes) -> list[Cameras]:
     """The ``cameras`` field of ``POST /v1/avatars``: a JSON array of camera objects, each within
     ``check_camera``'s bounds. Raises ``ProtocolError`` with code ``invalid_json`` /
-    ``non_finite_number`` (see ``loads_strict``) or ``invalid_cameras``."""
-    data = loads_strict(text)
+    ``non_finite_number`` (see ``loads_strict``) or ``invalid_cameras``; the messages name the
+    ``cameras`` field, since the upload carries other parts too."""
     try:
+        data = loads_strict(text)
+    except ProtocolError as e:
+        if e.code != "invalid_json":
+            raise ProtocolError(e.code, f"cameras: {e.message}") from None
+        detail = e.message.removeprefix("message is not valid JSON").lstrip(": ")
+        if detail.startswith("(") and detail.endswith(")"):
+            detail = detail[1:-1]
+        raise ProtocolError(
+            "invalid_json", f"cameras is not valid JSON ({detail}); expected a JSON array of camera objects"
+        ) from None
+    try:
+        if isinstance(data, str):  # cameras_from_json would parse a string as JSON text again
+            raise ValueError("cameras must be a non-empty JSON array of camera objects, got a JSON string")
         cams = cameras_from_json(data)
         for i, c in enumerate(cams):
             try:

@@ -122,6 +122,26 @@ def test_creation_cameras_with_huge_integers():
     assert len(cams) == 1 and (cams[0].width, cams[0].height) == (64, 48)
 
 
+@pytest.mark.parametrize(
+    "text, code, words",
+    [
+        ('[{"K": [[1, 2', "invalid_json", ["cameras is not valid JSON", "expected a JSON array of camera objects"]),
+        ("[]", "invalid_cameras", ["non-empty JSON array of camera objects", "got an empty array"]),
+        ('"front"', "invalid_cameras", ["non-empty JSON array of camera objects", "got a JSON string"]),
+        ("[1e39]", "non_finite_number", ["cameras:", "1e39"]),
+    ],
+)
+def test_creation_cameras_errors_name_the_field_and_what_came(text, code, words):
+    """The upload has several parts: a bad ``cameras`` part is named as such (not "message"), with
+    what was expected and what came."""
+    with pytest.raises(ProtocolError) as e:
+        parse_cameras_json(text)
+    assert e.value.code == code
+    for w in words:
+        assert w in e.value.message, e.value.message
+    assert "message is not" not in e.value.message
+
+
 def test_binary_camera_bounds():
     cam = Cameras.look_at((0.0, 0.0, 1.0), fov_deg=25.0, width=64, height=48)[None]
     far = Cameras(cam.K.clone(), cam.w2c.clone(), 64, 48)
