@@ -422,7 +422,10 @@ def load_request_folder(folder: str | Path) -> tuple[list[Path], list[Cameras]]:
         raise ValueError(f"request folder {folder} does not exist or is not a folder")
     cam_file = folder / "cameras.json"
     if not cam_file.exists():
-        raise ValueError(f"request folder {folder} has no cameras.json")
+        raise ValueError(
+            f"request folder {folder} has no cameras.json; for photos without cameras, run "
+            f"`fastgha track --images PHOTO... --out {folder}` first (it writes cameras.json and head.json)"
+        )
     images = sorted(
         p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.stem.endswith("_mask")
     )

@@ -44,7 +44,7 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-from PIL import Image
+from PIL import Image, UnidentifiedImageError
 
 __all__ = [
     "DEFAULT_MAX_PIXELS",
@@ -209,7 +209,9 @@ def _open(data: bytes, name: str, max_pixels: int, formats: Sequence[str] | None
         raise ImageDecodeError("image_too_large", f"{name} is too large to decode") from None
     except Exception as e:  # Pillow raises many types (UnidentifiedImageError, OSError, SyntaxError, ...)
         what = f"a readable {' or '.join(formats)} image" if formats else "an image file Pillow can read"
-        raise ImageDecodeError("invalid_image", f"{name} is not {what} ({type(e).__name__}: {e})") from None
+        # Pillow's UnidentifiedImageError only repeats that, with the repr of our BytesIO: leave it out
+        why = "" if isinstance(e, UnidentifiedImageError) else f" ({type(e).__name__}: {e})"
+        raise ImageDecodeError("invalid_image", f"{name} is not {what}{why}") from None
     w, h = im.size
     if w <= 0 or h <= 0:
         raise ImageDecodeError("invalid_image", f"{name} has an empty size {w}x{h}")

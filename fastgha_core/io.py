@@ -413,6 +413,12 @@ def load_avatar_file(path: str | Path, device: Any = "cpu") -> tuple[Gaussians, 
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"avatar file: no such file {path}")
+    with open(path, "rb") as fh:
+        if fh.read(4) == b"ply\n":  # the export, given back where the avatar is wanted
+            raise ValueError(
+                f"avatar file {path} is a PLY point cloud; expected the .safetensors avatar file written by "
+                "`fastgha reconstruct` (a PLY keeps no per-Gaussian features or expression binding, so it cannot be animated)"
+            )
     try:
         with safe_open(str(path), framework="pt", device="cpu") as f:
             meta = dict(f.metadata() or {})

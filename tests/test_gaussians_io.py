@@ -189,6 +189,10 @@ def test_avatar_file_errors(tmp_path):
         load_avatar_file(junk)
     with pytest.raises(FileNotFoundError):
         load_avatar_file(tmp_path / "none.safetensors")
+    ply = tmp_path / "head.ply"  # the export given where the avatar is wanted (animate, export)
+    save_ply(ply, random_gaussians(8, f=4, seed=0))
+    with pytest.raises(ValueError, match=r"is a PLY point cloud; expected the \.safetensors avatar file written by `fastgha reconstruct`"):
+        load_avatar_file(ply)
 
 
 def test_export_command(tmp_path, capsys):

@@ -232,6 +232,10 @@ def test_errors_name_the_file_and_have_codes():
         with pytest.raises(ImageDecodeError) as e:
             decode_image_bytes(blob, "holiday.jpg")
         assert e.value.code == "invalid_image" and "holiday.jpg" in str(e.value)
+        assert "BytesIO" not in str(e.value)  # never the repr of our buffer
+    with pytest.raises(ImageDecodeError) as e:
+        decode_image_bytes(b'[{"K": 1}]', "cameras.json")
+    assert str(e.value) == "cameras.json is not an image file Pillow can read"
     with pytest.raises(ImageDecodeError) as e:
         decode_image_bytes(jpeg, "holiday.jpg", max_pixels=40 * 40 - 1)
     assert e.value.code == "image_too_large" and "holiday.jpg" in str(e.value)
