@@ -515,15 +515,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     def _stored_status(meta: dict) -> dict:
         keys = ("avatar_id", "num_gaussians", "reconstruction_ms", "expression_space", "tracking_ms")
+        # the job's own clock is gone with the job: elapsed_ms is null, but the key is there as in every status
         return {"avatar_id": meta["avatar_id"], "status": "ready", "stage": "ready", "stage_progress": 1.0, "progress": 1.0,
-                "queue_position": None, "avatar": {k: meta[k] for k in keys if k in meta}}  # fmt: skip
+                "queue_position": None, "elapsed_ms": None, "avatar": {k: meta[k] for k in keys if k in meta}}  # fmt: skip
 
     @app.get("/v1/avatars/{avatar_id}/status", tags=["avatars"])
     async def avatar_status(avatar_id: str, request: Request):
         """The creation job's status: ``queued`` / ``running`` (``stage``, ``progress``) / ``ready`` / ``failed``."""
         job, meta = await _job_or_meta(request, avatar_id)
         if job is None:
-            return _stored_status(meta)
+            done = _ctx(request).jobs.get(avatar_id)  # a ready job still in memory keeps its elapsed_ms
+            return done.snapshot() if done is not None and done.status == "ready" else _stored_status(meta)
         return JSONResponse(job.snapshot(), headers=None if job.done else {"Retry-After": "1"})
 
     @app.get("/v1/avatars/{avatar_id}/events", tags=["avatars"], response_class=StreamingResponse)

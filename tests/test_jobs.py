@@ -307,6 +307,7 @@ def test_job_queue_progress_events_early_stream_and_limits(server, samples):
     assert [e[1]["progress"] for e in events] == sorted(e[1]["progress"] for e in events)
     done = _status(server, fj)
     assert done["status"] == "ready" and done["progress"] == 1.0 and done["avatar"]["num_gaussians"] > 0
+    assert done["elapsed_ms"] > 0 and done["queue_position"] is None  # every documented status field, also when ready
     meta = httpx.get(f"{server.base}/v1/avatars/{fj['avatar_id']}", headers=h).json()
     assert meta["num_gaussians"] == done["avatar"]["num_gaussians"] and meta["num_images"] == 4
 
@@ -412,6 +413,7 @@ def test_a_job_reported_ready_survives_kill_9(model_dir, samples, tmp_path):
     try:
         after = _status(srv, job)  # no job in memory any more: the status comes from the stored avatar
         assert after["status"] == "ready" and after["avatar"]["num_gaussians"] == st["avatar"]["num_gaussians"]
+        assert set(after) == set(st) and after["elapsed_ms"] is None  # same fields; the job's clock died with it
         with connect(f"{srv.ws_base}/v1/avatars/{job['avatar_id']}/stream?token={job['token']}") as ws:
             assert json.loads(ws.recv(timeout=60))["type"] == "ready"
     finally:
