@@ -205,6 +205,37 @@ def test_client_command_writes_frames_and_mp4(server, request_dir, tmp_path, cap
     assert "creating the avatar: decoding" in text or "creating the avatar: queued" in text  # the job's progress
 
 
+def _created_total(server) -> float:
+    text = httpx.get(server.base + "/metrics", timeout=30).text
+    return sum(float(line.split()[-1]) for line in text.splitlines() if line.startswith("fastgha_avatars_created_total"))
+
+
+def test_client_command_refuses_unknown_expression_names_before_creating(server, request_dir, tmp_path, capsys):
+    """A typo in --expressions is found before the avatar is made (one line, exit 2), not as a
+    traceback mid-stream."""
+    seq = tmp_path / "seq.json"
+    seq.write_text(json.dumps([{"jawOpen": 0.5}, {"jawOpenn": 0.6}]))
+    before = _created_total(server)
+    rc = cli_main(["client", "--url", server.base, "--input", str(request_dir), "--api-key", API_KEY,
+                   "--expressions", str(seq), "--out", str(tmp_path / "c.mp4"), "--size", "32"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "--expressions" in err and "frame 1" in err and "jawOpenn" in err and "Traceback" not in err, err
+    assert _created_total(server) == before
+
+
+def test_client_command_reports_a_refused_frame_as_one_line(server, request_dir, tmp_path, capsys):
+    """What only the server checks (weights within +-100) comes back as a typed stream error: one
+    line with its code, exit 2, the avatar deleted."""
+    seq = tmp_path / "seq.json"
+    seq.write_text(json.dumps([{"jawOpen": 0.5}, {"jawOpen": 500.0}]))
+    rc = cli_main(["client", "--url", server.base, "--input", str(request_dir), "--api-key", API_KEY,
+                   "--expressions", str(seq), "--out", str(tmp_path / "c.mp4"), "--size", "32"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "the stream failed: invalid_expression" in err and "Traceback" not in err, err
+
+
 def test_loadtest_two_clients_report(server, request_dir, tmp_path, capsys):
     js, png = tmp_path / "report.json", tmp_path / "plot.png"
     rc = cli_main(["loadtest", "--url", server.base, "--clients", "2", "--duration", "3", "--rate", "8", "--size", "48",

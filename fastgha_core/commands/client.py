@@ -79,7 +79,10 @@ def _builtin_sequence(n: int) -> list[dict]:
     return out
 
 
-def _load_sequence(path, dim: int) -> list:
+def _load_sequence(path, dim: int, space: str | None = None) -> list:
+    """Frames of ``--expressions`` (``.npy`` ``[T, dim]`` or JSON), checked against the server's
+    space ``space`` (when this install knows it) before any avatar is created: an unknown name
+    fails here, not mid-stream."""
     import json
     from pathlib import Path
 
@@ -106,6 +109,18 @@ def _load_sequence(path, dim: int) -> list:
     for i, f in enumerate(obj):
         if isinstance(f, list) and len(f) != dim:
             raise CLIError(f"--expressions {p}: frame {i} has {len(f)} values, the server's space needs {dim}")
+    if space is not None:
+        from ..expressions import get_space
+
+        try:
+            expr_space = get_space(space)
+        except ValueError:  # a space this install does not know: the server checks each frame
+            return obj
+        for i, f in enumerate(obj):
+            try:
+                expr_space.parse(f)
+            except ValueError as e:
+                raise CLIError(f"--expressions {p}: frame {i}: {e}") from None
     return obj
 
 
@@ -238,7 +253,7 @@ def run(args) -> int:
 
     import numpy as np
 
-    from client_demo.client import FastGHAClient, StreamStats, load_request_dir, orbit_camera
+    from client_demo.client import FastGHAClient, StreamError, StreamStats, load_request_dir, orbit_camera
 
     from ..cli import CLIError
 
@@ -282,7 +297,7 @@ def run(args) -> int:
         print(f"driving from {src}: {vinfo.width}x{vinfo.height} at {vinfo.fps:.1f} fps" + ("" if args.from_video else " (Ctrl-C stops)"))
     else:
         if args.expressions:
-            seq = _load_sequence(args.expressions, dim)
+            seq = _load_sequence(args.expressions, dim, info.get("expression_space"))
         elif (Path(args.input).parent / "expressions.npy").is_file():
             seq = _load_sequence(Path(args.input).parent / "expressions.npy", dim)
         else:
@@ -319,6 +334,8 @@ def run(args) -> int:
         frames = client.stream_sync(avatar, requests, stats=stats, max_in_flight=args.in_flight)
     except ValueError as e:  # e.g. the webcam stopped sending
         raise CLIError(str(e)) from None
+    except StreamError as e:  # a typed error or close from the server (code: message), as one line
+        raise CLIError(f"the stream failed: {e}") from None
     finally:
         stop.set()
         if restore is not None:
