@@ -98,3 +98,19 @@ def test_reconstruct_with_refinement_writes_avatar_and_corrected_cameras(tmp_pat
     assert len(cams) == 3 and (cams[0]["width"], cams[0]["height"]) == (40, 36)
     assert max(np.abs(np.array(c["w2c"]) - np.array(g["w2c"])).max() for c, g in zip(cams, given)) > 1e-5  # corrected
     assert main(["reconstruct", "--input", str(req), "--model", str(model_dir), "--out", str(out), "--refine-steps", "-1"]) != 0
+
+
+def test_animate_refuses_an_out_file_type_it_does_not_write(tmp_path, model_dir, capsys):
+    """``--out clip.gif`` used to make a folder named clip.gif full of PNGs; it is refused at once,
+    naming what is written. A folder whose name has another dot still works."""
+    req = _request(tmp_path / "req", masks=True)
+    out = tmp_path / "avatar.safetensors"
+    assert main(["reconstruct", "--input", str(req), "--model", str(model_dir), "--out", str(out)]) == 0
+    np.save(tmp_path / "seq.npy", np.zeros((2, 53), np.float32))
+    args = ["animate", "--avatar", str(out), "--model", str(model_dir), "--expressions", str(tmp_path / "seq.npy"), "--size", "16"]
+    capsys.readouterr()
+    assert main(args + ["--out", str(tmp_path / "clip.gif")]) == 2
+    err = capsys.readouterr().err
+    assert "--out must be a video file (.mp4" in err and "clip.gif" in err and not (tmp_path / "clip.gif").exists()
+    assert main(args + ["--out", str(tmp_path / "frames.v2")]) == 0
+    assert len(list((tmp_path / "frames.v2").glob("frame_*.png"))) == 2

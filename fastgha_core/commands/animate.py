@@ -65,6 +65,11 @@ def frame_cameras(spec: str, num_frames: int, size: int, radius: float, fov: flo
     return [cams[i % len(cams)].resize(size, size) for i in range(num_frames)]
 
 
+_VIDEO_SUFFIXES = (".mp4", ".mkv", ".mov", ".webm")
+# file types a user may ask for that we do not write: refused rather than made into a folder of PNGs
+_NOT_A_FOLDER = (".gif", ".avi", ".wmv", ".flv", ".mpg", ".mpeg", ".m4v", ".png", ".jpg", ".jpeg", ".webp", ".apng", ".bmp", ".tif", ".tiff")
+
+
 def run(args) -> int:
     import time
     from pathlib import Path
@@ -79,13 +84,18 @@ def run(args) -> int:
 
     if args.size <= 0 or args.fps <= 0:
         raise ValueError(f"--size and --fps must be positive, got {args.size} and {args.fps}")
+    out = Path(args.out)
+    if out.suffix.lower() in _NOT_A_FOLDER and not out.is_dir():
+        raise ValueError(
+            f"--out must be a video file ({', '.join(_VIDEO_SUFFIXES)}) or a folder for PNG frames, got {str(out)!r} "
+            f"({out.suffix} files are not written; a folder of that name would be made)"
+        )
     avatar = CanonicalAvatar.load(args.avatar)
     model = load_model(args.model or avatar.model_name, device=args.device)
     codes = load_expressions(args.expressions, model.expression_space)  # [T, E]
     cams = frame_cameras(args.cameras, len(codes), args.size, args.radius, args.fov)
 
-    out = Path(args.out)
-    video = out.suffix.lower() in (".mp4", ".mkv", ".mov", ".webm")
+    video = out.suffix.lower() in _VIDEO_SUFFIXES
     writer = None
     if video:
         import imageio_ffmpeg
