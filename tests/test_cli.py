@@ -44,3 +44,22 @@ def test_animate_help_says_the_default_camera_is_an_orbit(capsys):
         main(["animate", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "default 'orbit'" in text
+
+
+def test_every_option_with_a_default_says_it_in_its_help():
+    """A user reads defaults in `--help`: an option whose default is a value (not None / off) names
+    it in its help text, as "default ..." or the value itself."""
+    import argparse
+
+    from fastgha_core.cli import build_parser
+
+    missing = []
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    for name, parser in sub.choices.items():
+        for act in parser._actions:
+            if not act.option_strings or isinstance(act, argparse._HelpAction) or act.default in (None, False, argparse.SUPPRESS):
+                continue
+            text = act.help or ""
+            if "default" not in text.lower() and str(act.default) not in text:
+                missing.append(f"{name} {act.option_strings[-1]} (default {act.default!r})")
+    assert not missing, "options whose help does not give their default: " + ", ".join(missing)

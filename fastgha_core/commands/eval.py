@@ -3,18 +3,18 @@ HELP = "evaluate a model on held-out subjects: PSNR, SSIM, LPIPS, CSIM, AKD (pap
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--model", default="tiny", help="preset name (shipped weights) or a model folder (save_pretrained / a checkpoint)")
+    parser.add_argument("--model", default="tiny", help="preset name (shipped weights) or a model folder (save_pretrained / a checkpoint); default tiny")
     parser.add_argument("--data", default="synthetic-heldout", help="'synthetic-heldout' or a dataset folder of held-out subjects")
     parser.add_argument("--subjects", type=int, default=None, help="evaluate the first N subjects (synthetic default: 4)")
     parser.add_argument("--first-seed", type=int, default=None, help="synthetic held-out data: start at this seed instead of 1000000 (held-out seeds are 1000000-1009999)")
     parser.add_argument("--json", default=None, help="write the report JSON here (default: OUT/eval.json)")
-    parser.add_argument("--out", default="eval_out", help="folder for eval.md, comparison.png (and eval.json)")
-    parser.add_argument("--ablation", default="none", choices=["none", "static", "no-features", "no-prior"], help="static: canonical head, no deformation; no-features: deformation with zeroed per-Gaussian features; no-prior: the MLP residual without the expression prior's displacement")
+    parser.add_argument("--out", default="eval_out", help="folder for eval.md, comparison.png (and eval.json); default ./eval_out")
+    parser.add_argument("--ablation", default="none", choices=["none", "static", "no-features", "no-prior"], help="none (default): the full model; static: canonical head, no deformation; no-features: deformation with zeroed per-Gaussian features; no-prior: the MLP residual without the expression prior's displacement")
     parser.add_argument("--grid-subject", type=int, default=0, help="with --responses: which subject (index) the picture grid shows")
     parser.add_argument("--responses", action="store_true", help="instead: the expression-response evaluation (single expressions at weight 1, frontal and 30° yaw, dlib landmarks ours vs truth, mouth/eye PSNR); writes OUT/responses.{json,md,png}")
-    parser.add_argument("--num-inputs", type=int, default=4, help="input images per subject (paper: 4)")
-    parser.add_argument("--expressions", type=int, default=4, help="novel expressions per subject")
-    parser.add_argument("--views", type=int, default=4, help="novel views per expression")
+    parser.add_argument("--num-inputs", type=int, default=4, help="input images per subject (default and paper: 4)")
+    parser.add_argument("--expressions", type=int, default=4, help="novel expressions per subject (default 4)")
+    parser.add_argument("--views", type=int, default=4, help="novel views per expression (default 4)")
     parser.add_argument("--vgg-weights", default=None, help="torchvision VGG16 weights, for LPIPS (with --lpips-weights)")
     parser.add_argument("--lpips-weights", default=None, help="LPIPS linear heads (lpips/weights/v0.1/vgg.pth), for LPIPS (with --vgg-weights)")
     parser.add_argument("--no-faces", action="store_true", help="skip CSIM/AKD even when dlib is installed")
@@ -22,8 +22,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--refine-cameras", action="store_true", help="with --refine-steps: also learn per-view camera corrections (off: the dataset's cameras are exact)")
     parser.add_argument("--surface", default="none", choices=["tracked", "blend", "none"], help="input depth. none (default; measured best on held-out subjects, docs/model-card.md): the network's per-pixel depth; tracked: every input pixel's Gaussian on the head fitted to the input photos through their known cameras (faces extra; falls back to the network's depth per subject, counted in the report); blend: that head on the face only")
     parser.add_argument("--resolution", type=int, default=0, help="side of the target images in pixels (default: the model's render size); inputs are always resized to the model's input size")
-    parser.add_argument("--device", default="cpu", help="torch device")
-    parser.add_argument("--backend", default="auto", help="rasterizer backend")
+    parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    parser.add_argument("--backend", default="auto", help="rasterizer backend (default auto: gsplat on CUDA, else the CPU rasterizer)")
 
 
 def run(args) -> int:

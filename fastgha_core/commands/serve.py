@@ -17,7 +17,7 @@ def add_arguments(parser) -> None:
         help="comma-separated API keys (default: FASTGHA_API_KEYS); visible to every local user in `ps`: prefer --api-keys-file",
     )
     parser.add_argument("--no-warmup", action="store_true", help="skip the start-up warm-up")
-    parser.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
+    parser.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"], help="uvicorn and server log level (default info)")
     parser.add_argument("--proxy-headers", action="store_true", help="trust X-Forwarded-* from --forwarded-allow-ips (behind a reverse proxy)")
     parser.add_argument(
         "--forwarded-allow-ips", default=None,

@@ -16,7 +16,7 @@ def add_arguments(parser) -> None:
     )
     parser.add_argument("--heldout", action="store_true", help="draw subjects from the held-out seed range")
     parser.add_argument("--image-format", choices=("png", "jpg"), default="png", help="image files (default png)")
-    parser.add_argument("--jpeg-quality", type=int, default=95, help="JPEG quality when --image-format jpg")
+    parser.add_argument("--jpeg-quality", type=int, default=95, help="JPEG quality when --image-format jpg (default 95)")
     parser.add_argument("--no-depth", action="store_true", help="do not write depth maps")
     parser.add_argument(
         "--request-views", type=int, default=None,
