@@ -1,0 +1,81 @@
+"""Every ``fastgha`` command quoted in README.md and docs/*.md exists as written: the subcommand,
+each ``--flag`` of it, each value of a flag with fixed choices, and no positional argument where the
+subcommand takes none (``fastgha reconstruct DIR`` once stood where ``--input DIR`` is meant).
+
+Commands are found in code blocks and inline code alike, as ``fastgha CMD ...``, ``$F CMD ...``,
+``.venv/bin/fastgha CMD ...`` or ``python -m fastgha_core.cli CMD ...``; a backslash-newline
+continues a command. Placeholders in capitals (``DIR``, ``N``) and ``...`` are allowed as values.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+
+from fastgha_core.cli import build_parser
+
+ROOT = Path(__file__).resolve().parents[1]
+COMMAND = re.compile(r"(?:(?<![\w/.-])fastgha|\$F|\.venv/bin/fastgha|fastgha_core\.cli)[ \t]+([a-z]+)([^`\n|;&#]*)")
+
+
+def _subcommands() -> dict[str, argparse.ArgumentParser]:
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(sub.choices)
+
+
+def _quoted_commands():
+    for path in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
+        text = path.read_text(encoding="utf-8")
+        joined = re.sub(r"\\\n\s*", " ", text)  # continuation lines
+        for m in COMMAND.finditer(joined):
+            line = joined[: m.start()].count("\n") + 1
+            yield f"{path.relative_to(ROOT)}:{line}", m.group(1), m.group(2).split()
+
+
+def _check(cmd: str, tokens: list[str], parsers: dict) -> list[str]:
+    if cmd not in parsers:
+        return [f"unknown command {cmd!r}"]
+    parser = parsers[cmd]
+    options = {o: a for a in parser._actions for o in a.option_strings}
+    positionals = [a for a in parser._actions if not a.option_strings]
+    problems = []
+    if tokens and not tokens[0].startswith("-") and not positionals:
+        tok = tokens[0]
+        if not (tok.startswith("[") or tok in ("...", "…") or tok.startswith("(")):
+            problems.append(f"positional {tok!r}, but `fastgha {cmd}` takes none")
+    for i, tok in enumerate(tokens):
+        if not tok.startswith("--"):
+            continue
+        flag = tok.split("=", 1)[0].rstrip("],.)")
+        if flag not in options:
+            problems.append(f"unknown flag {flag}")
+            continue
+        act = options[flag]
+        value = tok.split("=", 1)[1] if "=" in tok else (tokens[i + 1] if i + 1 < len(tokens) else None)
+        if act.choices and value is not None and not value.startswith("-"):
+            value = value.strip("'\"`,.)]")
+            if value and not (value.isupper() or "|" in value or value in ("...", "…")) and value not in act.choices:
+                problems.append(f"{flag} {value!r} is not one of {list(act.choices)}")
+    return problems
+
+
+def test_checker_catches_what_it_should():
+    parsers = _subcommands()
+    assert _check("reconstruct", ["DIR"], parsers)  # the old data-format.md slip
+    assert _check("export", ["--axes", "ydown"], parsers)
+    assert _check("animate", ["--avatar", "A", "--frames", "3"], parsers)
+    assert _check("recontruct", [], parsers)
+    assert not _check("reconstruct", ["--input", "DIR", "--out", "a.safetensors"], parsers)
+    assert not _check("bench", ["render", "--quick"], parsers)
+    assert not _check("export", ["--axes", "fastgha"], parsers)
+
+
+def test_every_quoted_command_and_flag_exists():
+    parsers = _subcommands()
+    found, problems = 0, []
+    for where, cmd, tokens in _quoted_commands():
+        found += 1
+        problems += [f"{where}: fastgha {cmd} {' '.join(tokens)[:80]}: {p}" for p in _check(cmd, tokens, parsers)]
+    assert found > 50  # the pattern still finds the docs' commands
+    assert not problems, "\n".join(problems)
