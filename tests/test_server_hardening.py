@@ -426,3 +426,22 @@ def test_origin_rules():
     assert not origin_allowed({"origin": "null", "host": "srv:8000"}, allowed)
     assert not origin_allowed({"origin": "https://app.example.evil", "host": "srv:8000"}, allowed)
     assert origin_allowed({"origin": "https://evil.example"}, []) and origin_allowed({"origin": "https://evil.example"}, ["*"])
+
+
+def test_serve_names_a_wrong_setting_as_the_user_set_it(monkeypatch, tmp_path, capsys):
+    """A bad FASTGHA_* value or flag is reported in one line by its variable (or flag) and value,
+    with what was expected: no pydantic dump with documentation links."""
+    from fastgha_core.cli import main
+
+    monkeypatch.setenv("FASTGHA_COMPILE", "maybe")
+    monkeypatch.setenv("FASTGHA_MAX_IMAGES", "abc")
+    assert main(["serve", "--port", _free_port(), "--data-dir", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "errors.pydantic.dev" not in err, err
+    assert "FASTGHA_COMPILE='maybe': Input should be 'auto', 'on' or 'off'" in err, err
+    assert "FASTGHA_MAX_IMAGES='abc'" in err and "integer" in err, err
+    monkeypatch.delenv("FASTGHA_COMPILE")
+    monkeypatch.delenv("FASTGHA_MAX_IMAGES")
+    assert main(["serve", "--port", _free_port(), "--data-dir", str(tmp_path), "--api-keys-file", str(tmp_path / "none")]) == 2
+    err = capsys.readouterr().err
+    assert f"--api-keys-file='{tmp_path / 'none'}'" in err and "cannot be read" in err, err

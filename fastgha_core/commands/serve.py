@@ -58,6 +58,22 @@ def bind_listening_socket(host: str, port: int):
     return sock
 
 
+def _settings_problems(error: Exception, overrides: dict) -> str:
+    """One line per wrong setting of a pydantic ``ValidationError``, named as the user set it (the
+    ``--flag`` when it came from the command line, else ``FASTGHA_<NAME>``), with the value given."""
+    try:
+        errors = error.errors()  # type: ignore[attr-defined]
+    except (AttributeError, TypeError):
+        return str(error).replace("\n", " ")
+    parts = []
+    for err in errors:
+        field = str(err["loc"][0]) if err.get("loc") else ""
+        where = f"--{field.replace('_', '-')}" if field in overrides else f"FASTGHA_{field.upper()}"
+        msg = str(err.get("msg", "")).removeprefix("Value error, ")
+        parts.append(f"{where}={err['input']!r}: {msg}" if "input" in err and not isinstance(err["input"], dict) else f"{where}: {msg}")
+    return "; ".join(parts)
+
+
 def run(args) -> int:
     import logging
 
@@ -104,7 +120,7 @@ def run(args) -> int:
     try:
         settings = Settings(**overrides)
     except Exception as e:  # pydantic ValidationError: say which setting is wrong, in one line
-        raise CLIError(f"invalid settings: {e}".replace("\n", " ")) from None
+        raise CLIError(f"invalid settings: {_settings_problems(e, overrides)}") from None
     from server.security import uvicorn_options
 
     if args.proxy_headers and "*" in settings.forwarded_allow_ips.split(","):
