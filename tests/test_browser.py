@@ -11,6 +11,7 @@ progress, get the queue's 429 with its ``Retry-After``, check the page's small p
 
 from __future__ import annotations
 
+import json
 import shutil
 import tempfile
 from pathlib import Path
@@ -286,6 +287,27 @@ def test_demo_page_nits(page, server):
     assert "2 photo(s), no cameras" in page.inner_text("#input-summary")
     assert page.locator("#thumbs img").count() == 2
     assert not page.locator("#create").is_disabled()
+    # a cameras.json picked with photos stays for photos picked later only while it fits them: an
+    # earlier one for two photos does not block "Create" for one new photo (it used to, until a reload)
+    cams = httpx.get(f"{server.base}/v1/samples/{SAMPLE_NAME}/cameras.json").json()[:2]
+    page.set_input_files("#file-input", files=[
+        {"name": "me1.jpg", "mimeType": "image/jpeg", "buffer": jpg},
+        {"name": "me2.jpg", "mimeType": "image/jpeg", "buffer": jpg},
+        {"name": "cameras.json", "mimeType": "application/json", "buffer": json.dumps(cams).encode()},
+    ])  # fmt: skip
+    page.wait_for_function("document.getElementById('input-summary').innerText.startsWith('2 photo(s), 2 camera(s)')", timeout=10_000)
+    page.set_input_files("#file-input", files=[{"name": "me3.jpg", "mimeType": "image/jpeg", "buffer": jpg}])
+    page.wait_for_function("document.getElementById('input-summary').innerText.startsWith('1 photo(s), no cameras')", timeout=10_000)
+    assert "dropped the earlier cameras.json (2 camera(s))" in page.inner_text("#messages")
+    assert not page.locator("#create").is_disabled()
+    page.set_input_files("#file-input", files=[  # photos alone that the cameras do fit keep them
+        {"name": "me1.jpg", "mimeType": "image/jpeg", "buffer": jpg},
+        {"name": "cameras.json", "mimeType": "application/json", "buffer": json.dumps(cams[:1]).encode()},
+    ])  # fmt: skip
+    page.wait_for_function("document.getElementById('input-summary').innerText.startsWith('1 photo(s), 1 camera(s)')", timeout=10_000)
+    page.set_input_files("#file-input", files=[{"name": "me4.jpg", "mimeType": "image/jpeg", "buffer": jpg}])
+    page.wait_for_timeout(500)
+    assert page.inner_text("#input-summary").startswith("1 photo(s), 1 camera(s)")
 
 
 # ---------------------------------------------------------------- jawOpen on the shipped model

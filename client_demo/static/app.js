@@ -223,6 +223,13 @@
     }
     const imgs = images.length ? images : old.images;
     const masks = images.length ? (images.every((f) => maskByStem.has(stem(f))) ? images.map((f) => maskByStem.get(stem(f))) : null) : old.masks;
+    if (images.length && !camFile && cameras && cameras.length !== imgs.length) {
+      // an earlier cameras.json that does not fit the new photos would only block "Create": drop it
+      say(`dropped the earlier cameras.json (${cameras.length} camera(s)): it does not fit ${imgs.length} photo(s); ` +
+          "without cameras the server finds the face", "info");
+      cameras = null;
+      camerasFrom = null;
+    }
     S.inputs = { images: imgs, masks, cameras, camerasFrom };
     if (images.length) $("sample-select").value = "";  // the list no longer names what is loaded
     showInputs();
