@@ -45,6 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="FastGHA: few-shot 3D Gaussian head avatars, reconstructed once and animated in real time.",
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("--version", action="version", version=f"fastgha {__version__}", help="print the version and exit (`fastgha version --all`: also its dependencies)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for mod in _command_modules():
         p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.HELP)

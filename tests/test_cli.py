@@ -21,6 +21,12 @@ def test_version_prints_package_version(capsys):
     assert capsys.readouterr().out.strip() == f"fastgha {__version__}"
 
 
+def test_version_flag_as_most_tools_have_it(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.strip() == f"fastgha {__version__}"
+
+
 def test_user_error_is_one_line_and_exit_2(capsys, monkeypatch):
     import fastgha_core.commands.version as version_cmd
 
