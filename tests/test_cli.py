@@ -69,3 +69,25 @@ def test_every_option_with_a_default_says_it_in_its_help():
             if "default" not in text.lower() and str(act.default) not in text:
                 missing.append(f"{name} {act.option_strings[-1]} (default {act.default!r})")
     assert not missing, "options whose help does not give their default: " + ", ".join(missing)
+
+
+def test_train_config_file_that_is_not_json_is_named(tmp_path, capsys):
+    bad = tmp_path / "ft.json"
+    bad.write_text('{"preset": "tiny",\n')
+    assert main(["train", "--config", str(bad), "--data", "synthetic", "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert f"--config {bad} is not valid JSON" in err and "TrainConfig" in err, err
+    assert not (tmp_path / "run").exists()
+
+
+def test_face_metrics_load_without_a_deprecation_warning_on_every_run():
+    """`fastgha eval` loads dlib's face models through face_recognition_models, whose
+    pkg_resources import warned on every run."""
+    import importlib.util
+
+    if importlib.util.find_spec("face_recognition_models") is None or importlib.util.find_spec("dlib") is None:
+        pytest.skip("needs the 'faces' extra (dlib-bin, face-recognition-models)")
+    code = "from fastgha_core.train.faces import load_face_metrics; assert load_face_metrics() is not None"
+    proc = subprocess.run([sys.executable, "-W", "always", "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "pkg_resources" not in proc.stderr, proc.stderr

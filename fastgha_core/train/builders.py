@@ -28,7 +28,11 @@ def model_config_from_spec(spec: str):
         path = path / "config.json"
     if not path.is_file():
         raise ValueError(f"model must be one of {sorted(PRESETS)} or a FastGHAConfig JSON file, got {spec!r} (no such file)")
-    return FastGHAConfig.from_dict(json.loads(path.read_text()))
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"model config {path} is not valid JSON ({e}); expected an object of FastGHAConfig fields") from None
+    return FastGHAConfig.from_dict(data)
 
 
 def build_model(cfg: TrainConfig, dino_weights: str | None = None, vae_weights: str | None = None, init_from: str | None = None):

@@ -67,9 +67,14 @@ class FaceMetrics:
 
 def load_face_metrics() -> FaceMetrics | None:
     """The dlib face models, or ``None`` (logged once) when dlib / face_recognition_models are missing."""
+    import warnings
+
     try:
         import dlib  # type: ignore
-        import face_recognition_models as frm  # type: ignore
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # pkg_resources deprecation inside face_recognition_models, on every run
+            import face_recognition_models as frm  # type: ignore
     except Exception as e:  # ImportError, or pkg_resources missing with setuptools >= 81
         log.warning("CSIM/AKD unavailable (install the 'faces' extra: dlib-bin, face-recognition-models, setuptools<81): %s", e)
         return None

@@ -178,7 +178,10 @@ def load_train_config(spec: str) -> TrainConfig:
     path = Path(spec)
     if not path.is_file():
         raise ValueError(f"--config must be one of {sorted(TRAIN_PRESETS)} or a JSON file, got {spec!r} (no such file)")
-    data = json.loads(path.read_text())
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"--config {path} is not valid JSON ({e}); expected an object of TrainConfig fields") from None
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a JSON object of TrainConfig fields, got {type(data).__name__}")
     preset = data.pop("preset", None) or (data.get("model") if data.get("model") in TRAIN_PRESETS else "paper")
