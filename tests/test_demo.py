@@ -54,6 +54,20 @@ def test_demo_rejects_unknown_sample(capsys):
     assert "unknown sample 'nobody'" in capsys.readouterr().err
 
 
+def test_demo_refuses_a_preset_without_shipped_weights_before_building_it(capsys, monkeypatch):
+    """`--model paper` used to build a random 419M-parameter network, then fail on the sample's
+    expression space; it is refused at once, naming what ships."""
+    import fastgha_core.model.fastgha as fastgha_mod
+
+    def no_build(*a, **k):
+        raise AssertionError("the model must not be built")
+
+    monkeypatch.setattr(fastgha_mod, "load_model", no_build)
+    assert main(["demo", "--model", "paper"]) == 2
+    err = capsys.readouterr().err
+    assert "--model 'paper': no shipped weights" in err and "shipped: tiny" in err, err
+
+
 def test_video_schedule_loops_and_lasts_long_enough():
     from fastgha_core.commands.demo import video_schedule
 
