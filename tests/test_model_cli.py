@@ -114,3 +114,29 @@ def test_animate_refuses_an_out_file_type_it_does_not_write(tmp_path, model_dir,
     assert "--out must be a video file (.mp4" in err and "clip.gif" in err and not (tmp_path / "clip.gif").exists()
     assert main(args + ["--out", str(tmp_path / "frames.v2")]) == 0
     assert len(list((tmp_path / "frames.v2").glob("frame_*.png"))) == 2
+
+
+def test_expression_files_of_every_shipped_json_form_load_in_animate_and_client(tmp_path):
+    """The JSON forms FastGHA itself writes are read by both `animate` and `client`: a list,
+    {"frames": [...]} (GET /v1/samples/{name}/expressions.json) and `fastgha track`'s
+    expressions.json ({"space", "names", "images", "expressions"})."""
+    from fastgha_core.cli import CLIError
+    from fastgha_core.commands.animate import load_expressions
+    from fastgha_core.commands.client import _load_sequence
+    from fastgha_core.expressions import get_space
+
+    space = get_space("ict53")
+    codes = np.random.default_rng(3).random((2, 53)).round(4).tolist()
+    forms = {"list.json": codes, "frames.json": {"frames": codes, "num_frames": 2, "dim": 53},
+             "track.json": {"space": "ict53", "names": space.names, "images": ["a.png", "b.png"], "expressions": codes}}  # fmt: skip
+    for name, obj in forms.items():
+        path = tmp_path / name
+        path.write_text(json.dumps(obj))
+        got = load_expressions(path, space)
+        assert got.shape == (2, 53) and np.allclose(got.numpy(), codes, atol=1e-6), name
+        assert _load_sequence(path, 53, "ict53") == codes, name
+    (tmp_path / "other.json").write_text(json.dumps({"weights": codes}))
+    with pytest.raises(ValueError, match=r"an object with 'expressions' or 'frames', got an object with keys \['weights'\]"):
+        load_expressions(tmp_path / "other.json", space)
+    with pytest.raises(CLIError, match="expected a non-empty list"):
+        _load_sequence(tmp_path / "other.json", 53, "ict53")

@@ -6,7 +6,7 @@ HELP = "animate an avatar with an expression sequence and write a video (mp4) or
 
 def add_arguments(parser) -> None:
     parser.add_argument("--avatar", required=True, help="avatar file written by `fastgha reconstruct`")
-    parser.add_argument("--expressions", required=True, help="expression sequence: .npy [T, E] or .json (list of vectors or name->weight maps)")
+    parser.add_argument("--expressions", required=True, help="expression sequence: .npy [T, E] or .json (list of vectors or name->weight maps, or {'frames': [...]} or `fastgha track`'s expressions.json)")
     parser.add_argument("--cameras", default="orbit", help="camera path; default 'orbit': a left-right swing around the head at --radius and --fov; "
                         "or a cameras JSON file (one camera, or one per frame, cycled)")
     parser.add_argument("--out", required=True, help="output .mp4 (imageio-ffmpeg) or a folder for PNG frames")
@@ -41,8 +41,14 @@ def load_expressions(path, space):
             data = json.loads(path.read_text())
         except json.JSONDecodeError as e:
             raise ValueError(f"expressions file {str(path)!r} does not parse as JSON: {e}") from None
-        if isinstance(data, dict) and "expressions" in data:
-            data = data["expressions"]
+        if isinstance(data, dict):  # `fastgha track`'s expressions.json, or the server's sample {"frames": ...}
+            key = next((k for k in ("expressions", "frames") if k in data), None)
+            if key is None:
+                raise ValueError(
+                    f"expressions file {str(path)!r}: expected a list of codes, or an object with 'expressions' or 'frames', "
+                    f"got an object with keys {sorted(data)[:8]}"
+                )
+            data = data[key]
         if not isinstance(data, list) or not data:
             raise ValueError(f"expressions JSON must be a non-empty list of codes, got {type(data).__name__}")
         return space.parse_batch(data)

@@ -102,10 +102,10 @@ def _load_sequence(path, dim: int, space: str | None = None) -> list:
         obj = json.loads(p.read_text())
     except ValueError as e:
         raise CLIError(f"--expressions {p} is not valid JSON ({e})") from None
-    if isinstance(obj, dict):
-        obj = obj.get("frames")
+    if isinstance(obj, dict):  # {"frames": [...]} (the server's sample route) or `fastgha track`'s expressions.json
+        obj = obj.get("frames", obj.get("expressions"))
     if not isinstance(obj, list) or not obj or not all(isinstance(f, (list, dict)) for f in obj):
-        raise CLIError(f"--expressions {p}: expected a non-empty list of vectors or name->weight maps (or {{'frames': [...]}})")
+        raise CLIError(f"--expressions {p}: expected a non-empty list of vectors or name->weight maps (or {{'frames': [...]}}, or `fastgha track`'s expressions.json)")
     for i, f in enumerate(obj):
         if isinstance(f, list) and len(f) != dim:
             raise CLIError(f"--expressions {p}: frame {i} has {len(f)} values, the server's space needs {dim}")
