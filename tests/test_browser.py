@@ -310,6 +310,30 @@ def test_demo_page_nits(page, server):
     assert page.inner_text("#input-summary").startswith("1 photo(s), 1 camera(s)")
 
 
+def test_demo_takes_a_whole_tracked_folder(page, server):
+    """Dropping everything `fastgha track` wrote (crops, masks, cameras.json, expressions.json,
+    head.json) loads the photos, cameras, masks and the tracked expressions as the sequence;
+    head.json is not taken for a sequence."""
+    import httpx
+
+    page.wait_for_function("window.fastghaDemo.model !== null", timeout=30_000)
+    jpg = httpx.get(f"{server.base}/v1/samples/{SAMPLE_NAME}/00.jpg").content
+    cams = httpx.get(f"{server.base}/v1/samples/{SAMPLE_NAME}/cameras.json").json()[:2]
+    names = page.evaluate("window.fastghaDemo.model.expression_names")
+    tracked = {"space": "ict53", "names": names, "images": ["00_me.png", "01_me.png"], "expressions": [[0.0] * len(names)] * 2}
+    head = {"model": "ict_facekit", "identity": [0.0] * 100}
+    page.set_input_files("#file-input", files=[  # head.json first: it must not be read as the sequence
+        {"name": "head.json", "mimeType": "application/json", "buffer": json.dumps(head).encode()},
+        {"name": "00_me.jpg", "mimeType": "image/jpeg", "buffer": jpg},
+        {"name": "01_me.jpg", "mimeType": "image/jpeg", "buffer": jpg},
+        {"name": "cameras.json", "mimeType": "application/json", "buffer": json.dumps(cams).encode()},
+        {"name": "expressions.json", "mimeType": "application/json", "buffer": json.dumps(tracked).encode()},
+    ])  # fmt: skip
+    page.wait_for_function("document.getElementById('input-summary').innerText.startsWith('2 photo(s), 2 camera(s)')", timeout=10_000)
+    assert "2-frame sequence" in page.inner_text("#input-summary")
+    assert "ignored" not in page.inner_text("#messages")
+
+
 # ---------------------------------------------------------------- jawOpen on the shipped model
 @pytest.fixture(scope="module")
 def shipped_server(tmp_path_factory):

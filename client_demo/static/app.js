@@ -184,7 +184,9 @@
   async function takeFiles(fileList) {
     const files = Array.from(fileList);
     const camFile = files.find((f) => f.name.toLowerCase().endsWith(".json") && f.name.toLowerCase().includes("camera"));
-    const seqFile = files.find((f) => f !== camFile && f.name.toLowerCase().endsWith(".json"));
+    // the sequence: a JSON named like one, else any JSON but a tracked folder's head.json / info.json
+    const jsons = files.filter((f) => f !== camFile && f.name.toLowerCase().endsWith(".json"));
+    const seqFile = jsons.find((f) => /expression|sequence|frames/i.test(f.name)) || jsons.find((f) => !/^(head|info)\.json$/i.test(f.name));
     const isImg = (f) => /\.(jpe?g|png)$/i.test(f.name);
     const stem = (f) => f.name.replace(/\.[^.]+$/, "");
     const images = files.filter((f) => isImg(f) && !stem(f).endsWith("_mask")).sort((a, b) => a.name.localeCompare(b.name));
@@ -207,8 +209,8 @@
     if (seqFile) {
       try {
         const q = JSON.parse(await seqFile.text());
-        const frames = Array.isArray(q) ? q : q.frames;
-        if (!Array.isArray(frames)) throw new Error("expected a list of frames or {frames: [...]}");
+        const frames = Array.isArray(q) ? q : q && (q.frames || q.expressions);  // {frames} (samples) or track's expressions.json
+        if (!Array.isArray(frames)) throw new Error("expected a list of frames, {frames: [...]} or the expressions.json of `fastgha track`");
         S.sequence = frames;
         $("play").disabled = false;
       } catch (e) {
