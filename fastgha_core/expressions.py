@@ -71,6 +71,9 @@ ARKIT52_NAMES: tuple[str, ...] = (
     "cheekPuff", "cheekSquintLeft", "cheekSquintRight", "noseSneerLeft", "noseSneerRight", "tongueOut",
 )  # fmt: skip
 
+# Live Link Face's head and eye rotations (its CSV and stream carry them beside the 52 shapes), lower case.
+_POSE_NAMES = frozenset(f"{part}{axis}".lower() for part in ("Head", "LeftEye", "RightEye") for axis in ("Yaw", "Pitch", "Roll"))
+
 # ARKit / MediaPipe names with no ict53 counterpart: accepted and ignored.
 _ICT53_IGNORED = frozenset({"tongueOut", "_neutral"})
 
@@ -193,6 +196,12 @@ class ExpressionSpace:
                 out[i] = weight
         if unknown:
             hint = " (ARKit-52 names are accepted too)" if self._aliases else ""
+            poses = [k for k in unknown if str(k).lower() in _POSE_NAMES]
+            if poses:  # Live Link Face streams head and eye rotations beside the 52 blendshapes
+                hint += (
+                    f"; {poses[:3]}: head/eye rotations of Live Link Face, not expressions: "
+                    "leave them out and turn the head with the camera"
+                )
             raise ValueError(
                 f"expression space {self.name!r}: unknown name(s) {unknown[:8]}{'...' if len(unknown) > 8 else ''}; "
                 f"expected names like {list(index)[:3]}{hint}"

@@ -198,3 +198,14 @@ def test_flame120_from_axis_angle_by_hand():
         flame120_from_axis_angle(torch.zeros(T, 101), jaw, eyes)
     with pytest.raises(ValueError, match=r"jaw must share the leading shape \[2\]"):
         flame120_from_axis_angle(expr, jaw[:1], eyes)
+
+
+def test_live_link_face_pose_names_are_explained_not_just_unknown():
+    """A Live Link Face frame forwarded as is carries HeadYaw & co. beside the 52 shapes: the error
+    says what they are and what to do, and real typos keep the plain message."""
+    space = get_space("ict53")
+    with pytest.raises(ValueError, match=r"unknown name\(s\) \['HeadYaw', 'LeftEyePitch'\].*head/eye rotations of Live Link Face.*with the camera"):
+        space.parse({"EyeBlinkLeft": 1.0, "HeadYaw": 0.1, "LeftEyePitch": 0.0})
+    with pytest.raises(ValueError) as e:
+        space.parse({"jawOpenn": 1.0})
+    assert "Live Link" not in str(e.value)
