@@ -79,6 +79,13 @@ def test_cli_errors_are_one_line(tmp_path, model_dir, capsys):
     assert main(["reconstruct", "--input", str(req), "--model", str(model_dir), "--out", str(tmp_path / "a.safetensors")]) == 2
     assert "missing masks" in capsys.readouterr().err
     assert main(["reconstruct", "--input", str(tmp_path / "nope"), "--out", str(tmp_path / "a.safetensors")]) == 2
+    capsys.readouterr()
+    # --out a.ply used to write a safetensors file under a .ply name
+    assert main(["reconstruct", "--input", str(req), "--model", str(model_dir), "--out", str(tmp_path / "a.ply")]) == 2
+    err = capsys.readouterr().err
+    assert "--out is the avatar file (.safetensors" in err and "add --ply FILE" in err and not (tmp_path / "a.ply").exists()
+    assert main(["reconstruct", "--input", str(req), "--model", str(model_dir), "--out", str(tmp_path / "a.safetensors"), "--ply", str(tmp_path / "a.splat")]) == 2
+    assert "--ply must name a .ply file" in capsys.readouterr().err
 
 
 def test_reconstruct_with_refinement_writes_avatar_and_corrected_cameras(tmp_path, model_dir, capsys):

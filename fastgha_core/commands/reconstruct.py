@@ -132,6 +132,13 @@ def run(args) -> int:
         raise CLIError("--refine-cameras and --cameras-out need --refine-steps N > 0")
     if args.cameras_out and not args.refine_cameras:
         raise CLIError("--cameras-out writes the corrected cameras: add --refine-cameras (without it the cameras are not refined)")
+    if not str(args.out).lower().endswith(".safetensors"):
+        raise CLIError(
+            f"--out is the avatar file (.safetensors: what animate, export and the server read), got {args.out!r}"
+            + ("; for a PLY of the Gaussians add --ply FILE" if str(args.out).lower().endswith(".ply") else "")
+        )
+    if args.ply is not None and not str(args.ply).lower().endswith(".ply"):
+        raise CLIError(f"--ply must name a .ply file, got {args.ply!r}")
     paths, cams = load_request_folder(args.input)
     images = [_read_image(p) for p in paths]
     masks = []
