@@ -445,3 +445,25 @@ def test_serve_names_a_wrong_setting_as_the_user_set_it(monkeypatch, tmp_path, c
     assert main(["serve", "--port", _free_port(), "--data-dir", str(tmp_path), "--api-keys-file", str(tmp_path / "none")]) == 2
     err = capsys.readouterr().err
     assert f"--api-keys-file='{tmp_path / 'none'}'" in err and "cannot be read" in err, err
+
+
+def test_serve_reports_an_unusable_data_folder_before_loading_the_model(monkeypatch, tmp_path, capsys):
+    """A data folder that cannot be created or written is one line naming it (flag or variable),
+    before the model loads, instead of a start-up traceback."""
+    import server.app as app_mod
+    from fastgha_core.cli import main
+
+    monkeypatch.setattr(app_mod, "create_app", lambda *a, **k: (_ for _ in ()).throw(AssertionError("must not start")))
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    assert main(["serve", "--port", _free_port(), "--data-dir", str(blocker / "avatars")]) == 2
+    err = capsys.readouterr().err
+    assert f"--data-dir '{blocker / 'avatars'}' cannot hold avatars" in err and "writable folder" in err, err
+    monkeypatch.setenv("FASTGHA_DATA_DIR", str(blocker))
+    assert main(["serve", "--port", _free_port()]) == 2
+    assert f"FASTGHA_DATA_DIR '{blocker}' cannot hold avatars" in capsys.readouterr().err
+    fresh = tmp_path / "new" / "data"  # a folder that does not exist yet is created, as before
+    seen = _capture_uvicorn(monkeypatch)
+    monkeypatch.setattr(app_mod, "create_app", lambda settings: object())
+    assert main(["serve", "--port", _free_port(), "--data-dir", str(fresh)]) == 0
+    assert fresh.is_dir() and not list(fresh.iterdir()) and seen

@@ -74,6 +74,27 @@ def _settings_problems(error: Exception, overrides: dict) -> str:
     return "; ".join(parts)
 
 
+def _check_data_dir(path, named: str) -> None:
+    """Create the data folder and write a probe file in it now: an unusable folder is reported in
+    one line before the model loads, not as a start-up traceback tens of seconds later."""
+    import os
+    import tempfile
+    from pathlib import Path
+
+    from ..cli import CLIError
+
+    folder = Path(path)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".write-probe-", dir=folder)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise CLIError(
+            f"{named} {str(folder)!r} cannot hold avatars ({type(e).__name__}: {e.strerror or e}); give a writable folder"
+        ) from None
+
+
 def run(args) -> int:
     import logging
 
@@ -121,6 +142,7 @@ def run(args) -> int:
         settings = Settings(**overrides)
     except Exception as e:  # pydantic ValidationError: say which setting is wrong, in one line
         raise CLIError(f"invalid settings: {_settings_problems(e, overrides)}") from None
+    _check_data_dir(settings.data_dir, "--data-dir" if "data_dir" in overrides else "FASTGHA_DATA_DIR")
     from server.security import uvicorn_options
 
     if args.proxy_headers and "*" in settings.forwarded_allow_ips.split(","):
