@@ -334,6 +334,32 @@ def test_demo_takes_a_whole_tracked_folder(page, server):
     assert "ignored" not in page.inner_text("#messages")
 
 
+def test_demo_stops_a_sequence_the_server_refuses_and_recovers(page, server):
+    """A sequence file with a name the server does not know used to leave that name in every later
+    request (each refused, one log line per frame, sliders dead until a reload): the player stops,
+    the log says it once, and the sliders work again."""
+    page.wait_for_function("!document.getElementById('load-sample').disabled", timeout=30_000)
+    page.fill("#api-key", API_KEY)
+    page.click("#load-sample")
+    page.wait_for_function("!document.getElementById('create').disabled", timeout=30_000)
+    page.click("#create")
+    page.wait_for_function("window.fastghaDemo.frames >= 1", timeout=60_000)
+    _wait_settled(page, 0)
+    bad = [{"jawOpenn": i / 10} for i in range(10)]
+    page.set_input_files("#file-input", files=[{"name": "seq.json", "mimeType": "application/json", "buffer": json.dumps(bad).encode()}])
+    page.wait_for_function("document.getElementById('input-summary').innerText.includes('10-frame sequence')", timeout=10_000)
+    page.click("#play")
+    page.wait_for_function("document.getElementById('messages').innerText.includes('stopped the sequence')", timeout=30_000)
+    page.wait_for_timeout(800)
+    assert not page.evaluate("window.fastghaDemo.playing")
+    log = page.inner_text("#messages")
+    assert log.count("unknown_expression_name") == 1 and "jawOpenn" in log, log
+    frames = page.evaluate("window.fastghaDemo.frames")
+    page.locator("#s-jawOpen").fill("0.6")  # a slider: rendered, not refused again
+    page.wait_for_function(f"window.fastghaDemo.frames > {frames}", timeout=30_000)
+    assert page.inner_text("#messages").count("unknown_expression_name") == 1
+
+
 # ---------------------------------------------------------------- jawOpen on the shipped model
 @pytest.fixture(scope="module")
 def shipped_server(tmp_path_factory):

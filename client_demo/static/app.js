@@ -42,10 +42,17 @@
 
   // ------------------------------------------------------------------ messages
   function say(text, kind = "info") {
+    const box = $("messages");
+    const last = box.firstElementChild;
+    if (last && last.dataset.text === text) {  // the same message again: count it, do not flood the log
+      last.dataset.count = String(Number(last.dataset.count || 1) + 1);
+      last.textContent = `${new Date().toLocaleTimeString()}  ${text} (×${last.dataset.count})`;
+      return;
+    }
     const div = document.createElement("div");
     div.className = kind;
+    div.dataset.text = text;
     div.textContent = `${new Date().toLocaleTimeString()}  ${text}`;
-    const box = $("messages");
     box.prepend(div);
     while (box.childElementCount > 60) box.lastChild.remove();
   }
@@ -463,6 +470,8 @@
     setStatus("idle");
   }
 
+  const EXPRESSION_ERRORS = new Set(["unknown_expression_name", "invalid_expression", "invalid_expression_length"]);
+
   function onText(text) {
     let msg;
     try { msg = JSON.parse(text); } catch (_) { say("server sent a message that is not JSON", "err"); return; }
@@ -473,7 +482,17 @@
       say(`stream ready: frames at ${S.size}×${S.size}, ${msg.expression_space}`, "ok");
       markDirty();
     } else if (msg.type === "error") {
-      say(`server: ${msg.code}: ${msg.message}`, "err");
+      if (EXPRESSION_ERRORS.has(msg.code)) {
+        // a sequence with names (or lengths) the server refuses: stop it, and forget the names that
+        // have no slider, or every later request (a slider moved) would be refused the same way
+        const playing = S.playing;
+        if (playing) stopPlayer();
+        const known = new Set((S.model && S.model.expression_names) || []);
+        for (const k of Object.keys(S.values)) if (!known.has(k)) delete S.values[k];
+        say(`${playing ? "stopped the sequence: " : ""}server: ${msg.code}: ${msg.message}`, "err");
+      } else {
+        say(`server: ${msg.code}: ${msg.message}`, "err");
+      }
       // an error answers no frame: release the slot so the stream goes on
       S.inFlight = null;
       if (S.dirty) sendNow();
