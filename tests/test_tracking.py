@@ -228,6 +228,42 @@ def test_cli_writes_a_request_folder(tmp_path):
     assert json.loads((tmp_path / "r.json").read_text())["photos"][0]["mask"] == "estimated"
 
 
+@needs_faces
+def test_cli_tracking_again_into_a_folder_replaces_the_earlier_crops(tmp_path):
+    """A second run into the same --out (fewer or other photos) used to leave the first run's crops,
+    and reconstruct then found more photos than cameras."""
+    from PIL import Image
+
+    from fastgha_core.cameras import load_request_folder
+    from fastgha_core.cli import main
+
+    a, b = tmp_path / "first.jpg", tmp_path / "second.jpg"
+    Image.fromarray(_grace_hopper()).save(a)
+    Image.fromarray(_grace_hopper()[:, ::-1].copy()).save(b)
+    req = tmp_path / "req"
+    assert main(["track", "--images", str(a), str(b), "--out", str(req), "--size", "64"]) == 0
+    assert len(load_request_folder(req)[0]) == 2
+    assert main(["track", "--images", str(b), "--out", str(req), "--size", "64"]) == 0
+    images, cams = load_request_folder(req)
+    assert [p.name for p in images] == ["00_second.png"] and len(cams) == 1
+    assert sorted(p.name for p in req.glob("*.png")) == ["00_second.png", "00_second_mask.png"]
+
+
+def test_cli_refuses_an_out_folder_holding_other_photos(tmp_path, capsys):
+    """Photos in --out that track did not write (the inputs themselves, say) would be taken as views
+    by reconstruct: refused before tracking, and nothing in the folder is touched."""
+    from PIL import Image
+
+    from fastgha_core.cli import main
+
+    me = tmp_path / "me.jpg"
+    Image.new("RGB", (64, 64)).save(me)
+    assert main(["track", "--images", str(me), "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "already holds photos (me.jpg; the photos to track are in it)" in err and "empty or new folder" in err, err
+    assert me.is_file() and not (tmp_path / "cameras.json").exists()
+
+
 def test_missing_faces_extra_names_the_extra(monkeypatch):
     import builtins
 

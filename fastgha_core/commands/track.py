@@ -4,11 +4,49 @@ HELP = "track photos of one person (MediaPipe Face Mesh landmarks + one joint IC
 
 def add_arguments(parser) -> None:
     parser.add_argument("--images", nargs="+", required=True, help="photos of ONE person (PNG/JPEG); a mask <stem>_mask.png beside a photo is used")
-    parser.add_argument("--out", required=True, help="request folder to write (created; existing files of the same names are replaced)")
+    parser.add_argument("--out", required=True, help="request folder to write (created; the crops of an earlier track run into it are replaced; a folder holding other photos is refused)")
     parser.add_argument("--size", type=int, default=256, help="side of the square crops in pixels (default 256; the model's prepare() resizes)")
     parser.add_argument("--fov", type=float, default=30.0, help="assumed field of view across the longer photo side, degrees (default 30; "
                         "ignored when the photos carry an EXIF 35 mm-equivalent focal length)")
     parser.add_argument("--json", default=None, help="also write a tracking report (poses, landmark errors, expressions) here")
+
+
+def _earlier_run_files(out, sources) -> list:
+    """Crops and masks an earlier ``fastgha track`` run wrote into ``out`` (listed in its
+    expressions.json), to be replaced. ``CLIError`` when ``out`` holds other photos: ``reconstruct``
+    takes every photo of a request folder as a view, so they would not match the new cameras.json."""
+    import json
+    from pathlib import Path
+
+    from ..cameras import IMAGE_SUFFIXES
+    from ..cli import CLIError
+
+    out = Path(out)
+    if not out.is_dir():
+        return []
+    listed: list[str] = []
+    try:
+        listed = [str(n) for n in json.loads((out / "expressions.json").read_text()).get("images", [])]
+    except (OSError, ValueError, AttributeError):
+        pass
+    ours = set()
+    for name in listed:
+        stem = Path(name).stem
+        ours |= {f"{stem}.png", f"{stem}_mask.png"}
+    inputs = {p.resolve() for p in sources if p.exists()}
+    inputs |= {p.with_name(p.stem + "_mask.png").resolve() for p in sources}
+    others = sorted(
+        p.name for p in out.iterdir()
+        if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and (p.name not in ours or p.resolve() in inputs)
+    )  # fmt: skip
+    if others:
+        given = [n for n in others if (out / n).resolve() in inputs]
+        why = "the photos to track are in it" if given else "they are not crops of an earlier `fastgha track` run"
+        raise CLIError(
+            f"--out {out} already holds photos ({', '.join(others[:3])}{', ...' if len(others) > 3 else ''}; {why}): "
+            "`fastgha reconstruct` would take them as views; give an empty or new folder"
+        )
+    return [out / n for n in sorted(ours) if (out / n).is_file()]
 
 
 def run(args) -> int:
@@ -29,6 +67,8 @@ def run(args) -> int:
     log = logging.getLogger(__name__)
     if args.size < 16:
         raise CLIError(f"--size must be at least 16, got {args.size}")
+    out = Path(args.out)
+    earlier = _earlier_run_files(out, [Path(n) for n in args.images])
     photos, masks, names, focals = [], [], [], []
     for p in map(Path, args.images):
         if not p.is_file():
@@ -48,9 +88,14 @@ def run(args) -> int:
         raise CLIError(str(e)) from None
     except ValueError as e:  # NoFaceError, SeveralFacesError, TinyFaceError, a photo that cannot be placed
         raise CLIError(str(e)) from None
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     stems = [f"{i:02d}_{Path(n).stem}" for i, n in enumerate(names)]
+    written = {f"{s}{suffix}" for s in stems for suffix in (".png", "_mask.png")}
+    stale = sorted(p for p in earlier if p.name not in written)
+    for p in stale:  # crops of an earlier run into this folder: reconstruct would take them as views
+        p.unlink(missing_ok=True)
+    if stale:
+        log.info("removed %d file(s) an earlier `fastgha track` run wrote into %s", len(stale), out)
     for i, stem in enumerate(stems):
         Image.fromarray(res.crops[i]).save(out / f"{stem}.png")
         Image.fromarray(np.round(res.masks[i] * 255).astype(np.uint8)).save(out / f"{stem}_mask.png")
