@@ -147,3 +147,26 @@ def test_expression_files_of_every_shipped_json_form_load_in_animate_and_client(
         load_expressions(tmp_path / "other.json", space)
     with pytest.raises(CLIError, match="expected a non-empty list"):
         _load_sequence(tmp_path / "other.json", 53, "ict53")
+
+
+def test_animate_keeps_the_aspect_of_a_non_square_camera():
+    """A 64 x 32 camera rendered into the square --size frame used to be stretched (x scaled by 0.5,
+    y by 1); it is scaled uniformly and padded: square pixels stay square and the view's centre
+    stays the frame's centre."""
+    from fastgha_core.cameras import Cameras
+    from fastgha_core.commands.animate import frame_cameras
+
+    cam = Cameras.look_at(torch.tensor([0.0, 0.0, 1.0]), torch.zeros(3), torch.tensor([0.0, 1.0, 0.0]), fov_deg=20.0, width=64, height=32)
+    spec = json.dumps(cameras_to_json(cam))
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "cams.json"
+        path.write_text(spec)
+        (out,) = frame_cameras(str(path), 1, 32, 1.0, 20.0)
+    K, K0 = out.K.reshape(3, 3), cam.K.reshape(3, 3)
+    assert (out.width, out.height) == (32, 32)
+    assert float(K[0, 0] / K[1, 1]) == pytest.approx(float(K0[0, 0] / K0[1, 1]))  # aspect kept
+    assert float(K[0, 0]) == pytest.approx(float(K0[0, 0]) * 0.5)  # uniform scale 32 / 64
+    assert (float(K[0, 2]), float(K[1, 2])) == pytest.approx((16.0, 16.0))  # centred, padded above and below

@@ -8,7 +8,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--avatar", required=True, help="avatar file written by `fastgha reconstruct`")
     parser.add_argument("--expressions", required=True, help="expression sequence: .npy [T, E] or .json (list of vectors or name->weight maps, or {'frames': [...]} or `fastgha track`'s expressions.json)")
     parser.add_argument("--cameras", default="orbit", help="camera path; default 'orbit': a left-right swing around the head at --radius and --fov; "
-                        "or a cameras JSON file (one camera, or one per frame, cycled)")
+                        "or a cameras JSON file (one camera, or one per frame, cycled; a non-square camera keeps its aspect, padded to the square --size frame)")
     parser.add_argument("--out", required=True, help="output .mp4 (imageio-ffmpeg) or a folder for PNG frames")
     parser.add_argument("--model", default=None, help="model for the deformation MLP (default: the avatar's model name)")
     parser.add_argument("--size", type=int, default=256, help="output width and height in pixels (default 256)")
@@ -67,8 +67,17 @@ def frame_cameras(spec: str, num_frames: int, size: int, radius: float, fov: flo
     path = Path(spec)
     if not path.is_file():
         raise ValueError(f"--cameras must be 'orbit' or a cameras JSON file, got {spec!r}")
-    cams = cameras_from_json(path.read_text())
-    return [cams[i % len(cams)].resize(size, size) for i in range(num_frames)]
+    cams = [_fit_square(c, size) for c in cameras_from_json(path.read_text())]
+    return [cams[i % len(cams)] for i in range(num_frames)]
+
+
+def _fit_square(cam, size: int):
+    """``cam`` scaled uniformly so that its longer side is ``size``, then padded to a ``size`` x
+    ``size`` frame (the video's): the view keeps its aspect instead of being stretched square."""
+    w, h = int(cam.width), int(cam.height)
+    s = size / max(w, h)
+    sw, sh = max(1, round(w * s)), max(1, round(h * s))
+    return cam.resize(sw, sh).crop(-((size - sw) // 2), -((size - sh) // 2), size, size)
 
 
 _VIDEO_SUFFIXES = (".mp4", ".mkv", ".mov", ".webm")
