@@ -91,3 +91,19 @@ def test_face_metrics_load_without_a_deprecation_warning_on_every_run():
     proc = subprocess.run([sys.executable, "-W", "always", "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert "pkg_resources" not in proc.stderr, proc.stderr
+
+
+def test_version_all_says_whether_photos_without_cameras_can_be_tracked(capsys, monkeypatch):
+    """An operator checks the `faces` extra (server-side tracking) and CUDA/gsplat in one place."""
+    import fastgha_core.commands.version as version_cmd
+
+    assert main(["version", "--all"]) == 0
+    out = capsys.readouterr().out
+    assert "torch" in out and "faces extra:" in out and "gsplat:" in out
+    monkeypatch.setattr(version_cmd, "_dist_version", lambda name: None)
+    assert main(["version", "--all"]) == 0
+    assert "faces extra: not installed" in (text := capsys.readouterr().out) and "422 cameras_required" in text
+    present = {"dlib-bin": "20.0"}  # dlib without its landmark models is no tracker
+    monkeypatch.setattr(version_cmd, "_dist_version", present.get)
+    assert main(["version", "--all"]) == 0
+    assert "faces extra: not installed" in capsys.readouterr().out
