@@ -107,3 +107,21 @@ def test_version_all_says_whether_photos_without_cameras_can_be_tracked(capsys, 
     monkeypatch.setattr(version_cmd, "_dist_version", present.get)
     assert main(["version", "--all"]) == 0
     assert "faces extra: not installed" in capsys.readouterr().out
+
+
+def test_clients_find_the_api_key_where_a_user_put_it(monkeypatch):
+    """`fastgha client` / `loadtest`: --api-key, else FASTGHA_API_KEY, else the first key of the
+    server's own FASTGHA_API_KEYS (client and server in one shell used to get 401); a 401 says how
+    to send a key."""
+    from fastgha_core.commands.client import api_key_from, key_hint
+
+    monkeypatch.delenv("FASTGHA_API_KEY", raising=False)
+    monkeypatch.delenv("FASTGHA_API_KEYS", raising=False)
+    assert api_key_from(None) is None
+    monkeypatch.setenv("FASTGHA_API_KEYS", " k1 , k2")
+    assert api_key_from(None) == "k1"
+    monkeypatch.setenv("FASTGHA_API_KEY", "mine")
+    assert api_key_from(None) == "mine" and api_key_from("flag") == "flag"
+    refused = "POST /v1/avatars -> HTTP 401 api_key_required: creating avatars needs an API key"
+    assert key_hint(refused).endswith("(pass --api-key KEY, or set FASTGHA_API_KEY)")
+    assert key_hint("POST /v1/avatars -> HTTP 422 no_face: no face") == "POST /v1/avatars -> HTTP 422 no_face: no face"

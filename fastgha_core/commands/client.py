@@ -50,7 +50,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--size", type=int, default=256, help="frame width and height (default 256)")
     parser.add_argument("--fps", type=float, default=None, help="frame rate of the MP4 (default: the video's, else 25)")
     parser.add_argument("--frames", type=int, default=None, help="use at most this many frames of the sequence or video")
-    parser.add_argument("--api-key", default=None, help="API key for creating avatars (default: $FASTGHA_API_KEY)")
+    parser.add_argument("--api-key", default=None, help="API key for creating avatars (default: $FASTGHA_API_KEY, else the first of $FASTGHA_API_KEYS)")
     parser.add_argument(
         "--in-flight", type=int, default=1, help="unanswered requests at a time: 1 renders every frame, 2 is faster but may drop some (default 1)"
     )
@@ -77,6 +77,26 @@ def _builtin_sequence(n: int) -> list[dict]:
             }
         )
     return out
+
+
+def api_key_from(explicit: str | None) -> str | None:
+    """The key a client sends: ``--api-key``, else ``$FASTGHA_API_KEY``, else the first key of
+    ``$FASTGHA_API_KEYS`` (the server's own variable, when client and server share a shell)."""
+    import os
+
+    if explicit:
+        return explicit
+    if os.environ.get("FASTGHA_API_KEY"):
+        return os.environ["FASTGHA_API_KEY"]
+    keys = [k.strip() for k in os.environ.get("FASTGHA_API_KEYS", "").split(",") if k.strip()]
+    return keys[0] if keys else None
+
+
+def key_hint(message: str) -> str:
+    """``message`` of a refused creation, with how to send a key when the refusal is about one."""
+    if "api_key_required" in message or "invalid_api_key" in message:
+        return f"{message} (pass --api-key KEY, or set FASTGHA_API_KEY)"
+    return message
 
 
 def _load_sequence(path, dim: int, space: str | None = None) -> list:
@@ -247,7 +267,6 @@ class _ProgressPrinter:
 
 
 def run(args) -> int:
-    import os
     import threading
     from pathlib import Path
 
@@ -277,7 +296,7 @@ def run(args) -> int:
 
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per HTTP request is noise here
     images, cams, masks = load_request_dir(args.input)
-    client = FastGHAClient(args.url, api_key=args.api_key or os.environ.get("FASTGHA_API_KEY"))
+    client = FastGHAClient(args.url, api_key=api_key_from(args.api_key))
     try:
         info = client.model_info()
     except Exception as e:
@@ -309,7 +328,7 @@ def run(args) -> int:
     try:
         avatar = client.create_avatar(images, cams, masks, progress=_ProgressPrinter(), busy_wait_s=120.0)
     except RuntimeError as e:  # an HTTP error answer (e.g. a wrong API key), as one line
-        raise CLIError(str(e)) from None
+        raise CLIError(key_hint(str(e))) from None
     print(f"avatar {avatar.avatar_id}: {avatar.num_gaussians} Gaussians, reconstruction {avatar.reconstruction_ms:.0f} ms "
           f"(round trip {avatar.round_trip_ms:.0f} ms)")  # fmt: skip
     if driver is not None:

@@ -15,7 +15,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--json", default=None, help="write the JSON report here")
     parser.add_argument("--plot", default=None, help="write a PNG plot of FPS and latency over time here")
     parser.add_argument("--allow-remote", action="store_true", help="allow a host other than loopback (only servers you own)")
-    parser.add_argument("--api-key", default=None, help="API key for creating avatars (default: $FASTGHA_API_KEY)")
+    parser.add_argument("--api-key", default=None, help="API key for creating avatars (default: $FASTGHA_API_KEY, else the first of $FASTGHA_API_KEYS)")
     parser.add_argument("--jpeg-quality", type=int, default=None, help="per-stream JPEG quality (default: the server's)")
     parser.add_argument("--closed-loop", action="store_true",
                         help="one request in flight per stream, the next sent when its frame is back (as the browser demo; at most --rate)")
@@ -67,13 +67,13 @@ def _summary(report: dict) -> str:
 
 def run(args) -> int:
     import json
-    import os
     from pathlib import Path
 
     from client_demo.client import load_request_dir
     from client_demo.loadtest import LoadTestConfig, plot_report, run_loadtest
 
     from ..cli import CLIError
+    from .client import api_key_from, key_hint
 
     cfg = LoadTestConfig(
         url=args.url,
@@ -82,7 +82,7 @@ def run(args) -> int:
         rate_hz=args.rate,
         size=args.size,
         shared_avatar=args.shared_avatar,
-        api_key=args.api_key or os.environ.get("FASTGHA_API_KEY"),
+        api_key=api_key_from(args.api_key),
         allow_remote=args.allow_remote,
         bucket_s=min(1.0, args.duration),
         jpeg_quality=args.jpeg_quality,
@@ -105,7 +105,7 @@ def run(args) -> int:
     except (OSError, httpx.HTTPError) as e:
         raise CLIError(f"cannot reach the server at {args.url}: {e}") from None
     except RuntimeError as e:  # an HTTP error answer (e.g. a wrong API key), as one line
-        raise CLIError(str(e)) from None
+        raise CLIError(key_hint(str(e))) from None
     report["config"]["input"] = str(req)
     print(_summary(report))
     if args.json:
