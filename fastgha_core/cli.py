@@ -21,11 +21,32 @@ import sys
 
 from . import __version__, commands
 
-__all__ = ["main", "CLIError", "build_parser"]
+__all__ = ["main", "CLIError", "build_parser", "check_device"]
 
 
 class CLIError(Exception):
     """A user-facing error: printed as one line, exit status 2."""
+
+
+def check_device(spec: str, what: str = "--device") -> str:
+    """``spec`` when torch can use it here; ``CLIError`` saying what is available otherwise (a
+    start-up traceback from deep inside torch was what a user got for ``--device cuda`` on a
+    CPU-only install)."""
+    import torch
+
+    try:
+        dev = torch.device(spec)
+    except (RuntimeError, ValueError):
+        raise CLIError(f"{what} {spec!r} is not a torch device; expected cpu, cuda or cuda:N") from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            why = "this torch has no CUDA support" if torch.version.cuda is None else "no CUDA device is visible"
+            raise CLIError(f"{what} {spec!r}: {why} (torch {torch.__version__}); use cpu (README: CUDA users)")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise CLIError(f"{what} {spec!r}: only {torch.cuda.device_count()} CUDA device(s) here (cuda:0..)")
+    elif dev.type != "cpu":
+        raise CLIError(f"{what} {spec!r}: expected cpu, cuda or cuda:N")
+    return spec
 
 
 def _command_modules():

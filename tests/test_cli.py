@@ -125,3 +125,32 @@ def test_clients_find_the_api_key_where_a_user_put_it(monkeypatch):
     refused = "POST /v1/avatars -> HTTP 401 api_key_required: creating avatars needs an API key"
     assert key_hint(refused).endswith("(pass --api-key KEY, or set FASTGHA_API_KEY)")
     assert key_hint("POST /v1/avatars -> HTTP 422 no_face: no face") == "POST /v1/avatars -> HTTP 422 no_face: no face"
+
+
+def test_device_flags_are_checked_with_a_one_line_answer(capsys, tmp_path):
+    """`--device cuda` on a CPU-only torch (or `gpu`, a typo) used to end in a traceback from deep
+    inside torch, for `serve` after loading the model."""
+    import torch
+
+    from fastgha_core.cli import check_device
+
+    assert check_device("cpu") == "cpu"
+    with pytest.raises(CLIError, match=r"--device 'gpu' is not a torch device; expected cpu, cuda or cuda:N"):
+        check_device("gpu")
+    with pytest.raises(CLIError, match=r"expected cpu, cuda or cuda:N"):
+        check_device("meta")
+    if torch.cuda.is_available():
+        assert check_device("cuda") == "cuda"
+        with pytest.raises(CLIError, match=r"only \d+ CUDA device"):
+            check_device(f"cuda:{torch.cuda.device_count()}")
+    else:
+        with pytest.raises(CLIError, match=r"--device 'cuda': .*use cpu"):
+            check_device("cuda")
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = str(s.getsockname()[1])
+    assert main(["serve", "--port", port, "--data-dir", str(tmp_path / "data"), "--device", "gpu"]) == 2  # before the model loads
+    err = capsys.readouterr().err
+    assert err.strip() == "fastgha serve: error: --device 'gpu' is not a torch device; expected cpu, cuda or cuda:N", err

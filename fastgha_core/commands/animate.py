@@ -106,6 +106,9 @@ def run(args) -> int:
             f"({out.suffix} files are not written; a folder of that name would be made)"
         )
     avatar = CanonicalAvatar.load(args.avatar)
+    from ..cli import check_device
+
+    check_device(args.device)
     model = load_model(args.model or avatar.model_name, device=args.device)
     codes = load_expressions(args.expressions, model.expression_space)  # [T, E]
     cams = frame_cameras(args.cameras, len(codes), args.size, args.radius, args.fov)

@@ -37,6 +37,9 @@ def run(args) -> int:
     log = logging.getLogger(__name__)
     if bool(args.vgg_weights) != bool(args.lpips_weights):
         raise CLIError("LPIPS needs both --vgg-weights and --lpips-weights (got only one)")
+    from ..cli import check_device
+
+    check_device(args.device)
     model = load_model(args.model, device=args.device)
     if args.responses:
         return _run_responses(args, model)

@@ -123,7 +123,7 @@ def run(args) -> int:
     import torch
 
     from ..cameras import load_request_folder
-    from ..cli import CLIError
+    from ..cli import CLIError, check_device
     from ..model.fastgha import load_model
 
     if args.refine_steps < 0:
@@ -139,6 +139,7 @@ def run(args) -> int:
         )
     if args.ply is not None and not str(args.ply).lower().endswith(".ply"):
         raise CLIError(f"--ply must name a .ply file, got {args.ply!r}")
+    check_device(args.device)
     paths, cams = load_request_folder(args.input)
     images = [_read_image(p) for p in paths]
     masks = []

@@ -143,6 +143,10 @@ def run(args) -> int:
     except Exception as e:  # pydantic ValidationError: say which setting is wrong, in one line
         raise CLIError(f"invalid settings: {_settings_problems(e, overrides)}") from None
     _check_data_dir(settings.data_dir, "--data-dir" if "data_dir" in overrides else "FASTGHA_DATA_DIR")
+    if settings.device != "auto":
+        from ..cli import check_device
+
+        check_device(settings.device, "--device" if "device" in overrides else "FASTGHA_DEVICE")
     from server.security import uvicorn_options
 
     if args.proxy_headers and "*" in settings.forwarded_allow_ips.split(","):
