@@ -262,6 +262,8 @@ def test_cli_refuses_an_out_folder_holding_other_photos(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "already holds photos (me.jpg; the photos to track are in it)" in err and "empty or new folder" in err, err
     assert me.is_file() and not (tmp_path / "cameras.json").exists()
+    assert main(["track", "--images", str(tmp_path), "--out", str(tmp_path / "req")]) == 2  # a folder, not photos
+    assert f"--images {tmp_path} is a folder; give the photo files" in capsys.readouterr().err
 
 
 def test_missing_faces_extra_names_the_extra(monkeypatch):

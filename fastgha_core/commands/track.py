@@ -71,6 +71,8 @@ def run(args) -> int:
     earlier = _earlier_run_files(out, [Path(n) for n in args.images])
     photos, masks, names, focals = [], [], [], []
     for p in map(Path, args.images):
+        if p.is_dir():
+            raise CLIError(f"--images {p} is a folder; give the photo files (e.g. {p}/*.jpg)")
         if not p.is_file():
             raise CLIError(f"{p} does not exist")
         mp = p.with_name(p.stem + "_mask.png")
