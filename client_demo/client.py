@@ -233,8 +233,10 @@ def load_request_dir(folder: str | Path) -> tuple[list[Path], list[dict] | None,
     ``faces`` extra), as ``fastgha track`` would.
     """
     folder = Path(folder)
+    if folder.is_file():
+        raise ValueError(f"request folder {folder} is a file; expected a folder of photos (+ cameras.json): put the photo in one")
     if not folder.is_dir():
-        raise ValueError(f"request folder {folder} does not exist or is not a folder")
+        raise ValueError(f"request folder {folder} does not exist")
     cam_file = folder / "cameras.json"
     images = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.stem.endswith("_mask"))
     if not images:

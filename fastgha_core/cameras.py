@@ -418,8 +418,10 @@ def load_request_folder(folder: str | Path) -> tuple[list[Path], list[Cameras]]:
     Mask files named ``*_mask.png`` (or in a ``masks/`` subfolder) are not images.
     """
     folder = Path(folder)
+    if folder.is_file():
+        raise ValueError(f"request folder {folder} is a file; expected a folder of photos (+ cameras.json): put the photo in one")
     if not folder.is_dir():
-        raise ValueError(f"request folder {folder} does not exist or is not a folder")
+        raise ValueError(f"request folder {folder} does not exist")
     cam_file = folder / "cameras.json"
     if not cam_file.exists():
         raise ValueError(

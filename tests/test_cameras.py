@@ -183,6 +183,10 @@ def test_json_round_trip_and_errors(tmp_path):
     (tmp_path / "cameras.json").write_text(json.dumps(objs * 2))
     images, cams = load_request_folder(tmp_path)
     assert [p.name for p in images] == ["a.png", "b.png"] and len(cams) == 2
+    with pytest.raises(ValueError, match=r"a\.png is a file; expected a folder of photos"):
+        load_request_folder(tmp_path / "a.png")  # a photo given where its folder is meant
+    with pytest.raises(ValueError, match=r"nowhere does not exist"):
+        load_request_folder(tmp_path / "nowhere")
     (tmp_path / "cameras.json").unlink()  # photos alone: the message says how to get cameras
     with pytest.raises(ValueError, match=r"has no cameras\.json; .*`fastgha track --images PHOTO\.\.\. --out "):
         load_request_folder(tmp_path)

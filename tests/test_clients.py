@@ -205,6 +205,12 @@ def test_client_command_writes_frames_and_mp4(server, request_dir, tmp_path, cap
     assert "creating the avatar: decoding" in text or "creating the avatar: queued" in text  # the job's progress
 
 
+def test_load_request_dir_says_a_file_is_not_a_folder(request_dir):
+    photo = next(request_dir.glob("*.jpg"))
+    with pytest.raises(ValueError, match=r"is a file; expected a folder of photos"):
+        load_request_dir(photo)
+
+
 def _created_total(server) -> float:
     text = httpx.get(server.base + "/metrics", timeout=30).text
     return sum(float(line.split()[-1]) for line in text.splitlines() if line.startswith("fastgha_avatars_created_total"))
