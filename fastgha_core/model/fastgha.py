@@ -519,6 +519,14 @@ class FastGHA(nn.Module):
                 raise ValueError(f"reconstruct: gaussians.edge_mode must be 'colour' or 'fade', got {mode!r}")
         if surface is not None:  # off the head next to the face is air: drop what a matte left there
             g = g.replace(opacities=g.opacities * (~sd.beyond_face).reshape(-1).to(dev, g.opacities.dtype))
+        cover = self.config.gaussians.coverage_target
+        if cover > 0 and (surface is not None or not self.config.gaussians.coverage_surface_only):
+            from .coverage import fill_coverage  # each view's matte covered by the avatar (model/coverage.py)
+            from .gaussian_head import foreground_weight
+
+            g, _ = fill_coverage(
+                g, cameras.to(dev, torch.float32), foreground_weight(images.to(dev, torch.float32)), cover, None if surface is None else sd.beyond_face.to(dev)
+            )
         thr = self.config.gaussians.prune_opacity
         if thr > 0:
             keep = g.opacities >= thr
