@@ -454,7 +454,10 @@ class FastGHA(nn.Module):
         ``expressions`` is given. See ``model/surface.py`` for why and what it changes.
         ``surface_mode``: ``"replace"`` (every pixel from the surface, ``surface_ray_depth``) or
         ``"blend"`` (the bare face from the surface, the rest the network's depth joined to it,
-        ``surface.blend_network_depth``).
+        ``surface.blend_network_depth``). On a surface, each view's own Gaussians are also made
+        opaque enough that the avatar covers that view's matte from its camera
+        (``config.gaussians.coverage_target``, ``model/coverage.py``; with
+        ``coverage_surface_only=False`` on the network's depth as well).
         """
         s, vmax = self.config.input_size, self.config.max_views
         hint = "use model.prepare(images, cameras) to crop/resize them"
