@@ -112,6 +112,7 @@ def test_reconstruct_on_a_surface_covers_every_input_matte():
 
     model = load_model("tiny")
     assert model.config.gaussians.coverage_target == pytest.approx(0.9) and model.config.gaussians.coverage_surface_only
+    model.config.gaussians.hair_fit = False  # the fill alone (the hair thickness has its own tests)
     s = model.config.input_size
     cams = _cameras([0.0, 40.0, -40.0], size=s)
     surface = HeadSurface(np.zeros(100, np.float32), np.zeros((3, 53), np.float32))
@@ -137,3 +138,50 @@ def test_reconstruct_on_a_surface_covers_every_input_matte():
     model.config.gaussians.coverage_target = 0.9
     net_on = model.reconstruct(imgs, cams)
     assert torch.equal(net_on.gaussians.opacities, net_off.gaussians.opacities)
+
+
+# ---------------------------------------------------------------- hair thickness (model/surface.py)
+
+
+def _head_masks(surface, cams, hair_m):
+    from fastgha_core.data.headmodel import HeadModel
+    from fastgha_core.data.meshraster import render_mesh
+    from fastgha_core.model.surface import _view_mesh
+
+    head = HeadModel.load()
+    faces = head.visible_faces(eyelashes=False)
+    out = []
+    for i in range(len(cams.K)):
+        w2c, K = cams.w2c[i].double().numpy(), cams.K[i].double().numpy()
+        pts = _view_mesh(surface, i, head, faces, hair_m) @ w2c[:3, :3].T + w2c[:3, 3]
+        out.append(render_mesh(pts.astype(np.float32), faces, np.ones((len(pts), 1), np.float32), K, cams.width, cams.height, supersample=1).alpha > 0.5)
+    return torch.from_numpy(np.stack(out)).float()
+
+
+def test_hair_thickness_is_recovered_from_the_mattes():
+    from fastgha_core.model.surface import HeadSurface, fit_hair_thickness
+
+    surface = HeadSurface(np.zeros(100, np.float32), np.zeros((3, 53), np.float32))
+    cams = _cameras([0.0, 50.0, -80.0], size=128)
+    for true in (0.0, 0.015, 0.03):
+        assert fit_hair_thickness(surface, cams, _head_masks(surface, cams, true)) == pytest.approx(true)
+    with pytest.raises(ValueError, match="masks"):
+        fit_hair_thickness(surface, cams, torch.ones(2, 128, 128))
+    with pytest.raises(ValueError, match="candidates"):
+        fit_hair_thickness(surface, cams, torch.ones(3, 128, 128), candidates=(-0.01,))
+
+
+def test_hair_moves_the_scalp_out_and_leaves_the_face():
+    from fastgha_core.model.surface import HeadSurface, surface_ray_depth
+
+    surface = HeadSurface(np.zeros(100, np.float32), np.zeros((1, 53), np.float32))
+    cams = _cameras([0.0], size=128)
+    bald, hair = surface_ray_depth(surface, cams), surface_ray_depth(surface, cams, hair_m=0.02)
+    both = bald.hit[0] & hair.hit[0]
+    rows = torch.nonzero(both.any(1))[:, 0]
+    crown = (slice(int(rows.min()) + 2, int(rows.min()) + 6), slice(60, 68))  # the top of the head, frontal
+    face = (slice(70, 78), slice(60, 68))  # nose and mouth
+    d_crown = (bald.t[0][crown] - hair.t[0][crown])[both[crown]]
+    assert float(d_crown.median()) > 0.005  # the hair's surface is in front of the scalp
+    assert float((bald.t[0][face] - hair.t[0][face]).abs().max()) < 1e-6
+    assert int(hair.hit[0].sum()) > int(bald.hit[0].sum())  # and the head's outline grows

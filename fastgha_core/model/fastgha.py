@@ -457,7 +457,9 @@ class FastGHA(nn.Module):
         ``surface.blend_network_depth``). On a surface, each view's own Gaussians are also made
         opaque enough that the avatar covers that view's matte from its camera
         (``config.gaussians.coverage_target``, ``model/coverage.py``; with
-        ``coverage_surface_only=False`` on the network's depth as well).
+        ``coverage_surface_only=False`` on the network's depth as well), and with ``"replace"`` the
+        scalp is laid out by a hair thickness fitted to the inputs' mattes
+        (``config.gaussians.hair_fit``, ``surface.fit_hair_thickness``).
         """
         s, vmax = self.config.input_size, self.config.max_views
         hint = "use model.prepare(images, cameras) to crop/resize them"
@@ -491,7 +493,13 @@ class FastGHA(nn.Module):
                 raise ValueError(f"reconstruct: surface has {len(surface)} views but {v} images were given")
             if surface_mode not in ("replace", "blend"):
                 raise ValueError(f"reconstruct: surface_mode must be 'replace' or 'blend', got {surface_mode!r}")
-            sd = surface_ray_depth(surface, cameras)
+            hair = 0.0
+            if self.config.gaussians.hair_fit and surface_mode == "replace":  # the head model is bald (model/surface.py)
+                from .gaussian_head import foreground_weight
+                from .surface import fit_hair_thickness
+
+                hair = fit_hair_thickness(surface, cameras, foreground_weight(images.float()))
+            sd = surface_ray_depth(surface, cameras, hair)
             ray_depth = sd.t[None]
             if surface_mode == "blend":
                 from .surface import blend_network_depth
