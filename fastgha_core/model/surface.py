@@ -63,10 +63,10 @@ HAIR_CANDIDATES_M = (0.0, 0.005, 0.01, 0.015, 0.02, 0.025, 0.03)  # fit_hair_thi
 def vertex_normals(v: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """``[Nv, 3]`` unit area-weighted vertex normals of the mesh ``v [Nv, 3]``, ``faces [F, 3]``
     (counter-clockwise seen from outside, so they point out; 0 for vertices of no face)."""
+    v = np.asarray(v, dtype=np.float64)
     fn = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
-    n = np.zeros_like(v, dtype=np.float64)
-    for k in range(3):
-        np.add.at(n, faces[:, k], fn)
+    idx = np.asarray(faces, dtype=np.int64).reshape(-1)
+    n = np.stack([np.bincount(idx, np.repeat(fn[:, c], 3), minlength=len(v)) for c in range(3)], axis=1)
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
@@ -231,12 +231,19 @@ def face_vertex_mask(head) -> np.ndarray:
     return m
 
 
+def _hair_offsets(surface: HeadSurface, i: int, head, faces) -> tuple[np.ndarray, np.ndarray]:
+    """View ``i``'s world vertices ``[Nv, 3]`` and each vertex's hair direction scaled by its
+    ``hair_vertex_weight`` ``[Nv, 3]`` (outward normals of the bald mesh)."""
+    vw = surface.vertices(i, head).astype(np.float64)
+    return vw, hair_vertex_weight(head)[:, None] * vertex_normals(vw, faces)
+
+
 def _view_mesh(surface: HeadSurface, i: int, head, faces, hair_m: float) -> np.ndarray:
     """World vertices of view ``i``, the scalp pushed out along its normals by ``hair_m`` metres."""
-    vw = surface.vertices(i, head).astype(np.float64)
-    if hair_m > 0:
-        vw = vw + hair_m * hair_vertex_weight(head)[:, None] * vertex_normals(vw, faces)
-    return vw
+    if hair_m <= 0:
+        return surface.vertices(i, head).astype(np.float64)
+    vw, off = _hair_offsets(surface, i, head, faces)
+    return vw + hair_m * off
 
 
 def fit_hair_thickness(surface: HeadSurface, cameras: Cameras, masks: Tensor, candidates=HAIR_CANDIDATES_M) -> float:
@@ -279,8 +286,9 @@ def fit_hair_thickness(surface: HeadSurface, cameras: Cameras, masks: Tensor, ca
     for i in range(v):
         w2c = cams.w2c[i].double().numpy()
         K = cams.K[i].double().numpy()
+        vw, off = _hair_offsets(surface, i, head, faces)
         for j, c in enumerate(cand):
-            pts = _view_mesh(surface, i, head, faces, c) @ w2c[:3, :3].T + w2c[:3, 3]
+            pts = (vw + c * off) @ w2c[:3, :3].T + w2c[:3, 3]
             if j == 0:
                 brow = pts[head.landmarks68[17:27]]
                 top = (rows < float((K[1, 1] * brow[:, 1] / brow[:, 2] + K[1, 2]).min())) & np.ones((1, w), bool)
