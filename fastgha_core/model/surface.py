@@ -22,6 +22,13 @@ Per pixel of each input view (``surface_ray_depth``):
   (wall, shadow) would be laid along the nose as a white streak (seen on the real sets);
   ``beyond_face`` marks them and ``FastGHA.reconstruct`` drops their Gaussians.
 
+The head model is bald. ``surface_ray_depth(..., hair_m=...)`` pushes its scalp (``hair_vertex_weight``)
+out along the mesh's normals by a hair thickness, which ``FastGHA.reconstruct`` chooses per avatar
+from the inputs' mattes (``fit_hair_thickness``: the thickness whose head best fills the mattes
+above the brows): without it, hair seen from above lies on the skull and the fringe's rays end on
+the forehead, so a frontal render shows hair on the forehead and the top of the head cut off
+(measured on the real photo sets, ``docs/model-card.md``).
+
 Distances are along the pixel ray from the camera centre (``Cameras.pixel_rays``), in metres: the
 quantity ``GaussianHead`` calls ``t``. The head frame is the tracker's: metres, +x the subject's
 left, +y up, +z out of the face, origin the ICT head centre (``docs/conventions.md``), which is the
