@@ -111,6 +111,9 @@ class GaussianHeadConfig:
     foreground_opacity: bool = False  # opacity *= foreground of the (matted) input pixel: background pixels make no Gaussians
     edge_margin_px: float = 3.0  # reconstruct(): Gaussians of input pixels within this many pixels of their view's background are treated by edge_mode (0 = off; model/gaussian_head.py edge_weight)
     edge_mode: str = "colour"  # what edge_margin_px does to outline Gaussians: "colour" (take the nearest interior pixel's colour) or "fade" (opacity)
+    coverage_target: float = 0.9  # reconstruct(): raise the opacity of each view's own Gaussians where the avatar covers its matte less than this (0 = off; model/coverage.py)
+    hair_fit: bool = True  # reconstruct() on a tracked head surface ("replace"): push the bald head's scalp out by a hair thickness fitted to the inputs' mattes (model/surface.py fit_hair_thickness)
+    coverage_surface_only: bool = True  # apply coverage_target only when reconstructing on a tracked head surface (model/surface.py)
 
     @property
     def channels(self) -> int:

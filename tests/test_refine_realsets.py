@@ -1,12 +1,17 @@
 """The leave-one-out report's table (``fastgha_core.refine.realsets.summary_table``): means per set and
 step count, and the face counts of the renders beside those of the left-out photos themselves."""
 
-from fastgha_core.refine.realsets import list_sets, summary_table
+import pytest
+import torch
+
+from fastgha_core.refine.realsets import error_split, list_sets, summary_table
 
 
-def _row(left_out, psnr, render, photo, ident=0.5, steps=0, s="a"):
+def _row(left_out, psnr, render, photo, ident=0.5, steps=0, s="a", cnn=(None, None), split=(None, None, None)):
     return {"set": s, "left_out": left_out, "steps": steps, "masked_psnr": psnr, "masked_ssim": 0.8,
-            "identity_distance": ident, "faces_in_render": render, "faces_in_photo": photo, "refine_s": 0.0}
+            "identity_distance": ident, "faces_in_render": render, "faces_in_photo": photo, "refine_s": 0.0,
+            "cnn_faces_in_render": cnn[0], "cnn_faces_in_photo": cnn[1],
+            "uncovered_frac": split[0], "psnr_uncovered_only": split[1], "psnr_covered_only": split[2]}
 
 
 def test_summary_counts_faces_in_renders_and_in_the_left_out_photos():
@@ -17,7 +22,7 @@ def test_summary_counts_faces_in_renders_and_in_the_left_out_photos():
         _row("00", 20.0, 1, 1, s="b"),
     ]
     lines = summary_table(rows).strip().splitlines()
-    assert lines[0].count("|") == lines[1].count("|") == 9
+    assert lines[0].count("|") == lines[1].count("|") == 14
     a = [c.strip() for c in lines[2].strip("|").split("|")]
     assert a[0] == "a" and a[2] == "3"
     assert a[3] == "12.00"  # mean PSNR over the three left-out photos
@@ -30,7 +35,37 @@ def test_summary_counts_faces_in_renders_and_in_the_left_out_photos():
 def test_summary_without_a_face_detector_says_n_a():
     rows = [_row("00", 10.0, None, None, ident=None)]
     cells = [c.strip() for c in summary_table(rows).strip().splitlines()[2].strip("|").split("|")]
-    assert cells[5:] == ["n/a", "n/a", "n/a"]
+    assert cells[5:] == ["n/a"] * 8
+
+
+def test_summary_gives_the_cnn_counts_and_the_error_split():
+    rows = [
+        _row("00", 10.0, 0, 0, cnn=(1, 1), split=(0.10, 12.0, 20.0)),  # a profile HOG misses, the CNN finds
+        _row("01", 14.0, 1, 1, cnn=(2, 1), split=(0.02, 24.0, 16.0)),  # a doubled face by the CNN
+    ]
+    cells = [c.strip() for c in summary_table(rows).strip().splitlines()[2].strip("|").split("|")]
+    assert cells[6:10] == ["1/2", "1/2", "1/2", "2/2"]
+    assert cells[10:] == ["6.0%", "18.00", "18.00"]
+
+
+def test_error_split_adds_up_to_the_masked_error():
+    g = torch.Generator().manual_seed(0)
+    pred, target = torch.rand(3, 20, 20, generator=g), torch.rand(3, 20, 20, generator=g)
+    mask = torch.zeros(1, 20, 20)
+    mask[:, 2:18, 2:18] = 1
+    alpha = torch.ones(1, 20, 20)
+    alpha[:, 2:6] = 0.2  # the top rows of the mask are not covered by the render
+    out = error_split(pred, target, mask, alpha)
+    m = mask[0] > 0.5
+    assert out["uncovered_frac"] == pytest.approx(4 * 16 / 256)
+    se = ((pred - target) ** 2).sum(0)
+    n3 = 3 * int(m.sum())
+    assert out["psnr_uncovered_only"] == pytest.approx(float(-10 * torch.log10(se[2:6, 2:18].sum() / n3)), abs=1e-4)
+    assert out["psnr_covered_only"] == pytest.approx(float(-10 * torch.log10(se[6:18, 2:18].sum() / n3)), abs=1e-4)
+    total = 10 ** (-out["psnr_uncovered_only"] / 10) + 10 ** (-out["psnr_covered_only"] / 10)
+    assert float(-10 * torch.log10(torch.tensor(total))) == pytest.approx(float(-10 * torch.log10(se[m].sum() / n3)), abs=1e-4)
+    with pytest.raises(ValueError, match="mask is empty"):
+        error_split(pred, target, torch.zeros(20, 20), alpha)
 
 
 def test_list_sets_keeps_folders_with_two_photos(tmp_path):

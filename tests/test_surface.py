@@ -183,8 +183,14 @@ def test_reconstruct_on_a_surface_binds_the_prior_to_it(surface):
         model.reconstruct(imgs, cams, surface=surface.subset([0, 1]))
     with pytest.raises(ValueError, match="surface_mode"):
         model.reconstruct(imgs, cams, surface=surface, surface_mode="mesh")
-    # blend: the face's Gaussians on the head, as with replace; the rest is the network's depth
+    # blend: the face's Gaussians on the head, as with replace; the rest is the network's depth.
+    # The matte fill (model/coverage.py) raises opacities by where the views' Gaussians land, which
+    # depends on depth: compare the kept pixels without it.
+    model.config.gaussians.coverage_target = 0.0
+    av = model.reconstruct(imgs, cams, surface=surface)
+    d, _ = cKDTree(neutral).query(av.gaussians.means[: av.num_reconstructed].numpy())
     bl = model.reconstruct(imgs, cams, surface=surface, surface_mode="blend")
+    model.config.gaussians.coverage_target = 0.9
     sd = surface_ray_depth(surface, cams)
     n = bl.num_reconstructed
     assert n == av.num_reconstructed  # same pixels kept (the opacities do not depend on depth)

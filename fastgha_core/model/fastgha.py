@@ -454,7 +454,12 @@ class FastGHA(nn.Module):
         ``expressions`` is given. See ``model/surface.py`` for why and what it changes.
         ``surface_mode``: ``"replace"`` (every pixel from the surface, ``surface_ray_depth``) or
         ``"blend"`` (the bare face from the surface, the rest the network's depth joined to it,
-        ``surface.blend_network_depth``).
+        ``surface.blend_network_depth``). On a surface, each view's own Gaussians are also made
+        opaque enough that the avatar covers that view's matte from its camera
+        (``config.gaussians.coverage_target``, ``model/coverage.py``; with
+        ``coverage_surface_only=False`` on the network's depth as well), and with ``"replace"`` the
+        scalp is laid out by a hair thickness fitted to the inputs' mattes
+        (``config.gaussians.hair_fit``, ``surface.fit_hair_thickness``).
         """
         s, vmax = self.config.input_size, self.config.max_views
         hint = "use model.prepare(images, cameras) to crop/resize them"
@@ -488,7 +493,13 @@ class FastGHA(nn.Module):
                 raise ValueError(f"reconstruct: surface has {len(surface)} views but {v} images were given")
             if surface_mode not in ("replace", "blend"):
                 raise ValueError(f"reconstruct: surface_mode must be 'replace' or 'blend', got {surface_mode!r}")
-            sd = surface_ray_depth(surface, cameras)
+            hair = 0.0
+            if self.config.gaussians.hair_fit and surface_mode == "replace":  # the head model is bald (model/surface.py)
+                from .gaussian_head import foreground_weight
+                from .surface import fit_hair_thickness
+
+                hair = fit_hair_thickness(surface, cameras, foreground_weight(images.float()))
+            sd = surface_ray_depth(surface, cameras, hair)
             ray_depth = sd.t[None]
             if surface_mode == "blend":
                 from .surface import blend_network_depth
@@ -519,6 +530,14 @@ class FastGHA(nn.Module):
                 raise ValueError(f"reconstruct: gaussians.edge_mode must be 'colour' or 'fade', got {mode!r}")
         if surface is not None:  # off the head next to the face is air: drop what a matte left there
             g = g.replace(opacities=g.opacities * (~sd.beyond_face).reshape(-1).to(dev, g.opacities.dtype))
+        cover = self.config.gaussians.coverage_target
+        if cover > 0 and (surface is not None or not self.config.gaussians.coverage_surface_only):
+            from .coverage import fill_coverage  # each view's matte covered by the avatar (model/coverage.py)
+            from .gaussian_head import foreground_weight
+
+            g, _ = fill_coverage(
+                g, cameras.to(dev, torch.float32), foreground_weight(images.to(dev, torch.float32)), cover, None if surface is None else sd.beyond_face.to(dev)
+            )
         thr = self.config.gaussians.prune_opacity
         if thr > 0:
             keep = g.opacities >= thr

@@ -22,6 +22,13 @@ Per pixel of each input view (``surface_ray_depth``):
   (wall, shadow) would be laid along the nose as a white streak (seen on the real sets);
   ``beyond_face`` marks them and ``FastGHA.reconstruct`` drops their Gaussians.
 
+The head model is bald. ``surface_ray_depth(..., hair_m=...)`` pushes its scalp (``hair_vertex_weight``)
+out along the mesh's normals by a hair thickness, which ``FastGHA.reconstruct`` chooses per avatar
+from the inputs' mattes (``fit_hair_thickness``: the thickness whose head best fills the mattes
+above the brows): without it, hair seen from above lies on the skull and the fringe's rays end on
+the forehead, so a frontal render shows hair on the forehead and the top of the head cut off
+(measured on the real photo sets, ``docs/model-card.md``).
+
 Distances are along the pixel ray from the camera centre (``Cameras.pixel_rays``), in metres: the
 quantity ``GaussianHead`` calls ``t``. The head frame is the tracker's: metres, +x the subject's
 left, +y up, +z out of the face, origin the ICT head centre (``docs/conventions.md``), which is the
@@ -46,7 +53,45 @@ from torch import Tensor
 
 from ..cameras import Cameras
 
-__all__ = ["HeadSurface", "SurfaceDepth", "surface_ray_depth", "face_vertex_mask", "front_face_vertex_mask", "blend_network_depth"]
+__all__ = [
+    "HeadSurface",
+    "SurfaceDepth",
+    "surface_ray_depth",
+    "face_vertex_mask",
+    "front_face_vertex_mask",
+    "blend_network_depth",
+    "hair_vertex_weight",
+    "fit_hair_thickness",
+]
+
+HAIR_CANDIDATES_M = (0.0, 0.005, 0.01, 0.015, 0.02, 0.025, 0.03)  # fit_hair_thickness' default choices (metres)
+
+
+def vertex_normals(v: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``[Nv, 3]`` unit area-weighted vertex normals of the mesh ``v [Nv, 3]``, ``faces [F, 3]``
+    (counter-clockwise seen from outside, so they point out; 0 for vertices of no face)."""
+    v = np.asarray(v, dtype=np.float64)
+    fn = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
+    idx = np.asarray(faces, dtype=np.int64).reshape(-1)
+    n = np.stack([np.bincount(idx, np.repeat(fn[:, c], 3), minlength=len(v)) for c in range(3)], axis=1)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
+def hair_vertex_weight(head) -> np.ndarray:
+    """``[Nv]`` in [0, 1]: how much of the hair thickness each ICT-FaceKit vertex takes. 1 on the
+    scalp more than 6 cm above the brows and on the back of the head above the ears, ramping to 0
+    over 3 cm towards the forehead and the ears; 0 on the face below that, the neck, the eyes and
+    the mouth. The head model is bald: hair lies on top of its scalp."""
+    from ..data.headmodel import HEAD_VERTEX_RANGE
+
+    v = head.neutral
+    lm = v[head.landmarks68]
+    brow = lm[17:27, 1].max()
+    top = np.clip((v[:, 1] - (brow + 0.03)) / 0.03, 0, 1)
+    back = np.clip((lm[0, 2] - 0.02 - v[:, 2]) / 0.03, 0, 1) * np.clip((v[:, 1] - lm[0, 1]) / 0.03, 0, 1)
+    w = np.maximum(top, back)
+    w[HEAD_VERTEX_RANGE[1] :] = 0.0  # skin only (face, head and neck)
+    return w
 
 
 @dataclass
@@ -193,12 +238,81 @@ def face_vertex_mask(head) -> np.ndarray:
     return m
 
 
-def surface_ray_depth(surface: HeadSurface, cameras: Cameras) -> SurfaceDepth:
+def _hair_offsets(surface: HeadSurface, i: int, head, faces) -> tuple[np.ndarray, np.ndarray]:
+    """View ``i``'s world vertices ``[Nv, 3]`` and each vertex's hair direction scaled by its
+    ``hair_vertex_weight`` ``[Nv, 3]`` (outward normals of the bald mesh)."""
+    vw = surface.vertices(i, head).astype(np.float64)
+    return vw, hair_vertex_weight(head)[:, None] * vertex_normals(vw, faces)
+
+
+def _view_mesh(surface: HeadSurface, i: int, head, faces, hair_m: float) -> np.ndarray:
+    """World vertices of view ``i``, the scalp pushed out along its normals by ``hair_m`` metres."""
+    if hair_m <= 0:
+        return surface.vertices(i, head).astype(np.float64)
+    vw, off = _hair_offsets(surface, i, head, faces)
+    return vw + hair_m * off
+
+
+def fit_hair_thickness(surface: HeadSurface, cameras: Cameras, masks: Tensor, candidates=HAIR_CANDIDATES_M) -> float:
+    """The hair thickness (metres, one of ``candidates``) whose head best fills the inputs' mattes
+    above the brows.
+
+    The tracked head is bald, so from a frontal camera the hair's top outline lies above it and
+    hair seen from above lands on the scalp, below the hair's surface (in a novel view: a band
+    missing along the top of the head, hair on the forehead). For each candidate the scalp
+    (``hair_vertex_weight``) is pushed out along its normals and rasterised at every input camera;
+    the score is the intersection over union of the head's coverage and the matte, over the rows
+    above the view's highest brow landmark, summed over views; the best candidate is returned
+    (ties: the thinner). Long hair that falls beside the face is outside any thickness and
+    lowers every candidate alike.
+
+    Args:
+        surface: ``V`` views of one tracked head.
+        cameras: ``Cameras [V]`` of the ``W x H`` input views (world = the head frame).
+        masks: ``[V, H, W]`` the inputs' mattes (> 0.5 = the person).
+        candidates: thicknesses to try, metres, each >= 0.
+    Raises:
+        ValueError: when the sizes disagree or a candidate is negative.
+    """
+    from ..data.headmodel import HeadModel
+    from ..data.meshraster import render_mesh
+
+    cams = cameras.flatten()
+    v, w, h = len(cams.K), cams.width, cams.height
+    if v != len(surface) or tuple(masks.shape) != (v, h, w):
+        raise ValueError(f"fit_hair_thickness: expected {len(surface)} cameras and masks [{len(surface)}, {h}, {w}], got {v} and {list(masks.shape)}")
+    cand = [float(c) for c in candidates]
+    if not cand or min(cand) < 0:
+        raise ValueError(f"fit_hair_thickness: candidates must be a non-empty list of thicknesses >= 0, got {cand}")
+    head = HeadModel.load()
+    faces = head.visible_faces(eyelashes=False)
+    ones = np.ones((head.num_vertices, 1), np.float32)
+    mk = masks.detach().cpu().numpy() > 0.5
+    rows = np.arange(h)[:, None]
+    scores = np.zeros(len(cand))
+    for i in range(v):
+        w2c = cams.w2c[i].double().numpy()
+        K = cams.K[i].double().numpy()
+        vw, off = _hair_offsets(surface, i, head, faces)
+        for j, c in enumerate(cand):
+            pts = (vw + c * off) @ w2c[:3, :3].T + w2c[:3, 3]
+            if j == 0:
+                brow = pts[head.landmarks68[17:27]]
+                top = (rows < float((K[1, 1] * brow[:, 1] / brow[:, 2] + K[1, 2]).min())) & np.ones((1, w), bool)
+            cov = render_mesh(pts.astype(np.float32), faces, ones, K, w, h, supersample=1).alpha > 0.5
+            union = ((cov | mk[i]) & top).sum()
+            scores[j] += ((cov & mk[i]) & top).sum() / union if union else 0.0
+    return cand[int(np.argmax(scores))]  # argmax takes the first of equal scores; candidates sorted by the caller
+
+
+def surface_ray_depth(surface: HeadSurface, cameras: Cameras, hair_m: float = 0.0) -> SurfaceDepth:
     """Ray distances (metres) to the tracked head for every pixel of ``cameras``.
 
     Args:
         surface: ``V`` views of one tracked head.
         cameras: ``Cameras [V]`` of the ``W x H`` input views (world = the head frame).
+        hair_m: hair thickness (metres): the scalp is pushed out along its normals by this much
+            (``hair_vertex_weight``; ``fit_hair_thickness`` chooses it from the inputs' mattes).
     Returns:
         ``SurfaceDepth``: ``t [V, H, W]`` (hit pixels get their own ray's distance, the others the
         nearest hit pixel's), ``hit`` and ``beyond_face`` (module doc).
@@ -226,7 +340,7 @@ def surface_ray_depth(surface: HeadSurface, cameras: Cameras) -> SurfaceDepth:
     for i in range(v):
         w2c = cams.w2c[i].double().numpy()
         K = cams.K[i].double().numpy()
-        pts = surface.vertices(i, head).astype(np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
+        pts = _view_mesh(surface, i, head, faces, hair_m) @ w2c[:3, :3].T + w2c[:3, 3]
         m = render_mesh(pts.astype(np.float32), faces, attrs, K, w, h, supersample=1)
         covered = (m.alpha > 0.99) & (m.depth > 0)
         hit = binary_erosion(covered, iterations=1)
