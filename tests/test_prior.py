@@ -184,6 +184,23 @@ def test_mouth_interior_follows_the_jaw_and_hides_with_closed_lips(fit, basis):
     assert float(mouth_gate(smile, gate)) == 0.0
 
 
+def test_mouth_interior_is_as_dark_as_the_synthetic_truth_renders_it():
+    """The interior's teeth, gums/tongue and socket are about as bright as the ground-truth renderer
+    shows them in an open mouth (training subjects), not as bright as their bare albedo: unlit, the
+    interior was 1.5-1.9x too bright, a pale opening whose edge dlib read inside the opening (issue 16)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("interior_colors", Path(__file__).resolve().parents[1] / "bench" / "interior_colors.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    res = mod.interior_luma(range(4))
+    for k, r in res.items():
+        assert 0.8 < r["truth"] / r["ours"] < 1.25, (k, r)
+    assert res["teeth"]["ours"] > res["gums+tongue"]["ours"] > res["socket"]["ours"]  # still white teeth in a dark mouth
+    with pytest.raises(ValueError, match="training subjects"):
+        mod.interior_luma([1_000_000])
+
+
 def test_flame_prior_needs_a_user_file(monkeypatch, tmp_path):
     monkeypatch.delenv("FASTGHA_FLAME_MODEL", raising=False)
     with pytest.raises(FileNotFoundError, match="FASTGHA_FLAME_MODEL"):

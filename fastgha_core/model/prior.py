@@ -26,7 +26,7 @@ Pieces (all numpy/torch on CPU, no learning):
   gathers it like the displacement into a colour factor for the reconstructed Gaussians, whose
   colours carry the photo's light baked in at the neutral pose.
 - ``mouth_interior(fit, basis)``: Gaussians on the teeth, gums/tongue and mouth-socket meshes of the
-  fitted head, coloured plausibly, bound to their own vertex (so they follow the jaw), with an
+  fitted head, coloured as the synthetic renderer shows them (``INTERIOR_SHADE``), bound to their own vertex (so they follow the jaw), with an
   opacity gate that is 0 while the lips are closed; and Gaussians on the upper eyelids, coloured
   like the avatar's skin, and on the upper lashes, dark (the avatar's darkest colours at the open
   eye's upper lid), that appear as a blink closes the lids (``gate_factors``).
@@ -91,6 +91,13 @@ GATE_START, GATE_FULL = 0.04, 0.25  # gate(z) = smoothstep((g.z - START) / (FULL
 # times as bright as the closed lid's skin; LASH_DEFAULT without an avatar to take it from.
 LASH_TRAVEL, LASH_STEP, LASH_SCALE = 0.004, 2, 0.0013
 TEETH_SCALE = 0.0012  # metres, the teeth Gaussians' scale (gums and socket: 0.9 * 2.2 mm)
+# The mouth interior's brightness (teeth, gums/tongue, socket): factors on albedo-like colours so that
+# they match how the synthetic renderer shows the inside of an open mouth (its albedo under the rig's
+# lights), not the bare albedo: its mean luma over that of the bare colours, ict53 vertices at
+# jawOpen = 1, 30 training subjects (``bench/interior_colors.py``). Unlit, the interior rendered
+# 1.5-1.9x too bright: a pale red opening whose edge against the lips dlib placed inside the opening,
+# reading the held-out jawOpen lip gap at 0.60-0.85 of the truth's (issue 16; docs/model-card.md).
+INTERIOR_SHADE = (0.65, 0.69, 0.53)
 LASH_MAX_LUMA = 0.45
 LASH_DEFAULT = (0.10, 0.08, 0.07)
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)  # Rec. 601 luma weights
@@ -211,9 +218,11 @@ def _ict_basis() -> HeadBasis:
     # Subsample to a few thousand points (every k-th vertex in the archive order keeps them spread).
     teeth, gums, sock = teeth[::2], gums[::2], sock[::2]
     depth_in = np.clip((lm[48:68, 2].max() - v[:, 2]) / 0.045, 0, 1)
-    teeth_c = np.array([0.86, 0.83, 0.75])[None] * (1.0 - 0.7 * depth_in[teeth])[:, None]
-    gum_c = np.array([0.62, 0.28, 0.28])[None] * (1.0 - 0.6 * depth_in[gums])[:, None]
-    sock_c = np.array([0.26, 0.09, 0.09])[None] * (1.0 - 0.6 * depth_in[sock])[:, None]
+    # albedo-like colours darkened by INTERIOR_SHADE: the inside of a mouth is lit far less than the face
+    sh_t, sh_g, sh_s = INTERIOR_SHADE
+    teeth_c = sh_t * np.array([0.86, 0.83, 0.75])[None] * (1.0 - 0.7 * depth_in[teeth])[:, None]
+    gum_c = sh_g * np.array([0.62, 0.28, 0.28])[None] * (1.0 - 0.6 * depth_in[gums])[:, None]
+    sock_c = sh_s * np.array([0.26, 0.09, 0.09])[None] * (1.0 - 0.6 * depth_in[sock])[:, None]
     ids = np.concatenate([teeth, gums, sock]).astype(np.int64)
     cols = np.concatenate([teeth_c, gum_c, sock_c]).astype(np.float32)
     gates = np.zeros((3, m.num_expression), np.float32)
@@ -632,7 +641,7 @@ def _lash_color(lid: np.ndarray, tree, colors: np.ndarray, skin: np.ndarray, k: 
 
 def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gaussians | None" = None) -> tuple["Gaussians", PriorBinding]:  # noqa: F821
     """Gated Gaussians of the fitted head, each bound to its own vertex with full weight: the mouth
-    interior (teeth, gums/tongue, mouth socket; coloured like the synthetic albedo), the closed
+    interior (teeth, gums/tongue, mouth socket; coloured as the synthetic renderer shows them, ``INTERIOR_SHADE``), the closed
     upper eyelids (coloured like the avatar's skin around the eye, ``_lid_skin_colors``; skin grey
     without ``avatar``) and their lashes (``_lash_color``; ``LASH_DEFAULT`` without ``avatar``).
     ``features`` are zeros ``[I, num_features]``; the binding's ``group`` says which gate
