@@ -59,6 +59,7 @@ __all__ = [
     "fit_head",
     "bind",
     "mouth_interior",
+    "interior_inset",
     "back_shell",
     "back_shell_vertices",
     "mouth_gate_vector",
@@ -98,6 +99,10 @@ TEETH_SCALE = 0.0012  # metres, the teeth Gaussians' scale (gums and socket: 0.9
 # 1.5-1.9x too bright: a pale red opening whose edge against the lips dlib placed inside the opening,
 # reading the held-out jawOpen lip gap at 0.60-0.85 of the truth's (issue 16; docs/model-card.md).
 INTERIOR_SHADE = (0.65, 0.69, 0.53)
+# The mouth interior moves back as deep as the avatar's lips sit behind the fitted lips (``interior_inset``),
+# at most INTERIOR_INSET_MAX, measured on at least INSET_MIN_POINTS lip Gaussians.
+INTERIOR_INSET_MAX = 0.006  # metres
+INSET_MIN_POINTS = 20
 LASH_MAX_LUMA = 0.45
 LASH_DEFAULT = (0.10, 0.08, 0.07)
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)  # Rec. 601 luma weights
@@ -639,13 +644,57 @@ def _lash_color(lid: np.ndarray, tree, colors: np.ndarray, skin: np.ndarray, k: 
     return np.clip(col, 0.0, 1.0).astype(np.float32)
 
 
-def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gaussians | None" = None) -> tuple["Gaussians", PriorBinding]:  # noqa: F821
+def interior_inset(points: np.ndarray | Tensor, fit: HeadFit, basis: HeadBasis, opacities: np.ndarray | Tensor | None = None) -> float:
+    """How far (metres) to move the mouth interior back behind the fitted head's lips: as deep as the
+    avatar's own lips are drawn behind the fitted lip surface.
+
+    ``points [N, 3]``: the reconstructed Gaussians where they are drawn at the neutral expression
+    (metres), ``opacities [N]`` (only those above 0.3 count; all without). For the solid ones within
+    ``LIP_RADIUS`` (times the fit's scale) of the fitted head's lip landmarks, the signed distance to
+    their nearest fitted skin vertex along its normal (negative: behind the surface); the inset is
+    minus its 10th percentile, clipped to ``[0, INTERIOR_INSET_MAX]`` (times the fit's scale), 0 with
+    fewer than ``INSET_MIN_POINTS`` such Gaussians or without lip landmarks.
+
+    Why (issue 16): a few-view reconstruction draws the lips 1-2 mm (median) and 3-4 mm (10th
+    percentile) behind the fitted surface on held-out synthetic heads, while the interior's gums and
+    socket sit right behind that surface. With the jaw open they drew through the moved lower lip: a
+    dark ragged band under the opening's lower edge that dlib took for the opening's inside, reading
+    a smaller lip gap. Raises ``ValueError`` for ``points`` that are not ``[N, 3]``.
+    """
+    from scipy.spatial import cKDTree
+
+    from ..data.headmodel import vertex_normals
+
+    p = points.detach().cpu().float().numpy() if isinstance(points, Tensor) else np.asarray(points, np.float32)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"interior_inset: points must be [N, 3], got {list(p.shape)}")
+    if basis.lip_landmarks is None or len(p) == 0:
+        return 0.0
+    if opacities is not None:
+        op = opacities.detach().cpu().numpy() if isinstance(opacities, Tensor) else np.asarray(opacities)
+        p = p[op.reshape(-1) > 0.3]
+    s = float(np.cbrt(abs(np.linalg.det(fit.transform[:3, :3].astype(np.float64)))))
+    v = fit.vertices.astype(np.float64)
+    near = cKDTree(v[basis.lip_landmarks]).query(p)[0] < LIP_RADIUS * s
+    if int(near.sum()) < INSET_MIN_POINTS:
+        return 0.0
+    faces = basis.bind_faces if basis.mouth_faces is None else basis.bind_faces[~basis.mouth_faces]
+    skin = np.unique(faces)
+    nrm = vertex_normals(v, basis.bind_faces)[skin]
+    q = p[near].astype(np.float64)
+    _, j = cKDTree(v[skin]).query(q)
+    signed = ((q - v[skin][j]) * nrm[j]).sum(1)
+    return float(np.clip(-np.percentile(signed, 10), 0.0, INTERIOR_INSET_MAX * s))
+
+
+def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gaussians | None" = None, inset: float = 0.0) -> tuple["Gaussians", PriorBinding]:  # noqa: F821
     """Gated Gaussians of the fitted head, each bound to its own vertex with full weight: the mouth
-    interior (teeth, gums/tongue, mouth socket; coloured as the synthetic renderer shows them, ``INTERIOR_SHADE``), the closed
-    upper eyelids (coloured like the avatar's skin around the eye, ``_lid_skin_colors``; skin grey
-    without ``avatar``) and their lashes (``_lash_color``; ``LASH_DEFAULT`` without ``avatar``).
-    ``features`` are zeros ``[I, num_features]``; the binding's ``group`` says which gate
-    (``gate_factors``) hides each one."""
+    interior (teeth, gums/tongue, mouth socket; coloured as the synthetic renderer shows them,
+    ``INTERIOR_SHADE``; moved ``inset`` metres back along the fitted head's forward axis, see
+    ``interior_inset``), the closed upper eyelids (coloured like the avatar's skin around the eye,
+    ``_lid_skin_colors``; skin grey without ``avatar``) and their lashes (``_lash_color``;
+    ``LASH_DEFAULT`` without ``avatar``). ``features`` are zeros ``[I, num_features]``; the binding's
+    ``group`` says which gate (``gate_factors``) hides each one."""
     from scipy.spatial import cKDTree
 
     from ..gaussians import Gaussians
@@ -655,6 +704,9 @@ def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "G
     M = fit.transform[:3, :3].astype(np.float64)
     s = float(np.cbrt(abs(np.linalg.det(M))))
     pos = fit.vertices[ids].astype(np.float32)
+    if inset:
+        fwd = M[:, 2] / max(np.linalg.norm(M[:, 2]), 1e-9)
+        pos[basis.interior_group == 0] -= (float(inset) * fwd).astype(np.float32)
     cols = basis.interior_colors.astype(np.float32).copy()
     lash = np.zeros(n, bool) if basis.lash is None else basis.lash
     smp = basis.sample_color & ~lash
