@@ -26,8 +26,9 @@ Pieces (all numpy/torch on CPU, no learning):
   gathers it like the displacement into a colour factor for the reconstructed Gaussians, whose
   colours carry the photo's light baked in at the neutral pose.
 - ``mouth_interior(fit, basis)``: Gaussians on the teeth, gums/tongue and mouth-socket meshes of the
-  fitted head, coloured as the synthetic renderer shows them (``INTERIOR_SHADE``), bound to their own vertex (so they follow the jaw), with an
-  opacity gate that is 0 while the lips are closed; and Gaussians on the upper eyelids, coloured
+  fitted head, coloured as the synthetic renderer shows them (``INTERIOR_SHADE``) and set back behind
+  the avatar's own lips (``interior_inset``), bound to their own vertex (so they follow the jaw), with
+  an opacity gate that is 0 while the lips are closed; and Gaussians on the upper eyelids, coloured
   like the avatar's skin, and on the upper lashes, dark (the avatar's darkest colours at the open
   eye's upper lid), that appear as a blink closes the lids (``gate_factors``).
 - ``hide_open_lips(binding, ...)``: the reconstructed Gaussians near the lips from input photos whose
