@@ -184,6 +184,54 @@ def test_mouth_interior_follows_the_jaw_and_hides_with_closed_lips(fit, basis):
     assert float(mouth_gate(smile, gate)) == 0.0
 
 
+def test_mouth_interior_sits_behind_the_avatars_own_lips(fit, basis, monkeypatch):
+    """Lips drawn 3 mm behind the fitted lip surface push the interior (not the lids) 3 mm back, so
+    its gums and socket cannot draw through the moved lower lip (issue 16: a dark band under the
+    opening's lower edge that dlib took for the opening). Lips on the surface: hardly any inset."""
+    from scipy.spatial import cKDTree
+
+    from fastgha_core.data.headmodel import vertex_normals
+    from fastgha_core.model.prior import interior_inset
+
+    v = fit.vertices
+    nrm = vertex_normals(v, basis.bind_faces)
+    skin = np.unique(basis.bind_faces[~basis.mouth_faces])
+    lips = skin[cKDTree(v[basis.lip_landmarks]).query(v[skin])[0] < 0.006]
+    behind = v[lips] - 0.003 * nrm[lips]
+    assert interior_inset(behind, fit, basis) == pytest.approx(0.003, abs=3e-4)
+    assert interior_inset(v[lips], fit, basis) < 5e-4
+    monkeypatch.setattr("fastgha_core.model.prior.INTERIOR_INSET_MAX", 0.002)
+    assert interior_inset(behind, fit, basis) == pytest.approx(0.002 * fit.transform[0, 0], rel=0.05)  # capped
+    monkeypatch.undo()
+    assert interior_inset(behind, fit, basis, opacities=np.zeros(len(lips))) == 0.0  # only solid Gaussians count
+    with pytest.raises(ValueError, match=r"\[N, 3\]"):
+        interior_inset(behind[:, :2], fit, basis)
+    g0, _ = mouth_interior(fit, basis, num_features=0)
+    g1, _ = mouth_interior(fit, basis, num_features=0, inset=0.003)
+    mouth = torch.from_numpy(basis.interior_group == 0)
+    fwd = torch.from_numpy(fit.transform[:3, 2] / np.linalg.norm(fit.transform[:3, 2]))
+    step = (g0.means - g1.means).double() @ fwd.double()
+    assert torch.allclose(step[mouth], torch.full((int(mouth.sum()),), 0.003, dtype=torch.float64), atol=1e-6)
+    assert torch.equal(g0.means[~mouth], g1.means[~mouth])  # the closed lids and lashes stay
+
+
+def test_mouth_interior_is_as_dark_as_the_synthetic_truth_renders_it():
+    """The interior's teeth, gums/tongue and socket are about as bright as the ground-truth renderer
+    shows them in an open mouth (training subjects), not as bright as their bare albedo: unlit, the
+    interior was 1.5-1.9x too bright, a pale opening whose edge dlib read inside the opening (issue 16)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("interior_colors", Path(__file__).resolve().parents[1] / "bench" / "interior_colors.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    res = mod.interior_luma(range(4))
+    for k, r in res.items():
+        assert 0.8 < r["truth"] / r["ours"] < 1.25, (k, r)
+    assert res["teeth"]["ours"] > res["gums+tongue"]["ours"] > res["socket"]["ours"]  # still white teeth in a dark mouth
+    with pytest.raises(ValueError, match="training subjects"):
+        mod.interior_luma([1_000_000])
+
+
 def test_flame_prior_needs_a_user_file(monkeypatch, tmp_path):
     monkeypatch.delenv("FASTGHA_FLAME_MODEL", raising=False)
     with pytest.raises(FileNotFoundError, match="FASTGHA_FLAME_MODEL"):

@@ -301,7 +301,7 @@ class FastGHA(nn.Module):
             ``(gaussians, binding, num_interior)``; the returned Gaussians keep ``g``'s autograd graph
             (means are shifted by a constant when neutralising).
         """
-        from .prior import PriorBinding, back_shell, back_shell_vertices, bind, fit_head, generic_fit, hide_open_lips, mouth_interior, open_mouth_views
+        from .prior import PriorBinding, back_shell, back_shell_vertices, bind, fit_head, generic_fit, hide_open_lips, interior_inset, mouth_interior, open_mouth_views
 
         basis = self.head_basis()
         means = g.means.detach().float().cpu()
@@ -320,6 +320,7 @@ class FastGHA(nn.Module):
             except (ValueError, np.linalg.LinAlgError):  # too few Gaussians or a degenerate cloud: the generic head
                 fit = generic_fit(basis)
         binding = bind(means, fit, basis, tuple(self.config.deform.prior_fade))
+        drawn = means  # where the reconstructed Gaussians are drawn at the neutral expression
         dev = g.means.device
         if view_expressions is not None:
             if view_index is None or view_index.shape != (len(g),):
@@ -340,6 +341,7 @@ class FastGHA(nn.Module):
             g = g.replace(means=g.means - shift.to(dev, g.means.dtype))
             # lips of open-mouthed photos (their teeth and gap undone onto the closed lips) fade out as the mouth opens
             binding = hide_open_lips(binding, means - shift, vi, open_mouth_views(ve, basis), basis)
+            drawn = means - shift
         binding = binding.to(dev)
         n_int = 0
         if self.config.deform.back_shell and len(back_shell_vertices(basis)):
@@ -349,7 +351,9 @@ class FastGHA(nn.Module):
             binding = PriorBinding.concat(binding, bs.to(dev))
             n_int = len(gs)
         if self.config.deform.mouth_interior and len(basis.interior_vertices):
-            gi, bi = mouth_interior(fit, basis, g.features.shape[1], avatar=g[: len(g) - n_int])
+            # the interior behind the avatar's own lips, which sit a few mm behind the fitted ones
+            inset = interior_inset(drawn, fit, basis, g.opacities[: len(drawn)])
+            gi, bi = mouth_interior(fit, basis, g.features.shape[1], avatar=g[: len(g) - n_int], inset=inset)
             gi = gi.to(dev, g.means.dtype)
             g = Gaussians.concat([g, gi])
             binding = PriorBinding.concat(binding, bi.to(dev))

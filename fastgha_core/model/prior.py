@@ -26,8 +26,9 @@ Pieces (all numpy/torch on CPU, no learning):
   gathers it like the displacement into a colour factor for the reconstructed Gaussians, whose
   colours carry the photo's light baked in at the neutral pose.
 - ``mouth_interior(fit, basis)``: Gaussians on the teeth, gums/tongue and mouth-socket meshes of the
-  fitted head, coloured plausibly, bound to their own vertex (so they follow the jaw), with an
-  opacity gate that is 0 while the lips are closed; and Gaussians on the upper eyelids, coloured
+  fitted head, coloured as the synthetic renderer shows them (``INTERIOR_SHADE``) and set back behind
+  the avatar's own lips (``interior_inset``), bound to their own vertex (so they follow the jaw), with
+  an opacity gate that is 0 while the lips are closed; and Gaussians on the upper eyelids, coloured
   like the avatar's skin, and on the upper lashes, dark (the avatar's darkest colours at the open
   eye's upper lid), that appear as a blink closes the lids (``gate_factors``).
 - ``hide_open_lips(binding, ...)``: the reconstructed Gaussians near the lips from input photos whose
@@ -59,6 +60,7 @@ __all__ = [
     "fit_head",
     "bind",
     "mouth_interior",
+    "interior_inset",
     "back_shell",
     "back_shell_vertices",
     "mouth_gate_vector",
@@ -91,6 +93,17 @@ GATE_START, GATE_FULL = 0.04, 0.25  # gate(z) = smoothstep((g.z - START) / (FULL
 # times as bright as the closed lid's skin; LASH_DEFAULT without an avatar to take it from.
 LASH_TRAVEL, LASH_STEP, LASH_SCALE = 0.004, 2, 0.0013
 TEETH_SCALE = 0.0012  # metres, the teeth Gaussians' scale (gums and socket: 0.9 * 2.2 mm)
+# The mouth interior's brightness (teeth, gums/tongue, socket): factors on albedo-like colours so that
+# they match how the synthetic renderer shows the inside of an open mouth (its albedo under the rig's
+# lights), not the bare albedo: its mean luma over that of the bare colours, ict53 vertices at
+# jawOpen = 1, 30 training subjects (``bench/interior_colors.py``). Unlit, the interior rendered
+# 1.5-1.9x too bright: a pale red opening whose edge against the lips dlib placed inside the opening,
+# reading the held-out jawOpen lip gap at 0.60-0.85 of the truth's (issue 16; docs/model-card.md).
+INTERIOR_SHADE = (0.65, 0.69, 0.53)
+# The mouth interior moves back as deep as the avatar's lips sit behind the fitted lips (``interior_inset``),
+# at most INTERIOR_INSET_MAX, measured on at least INSET_MIN_POINTS lip Gaussians.
+INTERIOR_INSET_MAX = 0.006  # metres
+INSET_MIN_POINTS = 20
 LASH_MAX_LUMA = 0.45
 LASH_DEFAULT = (0.10, 0.08, 0.07)
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)  # Rec. 601 luma weights
@@ -211,9 +224,11 @@ def _ict_basis() -> HeadBasis:
     # Subsample to a few thousand points (every k-th vertex in the archive order keeps them spread).
     teeth, gums, sock = teeth[::2], gums[::2], sock[::2]
     depth_in = np.clip((lm[48:68, 2].max() - v[:, 2]) / 0.045, 0, 1)
-    teeth_c = np.array([0.86, 0.83, 0.75])[None] * (1.0 - 0.7 * depth_in[teeth])[:, None]
-    gum_c = np.array([0.62, 0.28, 0.28])[None] * (1.0 - 0.6 * depth_in[gums])[:, None]
-    sock_c = np.array([0.26, 0.09, 0.09])[None] * (1.0 - 0.6 * depth_in[sock])[:, None]
+    # albedo-like colours darkened by INTERIOR_SHADE: the inside of a mouth is lit far less than the face
+    sh_t, sh_g, sh_s = INTERIOR_SHADE
+    teeth_c = sh_t * np.array([0.86, 0.83, 0.75])[None] * (1.0 - 0.7 * depth_in[teeth])[:, None]
+    gum_c = sh_g * np.array([0.62, 0.28, 0.28])[None] * (1.0 - 0.6 * depth_in[gums])[:, None]
+    sock_c = sh_s * np.array([0.26, 0.09, 0.09])[None] * (1.0 - 0.6 * depth_in[sock])[:, None]
     ids = np.concatenate([teeth, gums, sock]).astype(np.int64)
     cols = np.concatenate([teeth_c, gum_c, sock_c]).astype(np.float32)
     gates = np.zeros((3, m.num_expression), np.float32)
@@ -630,13 +645,57 @@ def _lash_color(lid: np.ndarray, tree, colors: np.ndarray, skin: np.ndarray, k: 
     return np.clip(col, 0.0, 1.0).astype(np.float32)
 
 
-def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gaussians | None" = None) -> tuple["Gaussians", PriorBinding]:  # noqa: F821
+def interior_inset(points: np.ndarray | Tensor, fit: HeadFit, basis: HeadBasis, opacities: np.ndarray | Tensor | None = None) -> float:
+    """How far (metres) to move the mouth interior back behind the fitted head's lips: as deep as the
+    avatar's own lips are drawn behind the fitted lip surface.
+
+    ``points [N, 3]``: the reconstructed Gaussians where they are drawn at the neutral expression
+    (metres), ``opacities [N]`` (only those above 0.3 count; all without). For the solid ones within
+    ``LIP_RADIUS`` (times the fit's scale) of the fitted head's lip landmarks, the signed distance to
+    their nearest fitted skin vertex along its normal (negative: behind the surface); the inset is
+    minus its 10th percentile, clipped to ``[0, INTERIOR_INSET_MAX]`` (times the fit's scale), 0 with
+    fewer than ``INSET_MIN_POINTS`` such Gaussians or without lip landmarks.
+
+    Why (issue 16): a few-view reconstruction draws the lips 1-2 mm (median) and 3-4 mm (10th
+    percentile) behind the fitted surface on held-out synthetic heads, while the interior's gums and
+    socket sit right behind that surface. With the jaw open they drew through the moved lower lip: a
+    dark ragged band under the opening's lower edge that dlib took for the opening's inside, reading
+    a smaller lip gap. Raises ``ValueError`` for ``points`` that are not ``[N, 3]``.
+    """
+    from scipy.spatial import cKDTree
+
+    from ..data.headmodel import vertex_normals
+
+    p = points.detach().cpu().float().numpy() if isinstance(points, Tensor) else np.asarray(points, np.float32)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"interior_inset: points must be [N, 3], got {list(p.shape)}")
+    if basis.lip_landmarks is None or len(p) == 0:
+        return 0.0
+    if opacities is not None:
+        op = opacities.detach().cpu().numpy() if isinstance(opacities, Tensor) else np.asarray(opacities)
+        p = p[op.reshape(-1) > 0.3]
+    s = float(np.cbrt(abs(np.linalg.det(fit.transform[:3, :3].astype(np.float64)))))
+    v = fit.vertices.astype(np.float64)
+    near = cKDTree(v[basis.lip_landmarks]).query(p)[0] < LIP_RADIUS * s
+    if int(near.sum()) < INSET_MIN_POINTS:
+        return 0.0
+    faces = basis.bind_faces if basis.mouth_faces is None else basis.bind_faces[~basis.mouth_faces]
+    skin = np.unique(faces)
+    nrm = vertex_normals(v, basis.bind_faces)[skin]
+    q = p[near].astype(np.float64)
+    _, j = cKDTree(v[skin]).query(q)
+    signed = ((q - v[skin][j]) * nrm[j]).sum(1)
+    return float(np.clip(-np.percentile(signed, 10), 0.0, INTERIOR_INSET_MAX * s))
+
+
+def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gaussians | None" = None, inset: float = 0.0) -> tuple["Gaussians", PriorBinding]:  # noqa: F821
     """Gated Gaussians of the fitted head, each bound to its own vertex with full weight: the mouth
-    interior (teeth, gums/tongue, mouth socket; coloured like the synthetic albedo), the closed
-    upper eyelids (coloured like the avatar's skin around the eye, ``_lid_skin_colors``; skin grey
-    without ``avatar``) and their lashes (``_lash_color``; ``LASH_DEFAULT`` without ``avatar``).
-    ``features`` are zeros ``[I, num_features]``; the binding's ``group`` says which gate
-    (``gate_factors``) hides each one."""
+    interior (teeth, gums/tongue, mouth socket; coloured as the synthetic renderer shows them,
+    ``INTERIOR_SHADE``; moved ``inset`` metres back along the fitted head's forward axis, see
+    ``interior_inset``), the closed upper eyelids (coloured like the avatar's skin around the eye,
+    ``_lid_skin_colors``; skin grey without ``avatar``) and their lashes (``_lash_color``;
+    ``LASH_DEFAULT`` without ``avatar``). ``features`` are zeros ``[I, num_features]``; the binding's
+    ``group`` says which gate (``gate_factors``) hides each one."""
     from scipy.spatial import cKDTree
 
     from ..gaussians import Gaussians
@@ -646,6 +705,9 @@ def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "G
     M = fit.transform[:3, :3].astype(np.float64)
     s = float(np.cbrt(abs(np.linalg.det(M))))
     pos = fit.vertices[ids].astype(np.float32)
+    if inset:
+        fwd = M[:, 2] / max(np.linalg.norm(M[:, 2]), 1e-9)
+        pos[basis.interior_group == 0] -= (float(inset) * fwd).astype(np.float32)
     cols = basis.interior_colors.astype(np.float32).copy()
     lash = np.zeros(n, bool) if basis.lash is None else basis.lash
     smp = basis.sample_color & ~lash
