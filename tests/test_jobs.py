@@ -818,3 +818,34 @@ def test_python_client_sends_a_tracked_folders_head(server, samples, tmp_path, m
     (folder / "expressions.json").unlink()
     with pytest.raises(ValueError, match="head.json needs expressions.json"):
         load_head(folder, images)
+
+
+@needs_faces
+def test_fastgha_client_sends_the_head_of_a_folder_fastgha_track_wrote(server, tmp_path, capsys):
+    """The fresh-user path: `fastgha track` a photo, then `fastgha client --input` that folder: the
+    server gets the tracked head with the cameras and the avatar lies on it (its prior bound to it)."""
+    from fastgha_core.cli import main
+    from fastgha_core.model.avatar import CanonicalAvatar
+
+    photo = tmp_path / "gh.jpg"
+    photo.write_bytes(_portrait())
+    req = tmp_path / "me"
+    assert main(["track", "--images", str(photo), "--out", str(req), "--size", "128"]) == 0
+    tracked = json.loads((req / "expressions.json").read_text())
+    head_part = {**json.loads((req / "head.json").read_text()), "expressions": tracked["expressions"]}
+    out = tmp_path / "me.mp4"
+    assert main(["client", "--url", server.base, "--input", str(req), "--out", str(out), "--frames", "2", "--size", "64",
+                 "--api-key", KEYS[2], "--keep"]) == 0  # fmt: skip
+    printed = capsys.readouterr().out
+    assert "sending the tracked head" in printed and out.is_file()
+    aid = printed.split("avatar ", 1)[1].split(":", 1)[0]
+    stored = CanonicalAvatar.load(server.data / "avatars" / f"{aid}.safetensors")
+    k = stored.prior.identity.shape[0]
+    np.testing.assert_allclose(stored.prior.identity.numpy(), np.asarray(head_part["identity"][:k]), atol=1e-4)
+    from client_demo.client import load_request_dir
+
+    images, cams, masks = load_request_dir(req)  # the same folder with its cameras only: the network's depth
+    plain = FastGHAClient(server.base, api_key=KEYS[2]).create_avatar(images, cams, masks)
+    off = CanonicalAvatar.load(server.data / "avatars" / f"{plain.avatar_id}.safetensors")
+    on_d, off_d = _head_distance(stored, head_part), _head_distance(off, head_part)
+    assert on_d < 0.5 * off_d, (on_d, off_d)
