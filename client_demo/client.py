@@ -8,6 +8,7 @@ or ``server``), so it can be copied into an application as one file::
     client = FastGHAClient("http://127.0.0.1:8000", api_key="...")
     avatar = client.create_avatar(["0.jpg", "1.jpg", "2.jpg", "3.jpg"], cameras)   # cameras: list of dicts
     avatar = client.create_avatar(["me.jpg"])   # no cameras: the server tracks the photo (its `faces` extra)
+    avatar = client.create_avatar_from_dir("out/me")  # a `fastgha track` folder: photos, cameras, masks, head.json
     avatar = client.create_avatar(paths, progress=lambda st: print(st["stage"], st["progress"]))
     cam = orbit_camera(yaw_deg=20, width=256, height=256)
     frames = client.stream_sync(avatar, [{"expression": {"jawOpen": w}, "camera": cam} for w in (0, .5, 1)])
@@ -258,6 +259,34 @@ def load_request_dir(folder: str | Path) -> tuple[list[Path], list[dict] | None,
     return images, cams, masks  # type: ignore[return-value]
 
 
+def load_head(folder: str | Path, images: Sequence[Path]) -> dict | None:
+    """The ``head`` part of a tracked request folder, or None when it has no ``head.json``.
+
+    ``fastgha track`` writes ``head.json`` (``{"model": "ict_facekit", "identity": [...]}``) and
+    ``expressions.json`` (each crop's ``ict53`` expression, by file name); the server takes both as
+    one object, head.json's with ``"expressions"``: one list of 53 weights per image of ``images``,
+    in their order (``docs/protocol.md``, the ``head`` part). ValueError when head.json comes without
+    cameras.json or without an expression for every image.
+    """
+    folder = Path(folder)
+    head_file = folder / "head.json"
+    if not head_file.is_file():
+        return None
+    if not (folder / "cameras.json").is_file():
+        raise ValueError(f"request folder {folder}: head.json needs the cameras.json it was tracked with (both are written by `fastgha track`)")
+    head = json.loads(head_file.read_text())
+    expr_file = folder / "expressions.json"
+    if not expr_file.is_file():
+        raise ValueError(f"request folder {folder}: head.json needs expressions.json beside it (both are written by `fastgha track`)")
+    tracked = json.loads(expr_file.read_text())
+    by_name = dict(zip(tracked.get("images", []), tracked.get("expressions", []))) if isinstance(tracked, dict) else {}
+    missing = [Path(p).name for p in images if Path(p).name not in by_name]
+    if not isinstance(head, dict) or missing:
+        why = f"no tracked expression for {missing}" if missing else "head.json is not a JSON object"
+        raise ValueError(f"request folder {folder}: {why} (expressions.json and head.json of `fastgha track` go with its crops)")
+    return {**head, "expressions": [by_name[Path(p).name] for p in images]}
+
+
 def _as_bytes(item: Any) -> tuple[bytes, str]:
     """(encoded bytes, content type) of a path, raw bytes, a PIL image or a uint8 [H, W, 3|4] array."""
     if isinstance(item, (str, Path)):
@@ -349,6 +378,7 @@ class FastGHAClient:
         cameras: Sequence[dict] | None = None,
         masks: Sequence[Any] | None = None,
         *,
+        head: dict | None = None,
         progress: Callable[[dict], None] | None = None,
         busy_wait_s: float = 0.0,
         poll_s: float = 0.25,
@@ -360,6 +390,8 @@ class FastGHAClient:
         names (``photo<N>.png`` for arrays and bytes), which the server's error messages use.
 
         Args:
+            head: the tracked head of ``fastgha track`` (``load_head``), sent with ``cameras``: the server
+                then puts every pixel's Gaussian on it, as ``fastgha reconstruct`` does with head.json.
             progress: called with every status of the creation job (``status`` queued / running /
                 ready, ``stage``, ``progress`` in [0, 1], ``queue_position``).
             busy_wait_s: when the server's queue is full (429 / 503), retry after its ``Retry-After``
@@ -370,6 +402,8 @@ class FastGHAClient:
         """
         if cameras is not None and len(images) != len(cameras):
             raise ValueError(f"need one camera per image, got {len(images)} images and {len(cameras)} cameras")
+        if head is not None and cameras is None:
+            raise ValueError("a head needs the cameras it was tracked with (cameras.json of the same `fastgha track` folder)")
         if masks is not None and len(masks) != len(images):
             raise ValueError(f"need none or one mask per image, got {len(images)} images and {len(masks)} masks")
         files = []
@@ -381,6 +415,8 @@ class FastGHAClient:
             files.append(("masks", (_upload_name(m, i, ctype, "_mask"), data, ctype)))
         headers = {"Prefer": "respond-async", **({"X-API-Key": self.api_key} if self.api_key else {})}
         data = {"cameras": json.dumps(list(cameras))} if cameras is not None else {}
+        if head is not None:
+            data["head"] = json.dumps(head)
         t0 = time.perf_counter()
         deadline = time.monotonic() + busy_wait_s
         while True:
@@ -422,6 +458,7 @@ class FastGHAClient:
     def create_avatar_from_dir(self, folder: str | Path, **kw: Any) -> Avatar:
         """``create_avatar`` of a request folder (``load_request_dir``); ``kw`` as ``create_avatar``'s."""
         images, cams, masks = load_request_dir(folder)
+        kw.setdefault("head", load_head(folder, images))
         return self.create_avatar(images, cams, masks, **kw)
 
     def avatar_info(self, avatar: Avatar) -> dict:

@@ -36,7 +36,7 @@ from .frames import FrameRenderer
 from .jobs import CreationRequest, JobQueue, Photo, extra_stages_for, probe_request, safe_filename
 from .logs import install_token_redaction
 from .metrics import CONTENT_TYPE_LATEST
-from .protocol import ProtocolError, parse_cameras_json
+from .protocol import ProtocolError, parse_cameras_json, parse_head_json
 from .samples import make_samples_router
 from .security import install as install_security
 from .settings import Settings, get_settings
@@ -346,6 +346,12 @@ _CREATE_OPENAPI = {
                             "when absent the server tracks the photos (needs the 'faces' extra)",
                         },
                         "masks": {"type": "array", "items": {"type": "string", "format": "binary"}, "description": "optional foreground masks, one per image"},
+                        "head": {
+                            "type": "string",
+                            "description": "optional, with cameras: the tracked head of `fastgha track` "
+                            '{"model": "ict_facekit", "identity": [100 numbers], "expressions": [[53 numbers] per image]}; '
+                            "every pixel's Gaussian is put on it",
+                        },
                     },
                 }
             }
@@ -476,6 +482,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             raise ApiError(400, "invalid_image_count", f"send 1 to {max_images} 'images' parts, got {len(parts)}")
         cam_field = form.get("cameras")
         cams: list[Cameras] | None = None
+        head_field = form.get("head")
+        if head_field is not None and cam_field is None:
+            raise ApiError(400, "head_without_cameras", "the 'head' part lies in the world of the cameras it was tracked with: "
+                           "send the 'cameras' part too (cameras.json of the same `fastgha track` folder)")  # fmt: skip
         if cam_field is None:  # no cameras: the server tracks the photos, if it can (server/tracking.py)
             await ctx.run_work(tracker.check_available)
         else:
@@ -488,6 +498,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 raise ApiError(400, "invalid_cameras", str(e)) from None
             if len(cams) != len(parts):
                 raise ApiError(400, "camera_count_mismatch", f"{len(parts)} images but {len(cams)} cameras; send one camera per image")
+        head = None
+        if head_field is not None:  # fastgha track's head: every pixel's Gaussian goes on it, as `fastgha reconstruct` does
+            head_text = await head_field.read() if isinstance(head_field, UploadFile) else head_field
+            try:
+                head = parse_head_json(head_text, len(parts))
+            except ProtocolError as e:
+                code = e.code if e.code in ("non_finite_number", "head_count_mismatch") else "invalid_head"
+                raise ApiError(400, code, e.message) from None
         mask_parts = form.getlist("masks")
         if mask_parts and len(mask_parts) != len(parts):
             raise ApiError(400, "mask_count_mismatch", f"{len(parts)} images but {len(mask_parts)} masks; send none or one per image")
@@ -497,7 +515,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         await ctx.run_work(
             lambda: probe_request(images, masks, cams, max_pixels=s.max_image_pixels, max_request_pixels=s.max_request_pixels)
         )
-        return CreationRequest(images, masks, cams)
+        return CreationRequest(images, masks, cams, head)
 
     async def _job_or_meta(request: Request, avatar_id: str):
         """``(job, None)`` for an avatar being created, ``(None, meta)`` for a stored one; checks the token."""

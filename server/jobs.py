@@ -207,11 +207,13 @@ def _to_float(arr: np.ndarray) -> Tensor:
 # ---------------------------------------------------------------- requests, state, stages
 @dataclass
 class CreationRequest:
-    """What ``POST /v1/avatars`` queues: the files (headers probed), cameras or None (track them)."""
+    """What ``POST /v1/avatars`` queues: the files (headers probed), cameras or None (track them), and
+    the head ``fastgha track`` fitted to them when the client sent it (with the cameras)."""
 
     images: list[Photo]
     masks: list[Photo] | None
     cameras: list | None  # list[Cameras] (one per image, stored-pixel sizes) or None
+    head: Any = None  # the client's tracked head (model.surface.HeadSurface, the ``head`` part) or None
 
     @property
     def nbytes(self) -> int:
@@ -639,7 +641,13 @@ class JobQueue:
         progress("reconstructing", 0.0)
         t2 = time.perf_counter()
         known_surface = False
-        if req.cameras is not None and s.surface_depth_cameras != "off":
+        if req.head is not None:
+            # the client's tracked head (fastgha track's head.json + expressions.json): reconstructed on it as
+            # `fastgha reconstruct` does (every pixel on the head, the photos' expressions undone; FASTGHA_SURFACE_DEPTH=0: depth off)
+            from fastgha_core.headfile import head_expressions
+
+            surface, expressions = req.head, head_expressions(req.head, model)
+        elif req.cameras is not None and s.surface_depth_cameras != "off":
             # photos with cameras: the head fitted through them (None without the faces extra or a face)
             surface = self.tracker.fit_known_cameras(images, cams, names=names, masks=mlist)
             known_surface = surface is not None

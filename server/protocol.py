@@ -55,6 +55,7 @@ __all__ = [
     "check_camera",
     "check_reconstruction",
     "parse_cameras_json",
+    "parse_head_json",
 ]
 
 FRAME_MAGIC = b"FGHA"
@@ -263,6 +264,37 @@ def parse_cameras_json(text: str | bytes) -> list[Cameras]:
         return cams
     except (ValueError, TypeError, OverflowError) as e:
         raise ProtocolError("invalid_cameras", str(e)) from None
+
+
+def parse_head_json(text: str | bytes, num_images: int):
+    """The ``head`` part of ``POST /v1/avatars``: ``fastgha track``'s head.json with each photo's
+    expression, ``{"model": "ict_facekit", "identity": [1..100 numbers], "expressions": [[53] per image]}``
+    (``docs/protocol.md``) -> ``fastgha_core.model.surface.HeadSurface``, read by
+    ``fastgha_core.headfile.head_surface_from_json`` as ``fastgha reconstruct`` reads head.json.
+
+    Raises ``ProtocolError`` with code ``invalid_json`` / ``non_finite_number`` (``loads_strict``),
+    ``head_count_mismatch`` (expressions for another number of photos) or ``invalid_head``; the
+    messages name the ``head`` part and say what was expected."""
+    from fastgha_core.headfile import head_surface_from_json
+
+    try:
+        data = loads_strict(text)
+    except ProtocolError as e:
+        if e.code != "invalid_json":
+            raise ProtocolError(e.code, f"head: {e.message}") from None
+        detail = e.message.removeprefix("message is not valid JSON").lstrip(": ")
+        if detail.startswith("(") and detail.endswith(")"):
+            detail = detail[1:-1]
+        raise ProtocolError("invalid_json", f"head is not valid JSON ({detail}); expected head.json of `fastgha track` with an 'expressions' list") from None
+    try:
+        head = head_surface_from_json(data, None, source="head")
+    except ValueError as e:
+        raise ProtocolError("invalid_head", str(e)) from None
+    if len(head) != num_images:
+        raise ProtocolError(
+            "head_count_mismatch", f"head: expressions for {len(head)} photo(s) but {num_images} images came; send one list of 53 weights per image, in their order"
+        )
+    return head
 
 
 def _parse_options(obj: dict) -> OptionsMessage:

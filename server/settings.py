@@ -109,7 +109,7 @@ class Settings(BaseSettings):
         256, ge=1, description="a reconstruction with fewer Gaussians holds no head (e.g. cameras far from it): 422"
     )
     surface_depth: bool = Field(
-        True, description="photos without cameras: put every pixel's Gaussian on the tracked head (one geometry for all views; docs/model-card.md)"
+        True, description="photos without cameras, or sent with a 'head' part: put every pixel's Gaussian on the tracked head (one geometry for all views; docs/model-card.md)"
     )
     surface_depth_cameras: Literal["off", "replace", "blend"] = Field(
         "off",

@@ -332,6 +332,35 @@ def test_demo_takes_a_whole_tracked_folder(page, server):
     page.wait_for_function("document.getElementById('input-summary').innerText.startsWith('2 photo(s), 2 camera(s)')", timeout=10_000)
     assert "2-frame sequence" in page.inner_text("#input-summary")
     assert "ignored" not in page.inner_text("#messages")
+    # head.json goes with the cameras as the `head` part, each photo's tracked expression added (by stem)
+    assert "tracked head" in page.inner_text("#input-summary")
+    page.fill("#api-key", API_KEY)
+    page.evaluate("""() => { const f = window.fetch; window.fetch = (u, o) => {  // what the POST carries (no multipart body in CDP)
+        if (o && o.body instanceof FormData) window.__sent = { head: o.body.get("head"), cameras: o.body.get("cameras") };
+        return f(u, o); }; }""")
+    page.click("#create")
+    page.wait_for_function("window.__sent !== undefined", timeout=10_000)
+    sent = page.evaluate("window.__sent")
+    assert json.loads(sent["head"]) == {**head, "expressions": tracked["expressions"]} and len(json.loads(sent["cameras"])) == 2
+    page.wait_for_function("window.fastghaDemo.frames >= 1", timeout=60_000)  # the server took it
+    assert "creating the avatar failed" not in page.inner_text("#messages")
+
+
+def test_demo_says_when_a_dropped_head_cannot_be_sent(page, server):
+    """head.json without the expressions.json of its `fastgha track` run is not sent (named in the log)."""
+    import httpx
+
+    page.wait_for_function("window.fastghaDemo.model !== null", timeout=30_000)
+    jpg = httpx.get(f"{server.base}/v1/samples/{SAMPLE_NAME}/00.jpg").content
+    cams = httpx.get(f"{server.base}/v1/samples/{SAMPLE_NAME}/cameras.json").json()[:1]
+    page.set_input_files("#file-input", files=[
+        {"name": "head.json", "mimeType": "application/json", "buffer": json.dumps({"model": "ict_facekit", "identity": [0.0] * 100}).encode()},
+        {"name": "00_me.jpg", "mimeType": "image/jpeg", "buffer": jpg},
+        {"name": "cameras.json", "mimeType": "application/json", "buffer": json.dumps(cams).encode()},
+    ])  # fmt: skip
+    page.wait_for_function("document.getElementById('input-summary').innerText.startsWith('1 photo(s), 1 camera(s)')", timeout=10_000)
+    assert "tracked head" not in page.inner_text("#input-summary")
+    assert "ignored head.json: it needs the expressions.json" in page.inner_text("#messages")
 
 
 def test_demo_stops_a_sequence_the_server_refuses_and_recovers(page, server):

@@ -665,3 +665,187 @@ def test_photos_with_cameras_use_the_head_fitted_through_them(model_dir, samples
         assert got == [(surface, "blend")]
         stored = ctx.store.get(job.id).avatar
         assert stored.prior is not None and torch.allclose(stored.prior.transform.double(), torch.from_numpy(G), atol=1e-6)
+
+
+# ---------------------------------------------------------------- a tracked head sent with the cameras (the `head` part)
+def _head_folder(samples: Path, dst: Path, seed: int = 3) -> tuple[Path, dict]:
+    """A copy of the sample request folder as `fastgha track` leaves one: photos, masks, cameras.json,
+    expressions.json and head.json (a small random identity, mild expressions); ``(folder, the head part)``."""
+    import shutil
+
+    from fastgha_core.expressions import ICT53_NAMES
+
+    shutil.copytree(samples, dst)
+    imgs = sorted(p.name for p in dst.glob("[0-9][0-9].jpg"))
+    rng = np.random.default_rng(seed)
+    ident = np.zeros(100)
+    ident[:20] = rng.standard_normal(20) * 0.5
+    expr = (rng.uniform(0.0, 0.3, (len(imgs), 53))).round(4)
+    (dst / "head.json").write_text(json.dumps({"model": "ict_facekit", "identity": ident.round(5).tolist()}))
+    (dst / "expressions.json").write_text(json.dumps({"space": "ict53", "names": list(ICT53_NAMES), "images": imgs, "expressions": expr.tolist()}))
+    return dst, {"model": "ict_facekit", "identity": ident.round(5).tolist(), "expressions": expr.tolist()}
+
+
+def _head_distance(avatar, head_part: dict) -> float:
+    """Median distance (m) of the avatar's reconstructed Gaussians to the head mesh of the first view."""
+    from scipy.spatial import cKDTree
+
+    from fastgha_core.model.surface import HeadSurface
+
+    surf = HeadSurface(np.asarray(head_part["identity"]), np.asarray(head_part["expressions"]))
+    means = avatar.gaussians.means[: avatar.num_reconstructed].numpy()
+    d, _ = cKDTree(surf.vertices(0)).query(means)
+    return float(np.median(d))
+
+
+def test_a_sent_head_is_reconstructed_on_exactly_as_fastgha_reconstruct_does(model_dir, samples, tmp_path):
+    """``CreationRequest(head=...)`` (the ``head`` part): the job reconstructs on the sent head with
+    the photos' expressions, giving the avatar `fastgha reconstruct` makes of the same tracked folder
+    (same Gaussians, prior bound to the head); without it (cameras only) the Gaussians follow the
+    network's depth, off the head."""
+    from fastgha_core import load_model
+    from fastgha_core.cameras import cameras_from_json
+    from fastgha_core.cli import main
+    from fastgha_core.model.avatar import CanonicalAvatar
+    from server.context import ServerContext
+    from server.protocol import parse_head_json
+    from server.settings import Settings
+    from server.store import AvatarStore
+
+    folder, head_part = _head_folder(samples, tmp_path / "tracked")
+    imgs = sorted(folder.glob("[0-9][0-9].jpg"))
+    model = load_model(str(model_dir), device="cpu")
+
+    def create(head):
+        data = tmp_path / ("head" if head is not None else "cams")
+        ctx = ServerContext(settings=Settings(data_dir=data, warmup=False))
+        ctx.model = model
+        ctx.store = AvatarStore(data, 10**9, 0, load_fn=CanonicalAvatar.load)
+        photos = [Photo(p.name, p.read_bytes()) for p in imgs]
+        masks = [Photo(f"{p.stem}_mask.png", (folder / f"{p.stem}_mask.png").read_bytes()) for p in imgs]
+        cams = cameras_from_json(json.loads((folder / "cameras.json").read_text()))
+        probe_request(photos, masks, cams, max_pixels=10**7, max_request_pixels=10**8)
+        job, _ = _run_job(ctx, CreationRequest(photos, masks, cams, head), [])
+        assert job.status == "ready", job.error and job.error.message
+        assert "tracking" not in job.stages
+        return ctx.store.get(job.id).avatar
+
+    with_head = create(parse_head_json(json.dumps(head_part), len(imgs)))
+    cams_only = create(None)
+    assert main(["reconstruct", "--input", str(folder), "--model", str(model_dir), "--out", str(tmp_path / "cli.safetensors")]) == 0
+    cli = CanonicalAvatar.load(tmp_path / "cli.safetensors")
+    n = with_head.num_reconstructed
+    assert n == cli.num_reconstructed and len(with_head.gaussians) == len(cli.gaussians)
+    torch.testing.assert_close(with_head.gaussians.means, cli.gaussians.means, atol=1e-5, rtol=0)
+    torch.testing.assert_close(with_head.gaussians.colors, cli.gaussians.colors, atol=1e-5, rtol=0)
+    k = with_head.prior.identity.shape[0]
+    np.testing.assert_allclose(with_head.prior.identity.numpy(), np.asarray(head_part["identity"][:k]), atol=1e-5)
+    on, off = _head_distance(with_head, head_part), _head_distance(cams_only, head_part)
+    assert on < 0.01 and off > 2 * on, (on, off)  # on the sent head; the network's depth lies elsewhere
+
+
+def test_head_part_validation_names_the_part_and_what_was_expected():
+    from server.protocol import ProtocolError, parse_head_json
+
+    good = {"model": "ict_facekit", "identity": [0.1] * 100, "expressions": [[0.0] * 53, [0.2] * 53]}
+    assert len(parse_head_json(json.dumps(good), 2)) == 2
+    cases = [
+        ("{not json", "invalid_json", "head is not valid JSON"),
+        (json.dumps([1, 2]), "invalid_head", "expected a JSON object"),
+        (json.dumps({**good, "model": "flame"}), "invalid_head", "expected \"model\": \"ict_facekit\""),
+        (json.dumps({"expressions": good["expressions"]}), "invalid_head", "expected an 'identity' list"),
+        (json.dumps({**good, "identity": [0.0] * 101}), "invalid_head", "1 to 100"),
+        (json.dumps({**good, "identity": [50.0] * 100}), "invalid_head", "must lie in [-10, 10]"),
+        (json.dumps({**good, "identity": ["a"] * 100}), "invalid_head", "list of numbers, got a list holding str"),
+        (json.dumps({k: v for k, v in good.items() if k != "expressions"}), "invalid_head", "expected an 'expressions' list"),
+        (json.dumps({**good, "expressions": [[0.0] * 52, [0.0] * 53]}), "invalid_head", "expressions[0] must be a list of 53 ict53 weights, got 52"),
+        (json.dumps({**good, "expressions": [[2.0] * 53, [0.0] * 53]}), "invalid_head", "must lie in [0, 1]"),
+        (json.dumps({**good, "expressions": [[0.0] * 53]}), "head_count_mismatch", "head: expressions for 1 photo(s) but 2 images came"),
+        ('{"identity": [NaN], "expressions": [[0.0]]}', "non_finite_number", "head: JSON numbers must be finite"),
+    ]
+    for text, code, words in cases:
+        with pytest.raises(ProtocolError) as e:
+            parse_head_json(text, 2)
+        assert e.value.code == code and words in e.value.message, (text[:40], e.value.code, e.value.message)
+        assert e.value.message.startswith("head"), e.value.message
+
+
+def test_server_takes_a_head_with_the_cameras_and_refuses_malformed_ones(server, samples, tmp_path):
+    """``POST /v1/avatars`` with a ``head`` part: 201 and the stored avatar's prior is bound to the
+    sent head; documented 400s for a head without cameras, malformed heads and a wrong count."""
+    from fastgha_core.model.avatar import CanonicalAvatar
+
+    folder, head_part = _head_folder(samples, tmp_path / "tracked")
+    files, cams = _sample_parts(folder)
+    files += [("masks", (p.name, p.read_bytes(), "image/png")) for p in sorted(folder.glob("[0-9][0-9]_mask.png"))]  # as a tracked folder has
+    r = _post(server, files, KEYS[0], data={"cameras": cams, "head": json.dumps(head_part)}, prefer_async=False)
+    assert r.status_code == 201, r.text
+    stored = CanonicalAvatar.load(server.data / "avatars" / f"{r.json()['avatar_id']}.safetensors")
+    k = stored.prior.identity.shape[0]
+    np.testing.assert_allclose(stored.prior.identity.numpy(), np.asarray(head_part["identity"][:k]), atol=1e-5)
+    assert _head_distance(stored, head_part) < 0.01
+    bad = [
+        ({"head": json.dumps(head_part)}, "head_without_cameras", "send the 'cameras' part too"),
+        ({"cameras": cams, "head": "{"}, "invalid_head", "head is not valid JSON (Expecting property name"),
+        ({"cameras": cams, "head": json.dumps({**head_part, "model": "flame"})}, "invalid_head", "ict_facekit"),
+        ({"cameras": cams, "head": json.dumps({**head_part, "expressions": head_part["expressions"][:2]})}, "head_count_mismatch", "but 4 images came"),
+    ]
+    for data, code, words in bad:
+        r = _post(server, files, KEYS[1], data=data)
+        assert r.status_code == 400 and r.json()["error"]["code"] == code and words in r.json()["error"]["message"], r.text
+
+
+def test_python_client_sends_a_tracked_folders_head(server, samples, tmp_path, monkeypatch):
+    """``create_avatar_from_dir`` / ``fastgha client --input`` send head.json with each photo's tracked
+    expression, in the photos' order; a head.json without expressions.json is refused before any upload."""
+    from client_demo.client import load_head, load_request_dir
+
+    folder, head_part = _head_folder(samples, tmp_path / "tracked")
+    images, cams, _ = load_request_dir(folder)
+    assert load_head(folder, images) == head_part
+    assert load_head(samples, images) is None  # no head.json: cameras only, as before
+    sent = []
+    post = httpx.post
+    monkeypatch.setattr(httpx, "post", lambda url, **kw: (sent.append(kw.get("data")), post(url, **kw))[1])
+    client = FastGHAClient(server.base, api_key=KEYS[2])
+    avatar = client.create_avatar_from_dir(folder)
+    assert json.loads(sent[-1]["head"]) == head_part and len(json.loads(sent[-1]["cameras"])) == 4
+    from fastgha_core.model.avatar import CanonicalAvatar
+
+    stored = CanonicalAvatar.load(server.data / "avatars" / f"{avatar.avatar_id}.safetensors")
+    assert _head_distance(stored, head_part) < 0.01
+    client.delete(avatar)
+    (folder / "expressions.json").unlink()
+    with pytest.raises(ValueError, match="head.json needs expressions.json"):
+        load_head(folder, images)
+
+
+@needs_faces
+def test_fastgha_client_sends_the_head_of_a_folder_fastgha_track_wrote(server, tmp_path, capsys):
+    """The fresh-user path: `fastgha track` a photo, then `fastgha client --input` that folder: the
+    server gets the tracked head with the cameras and the avatar lies on it (its prior bound to it)."""
+    from fastgha_core.cli import main
+    from fastgha_core.model.avatar import CanonicalAvatar
+
+    photo = tmp_path / "gh.jpg"
+    photo.write_bytes(_portrait())
+    req = tmp_path / "me"
+    assert main(["track", "--images", str(photo), "--out", str(req), "--size", "128"]) == 0
+    tracked = json.loads((req / "expressions.json").read_text())
+    head_part = {**json.loads((req / "head.json").read_text()), "expressions": tracked["expressions"]}
+    out = tmp_path / "me.mp4"
+    assert main(["client", "--url", server.base, "--input", str(req), "--out", str(out), "--frames", "2", "--size", "64",
+                 "--api-key", KEYS[2], "--keep"]) == 0  # fmt: skip
+    printed = capsys.readouterr().out
+    assert "sending the tracked head" in printed and out.is_file()
+    aid = printed.split("avatar ", 1)[1].split(":", 1)[0]
+    stored = CanonicalAvatar.load(server.data / "avatars" / f"{aid}.safetensors")
+    k = stored.prior.identity.shape[0]
+    np.testing.assert_allclose(stored.prior.identity.numpy(), np.asarray(head_part["identity"][:k]), atol=1e-4)
+    from client_demo.client import load_request_dir
+
+    images, cams, masks = load_request_dir(req)  # the same folder with its cameras only: the network's depth
+    plain = FastGHAClient(server.base, api_key=KEYS[2]).create_avatar(images, cams, masks)
+    off = CanonicalAvatar.load(server.data / "avatars" / f"{plain.avatar_id}.safetensors")
+    on_d, off_d = _head_distance(stored, head_part), _head_distance(off, head_part)
+    assert on_d < 0.5 * off_d, (on_d, off_d)

@@ -24,7 +24,7 @@
   // ------------------------------------------------------------------ state (one object, inspectable in tests)
   const S = {
     model: null,            // GET /v1/model
-    inputs: null,           // {images: [File|Blob], masks: [..]|null, cameras: [..]|null (the server tracks), camerasFrom}
+    inputs: null,           // {images: [File|Blob], masks: [..]|null, cameras: [..]|null (the server tracks), camerasFrom, head: {..}|null}
     sequence: null,         // [[E numbers], ...] from the sample's expressions
     avatar: null,           // {avatar_id, token, ...}
     job: null,              // the creation job being watched: {avatar_id, token, status, stage, progress, ...}
@@ -184,7 +184,7 @@
     else if (n > maxImages) problem = ` — at most ${maxImages} photos`;
     else if (cams && cams.length !== n) problem = ` — cameras.json holds ${cams.length} camera(s) for ${n} photo(s)`;
     $("input-summary").textContent = `${n} photo(s), ` + (cams ? `${cams.length} camera(s)` : "no cameras (the server finds the face)") +
-      (S.inputs.masks ? `, ${S.inputs.masks.length} mask(s)` : "") + (S.sequence ? `, ${S.sequence.length}-frame sequence` : "") + problem;
+      (S.inputs.masks ? `, ${S.inputs.masks.length} mask(s)` : "") + (S.inputs.head && cams ? ", tracked head" : "") + (S.sequence ? `, ${S.sequence.length}-frame sequence` : "") + problem;
     $("create").disabled = problem !== "" || S.job !== null;
   }
 
@@ -194,6 +194,7 @@
     // the sequence: a JSON named like one, else any JSON but a tracked folder's head.json / info.json
     const jsons = files.filter((f) => f !== camFile && f.name.toLowerCase().endsWith(".json"));
     const seqFile = jsons.find((f) => /expression|sequence|frames/i.test(f.name)) || jsons.find((f) => !/^(head|info)\.json$/i.test(f.name));
+    const headFile = jsons.find((f) => /^head\.json$/i.test(f.name));
     const isImg = (f) => /\.(jpe?g|png)$/i.test(f.name);
     const stem = (f) => f.name.replace(/\.[^.]+$/, "");
     const images = files.filter((f) => isImg(f) && !stem(f).endsWith("_mask")).sort((a, b) => a.name.localeCompare(b.name));
@@ -213,9 +214,11 @@
         say(`ignored ${camFile.name}: ${e.message}; the photos are kept${images.length ? " (without cameras the server finds the face)" : ""}`, "err");
       }
     }
+    let tracked = null;  // expressions.json of `fastgha track`: each crop's expression, by file name
     if (seqFile) {
       try {
         const q = JSON.parse(await seqFile.text());
+        if (q && !Array.isArray(q) && Array.isArray(q.images) && Array.isArray(q.expressions)) tracked = q;
         const frames = Array.isArray(q) ? q : q && (q.frames || q.expressions);  // {frames} (samples) or track's expressions.json
         if (!Array.isArray(frames)) throw new Error("expected a list of frames, {frames: [...]} or the expressions.json of `fastgha track`");
         S.sequence = frames;
@@ -226,7 +229,7 @@
     }
     if (images.length === 0 && !(old && old.images.length)) {
       if (!camFile && !seqFile) say("no photos among the dropped files (JPEG or PNG)", "err");
-      if (camFile && cameras) S.inputs = { images: [], masks: null, cameras, camerasFrom };
+      if (camFile && cameras) S.inputs = { images: [], masks: null, cameras, camerasFrom, head: null };
       showInputs();
       return;
     }
@@ -239,9 +242,32 @@
       cameras = null;
       camerasFrom = null;
     }
-    S.inputs = { images: imgs, masks, cameras, camerasFrom };
+    // a tracked folder's head.json goes with its cameras (docs/protocol.md, the `head` part): the
+    // server then puts every pixel's Gaussian on the tracked head, as `fastgha reconstruct` does
+    let head = images.length === 0 && old ? old.head || null : null;
+    if (headFile) head = await trackedHead(headFile, tracked, imgs, cameras);
+    S.inputs = { images: imgs, masks, cameras, camerasFrom, head };
     if (images.length) $("sample-select").value = "";  // the list no longer names what is loaded
     showInputs();
+  }
+
+  async function trackedHead(headFile, tracked, imgs, cameras) {
+    // head.json + each photo's tracked expression (expressions.json, by file name, else by stem), or null with a message
+    try {
+      const h = JSON.parse(await headFile.text());
+      if (!h || Array.isArray(h) || typeof h !== "object") throw new Error("it must be a JSON object with an identity list");
+      if (!cameras) throw new Error("it needs the cameras.json it was tracked with");
+      if (!tracked) throw new Error("it needs the expressions.json written with it by `fastgha track`");
+      const byName = new Map(tracked.images.map((n, i) => [n, tracked.expressions[i]]));
+      const byStem = new Map(tracked.images.map((n, i) => [n.replace(/\.[^.]+$/, ""), tracked.expressions[i]]));
+      const expressions = imgs.map((f) => byName.get(f.name) || byStem.get(f.name.replace(/\.[^.]+$/, "")));
+      const missing = imgs.filter((f, i) => !expressions[i]).map((f) => f.name);
+      if (missing.length) throw new Error(`expressions.json has no expression for ${missing.join(", ")}`);
+      return { ...h, expressions };
+    } catch (e) {
+      say(`ignored ${headFile.name}: ${e.message}; the Gaussians follow the network's depth`, "err");
+      return null;
+    }
   }
 
   const drop = $("drop");
@@ -298,7 +324,7 @@
         S.sequence = e.frames;
         if (e.fps) $("play-fps").value = String(e.fps);
       }
-      S.inputs = { images, masks, cameras, camerasFrom: "sample" };
+      S.inputs = { images, masks, cameras, camerasFrom: "sample", head: null };
       $("play").disabled = !S.sequence;
       showInputs();
       say(`loaded sample ${info.name}`, "ok");
@@ -341,6 +367,7 @@
     const fd = new FormData();
     S.inputs.images.forEach((f, i) => fd.append("images", f, f.name || `photo${i + 1}.jpg`));
     if (S.inputs.cameras) fd.append("cameras", JSON.stringify(S.inputs.cameras));
+    if (S.inputs.cameras && S.inputs.head) fd.append("head", JSON.stringify(S.inputs.head));
     if (S.inputs.masks) S.inputs.masks.forEach((f, i) => fd.append("masks", f, f.name || `photo${i + 1}_mask.png`));
     const headers = { Prefer: "respond-async" };  // 202 + a status resource instead of waiting (docs/protocol.md)
     const key = $("api-key").value.trim();

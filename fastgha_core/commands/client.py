@@ -15,7 +15,8 @@ HELP = (
 
 def add_arguments(parser) -> None:
     parser.add_argument("--url", default="http://127.0.0.1:8000", help="server base URL (default http://127.0.0.1:8000)")
-    parser.add_argument("--input", required=True, help="request folder: photos (+ cameras.json, + *_mask.png); without cameras.json the server tracks the photos (its 'faces' extra)")
+    parser.add_argument("--input", required=True, help="request folder: photos (+ cameras.json, + *_mask.png, + head.json and expressions.json of `fastgha track`: "
+                        "sent as the tracked head); without cameras.json the server tracks the photos (its 'faces' extra)")
     parser.add_argument(
         "--expressions",
         default=None,
@@ -272,7 +273,7 @@ def run(args) -> int:
 
     import numpy as np
 
-    from client_demo.client import FastGHAClient, StreamError, StreamStats, load_request_dir, orbit_camera
+    from client_demo.client import FastGHAClient, StreamError, StreamStats, load_head, load_request_dir, orbit_camera
 
     from ..cli import CLIError
 
@@ -296,6 +297,10 @@ def run(args) -> int:
 
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per HTTP request is noise here
     images, cams, masks = load_request_dir(args.input)
+    try:  # a `fastgha track` folder: its head goes with the cameras (the server reconstructs on it, as `fastgha reconstruct` does)
+        head = load_head(args.input, images)
+    except ValueError as e:
+        raise CLIError(str(e)) from None
     client = FastGHAClient(args.url, api_key=api_key_from(args.api_key))
     try:
         info = client.model_info()
@@ -326,7 +331,9 @@ def run(args) -> int:
     fps_out = fps_out or 25.0
 
     try:
-        avatar = client.create_avatar(images, cams, masks, progress=_ProgressPrinter(), busy_wait_s=120.0)
+        if head is not None:
+            print(f"sending the tracked head (head.json + expressions.json of {args.input}): the Gaussians go on it")
+        avatar = client.create_avatar(images, cams, masks, head=head, progress=_ProgressPrinter(), busy_wait_s=120.0)
     except RuntimeError as e:  # an HTTP error answer (e.g. a wrong API key), as one line
         raise CLIError(key_hint(str(e))) from None
     print(f"avatar {avatar.avatar_id}: {avatar.num_gaussians} Gaussians, reconstruction {avatar.reconstruction_ms:.0f} ms "

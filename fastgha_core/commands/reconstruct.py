@@ -80,19 +80,15 @@ def _tracked_expressions(paths):
 
 
 def _read_surface(path, expressions):
-    """The tracked head of ``head.json`` (``{"identity": [100 ICT coefficients]}``) with each image's expression."""
+    """The tracked head of ``head.json`` (``{"identity": [100 ICT coefficients]}``) with each image's
+    expression (``fastgha_core.headfile``: the same reading as the server's ``head`` part)."""
     import json
 
-    import numpy as np
-
-    from ..model.surface import HeadSurface
+    from ..headfile import head_surface_from_json
 
     if expressions is None:
         raise ValueError(f"{path} needs expressions.json beside it (both are written by `fastgha track`)")
-    data = json.loads(path.read_text())
-    if "identity" not in data:
-        raise ValueError(f"{path}: expected a JSON object with an 'identity' list (ICT-FaceKit identity coefficients)")
-    return HeadSurface(np.asarray(data["identity"], dtype=np.float32), expressions)
+    return head_surface_from_json(json.loads(path.read_text()), expressions, source=str(path))
 
 
 def _fit_surface(images, cams, masks):

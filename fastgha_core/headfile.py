@@ -1,0 +1,102 @@
+"""The tracked head of a request folder (``head.json`` of ``fastgha track``), read one way everywhere.
+
+``fastgha track`` writes ``head.json`` = ``{"model": "ict_facekit", "identity": [100 floats]}`` (the
+person's ICT-FaceKit identity coefficients, modes ~ N(0, 1)) and ``expressions.json`` (each photo's
+``ict53`` expression, weights in [0, 1]). ``fastgha reconstruct`` and the server's ``head`` part of
+``POST /v1/avatars`` (``docs/protocol.md``) both turn them into a
+``fastgha_core.model.surface.HeadSurface`` with :func:`head_surface_from_json` and reconstruct with
+every pixel's Gaussian on it (``surface_mode="replace"``) and the photos' expressions undone
+(:func:`head_expressions`). The head frame is the world of the folder's ``cameras.json`` (the
+tracker's head-centric cameras), so the surface has no ``head_to_world``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+__all__ = ["HEAD_MODEL", "MAX_ABS_IDENTITY", "head_surface_from_json", "head_expressions"]
+
+HEAD_MODEL = "ict_facekit"  # the only head model head.json names
+MAX_ABS_IDENTITY = 10.0  # identity modes are ~N(0, 1) (the fit's prior); 10 sigma is no head
+
+
+def _numbers(value: Any, what: str) -> np.ndarray:
+    if not isinstance(value, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+        got = type(value).__name__ if not isinstance(value, list) else "a list holding " + ", ".join(
+            sorted({type(v).__name__ for v in value if not isinstance(v, (int, float)) or isinstance(v, bool)})
+        )
+        raise ValueError(f"{what} must be a list of numbers, got {got}")
+    arr = np.asarray(value, dtype=np.float64)
+    if not np.isfinite(arr).all() or not all(math.isfinite(float(v)) for v in value):
+        raise ValueError(f"{what} must hold finite numbers")
+    return arr
+
+
+def head_surface_from_json(data: Any, expressions: Any, num_views: int | None = None, source: str = "head.json"):
+    """``HeadSurface`` of head.json's content ``data`` and the photos' expressions.
+
+    Args:
+        data: the parsed JSON object ``{"model": "ict_facekit" (optional), "identity": [1..100 numbers]}``;
+            other keys (``expressions``, see below) are allowed.
+        expressions: ``[V, 53]`` ``ict53`` weights of the photos in [0, 1], in the order of the
+            photos (array or nested lists); None takes ``data["expressions"]``.
+        num_views: the number of photos the expressions must cover, or None.
+        source: how messages name the JSON (a path, or ``"head"`` for the server's part).
+    Returns:
+        ``fastgha_core.model.surface.HeadSurface`` (identity ``[K <= 100]``, expressions ``[V, 53]``).
+    Raises:
+        ValueError: naming ``source`` and what was expected vs what came (not an object, another
+            model, identity not 1..100 numbers within +-MAX_ABS_IDENTITY, expressions not [V, 53] in
+            [0, 1], or V != ``num_views``).
+    """
+    from .model.surface import HeadSurface
+
+    if not isinstance(data, dict):
+        raise ValueError(f"{source}: expected a JSON object {{\"model\": \"{HEAD_MODEL}\", \"identity\": [...]}}, got {type(data).__name__}")
+    model = data.get("model", HEAD_MODEL)
+    if model != HEAD_MODEL:
+        raise ValueError(f"{source}: expected \"model\": \"{HEAD_MODEL}\" (the head `fastgha track` fits), got {model!r}")
+    if "identity" not in data:
+        raise ValueError(f"{source}: expected an 'identity' list (ICT-FaceKit identity coefficients), got keys {sorted(data)}")
+    ident = _numbers(data["identity"], f"{source}: identity")
+    if not 1 <= len(ident) <= 100:
+        raise ValueError(f"{source}: identity must hold 1 to 100 ICT-FaceKit coefficients, got {len(ident)}")
+    if np.abs(ident).max() > MAX_ABS_IDENTITY:
+        raise ValueError(f"{source}: identity coefficients must lie in [-{MAX_ABS_IDENTITY:g}, {MAX_ABS_IDENTITY:g}] (modes ~ N(0, 1)), "
+                         f"got {float(np.abs(ident).max()):.4g}")  # fmt: skip
+    if expressions is None:
+        if "expressions" not in data:
+            raise ValueError(f"{source}: expected an 'expressions' list, one list of 53 ict53 weights per photo (expressions.json of `fastgha track`)")
+        rows = data["expressions"]
+        if not isinstance(rows, list) or not rows:
+            raise ValueError(f"{source}: expressions must be a non-empty list (one list of 53 weights per photo), got {type(rows).__name__}")
+        for i, r in enumerate(rows):
+            if not isinstance(r, list) or len(r) != 53:
+                got = f"{len(r)} values" if isinstance(r, list) else type(r).__name__
+                raise ValueError(f"{source}: expressions[{i}] must be a list of 53 ict53 weights, got {got}")
+        expr = np.stack([_numbers(r, f"{source}: expressions[{i}]") for i, r in enumerate(rows)])
+    else:
+        expr = np.asarray(expressions, dtype=np.float64)
+        if expr.ndim != 2 or expr.shape[1] != 53:
+            raise ValueError(f"{source}: expressions must be [V, 53] ict53 weights, got shape {list(expr.shape)}")
+    if not np.isfinite(expr).all():
+        raise ValueError(f"{source}: expressions must hold finite numbers")
+    if expr.min() < 0.0 or expr.max() > 1.0:
+        raise ValueError(f"{source}: ict53 expression weights must lie in [0, 1], got [{expr.min():.4g}, {expr.max():.4g}]")
+    if num_views is not None and expr.shape[0] != num_views:
+        raise ValueError(f"{source}: expressions for {expr.shape[0]} photo(s), but {num_views} photo(s) came; send one per photo, in their order")
+    return HeadSurface(ident.astype(np.float32), expr.astype(np.float32))
+
+
+def head_expressions(surface, model):
+    """``[V, 53]`` float32 tensor of the head's expressions for ``model.reconstruct(expressions=...)``
+    when the model's expression space is ``ict53`` (they are then undone for a neutral canonical
+    head), else None (a model in another space has nothing to undo)."""
+    import torch
+
+    if getattr(model.config, "expression_space", None) != "ict53":
+        return None
+    return torch.from_numpy(np.asarray(surface.expressions, dtype=np.float32))
