@@ -515,6 +515,10 @@ class FastGHA(nn.Module):
             images.to(dev, torch.float32)[None], cameras.to(dev, torch.float32)[None], ray_depth if ray_depth is None or callable(ray_depth) else ray_depth.to(dev)
         )[0]
         view_index = torch.arange(v, device=dev).repeat_interleave(len(g) // v)  # Gaussians are V*S*S, view-major
+        if surface is not None and surface_mode == "replace" and self.config.gaussians.grazing_stretch > 0:
+            from .surface import stretch_to_patches, surface_steps  # grazing views' Gaussians cover their patch (model/surface.py)
+
+            g = stretch_to_patches(g, *surface_steps(sd.t.to(dev), cameras.to(dev, torch.float32)), self.config.gaussians.grazing_stretch)
         margin = self.config.gaussians.edge_margin_px
         if margin > 0:  # matte-outline pixels are part wall: on profiles they would draw a streak down the face's midline
             from .gaussian_head import edge_source_index, edge_weight
