@@ -64,6 +64,7 @@ __all__ = [
     "fit_hair_thickness",
     "surface_steps",
     "stretch_to_patches",
+    "behind_occluding_edges",
 ]
 
 HAIR_CANDIDATES_M = (0.0, 0.005, 0.01, 0.015, 0.02, 0.025, 0.03)  # fit_hair_thickness' default choices (metres)
@@ -396,7 +397,7 @@ def surface_steps(t: Tensor, cameras: Cameras, jump: float = 6.0) -> tuple[Tenso
     return torch.stack(steps, dim=-2), foot
 
 
-def stretch_to_patches(g, steps: Tensor, footprint: Tensor, sigma_per_step: float = 0.5, min_ratio: float = 1.5):
+def stretch_to_patches(g, steps: Tensor, footprint: Tensor, sigma_per_step: float = 0.5, min_ratio: float = 1.5, where: Tensor | None = None):
     """Lengthen pixel-aligned Gaussians along the surface where their pixel's patch is longer than
     its footprint (the view sees the surface at a grazing angle).
 
@@ -414,6 +415,8 @@ def stretch_to_patches(g, steps: Tensor, footprint: Tensor, sigma_per_step: floa
         steps, footprint: ``surface_steps`` of the same views.
         sigma_per_step: standard deviation added per metre of patch length beyond the footprint.
         min_ratio: patches at most this many footprints long are left as they are.
+        where: optional ``[V, H, W]`` bool, the only pixels whose Gaussians may change (e.g.
+            ``behind_occluding_edges``).
     Returns:
         The Gaussians with new ``scales`` and ``quats`` (same order and count).
     Raises:
@@ -429,6 +432,10 @@ def stretch_to_patches(g, steps: Tensor, footprint: Tensor, sigma_per_step: floa
     ln = s.norm(dim=-1)  # [N, 2]
     extra = torch.where(ln > min_ratio * f, sigma_per_step**2 * (ln**2 - f**2), torch.zeros_like(ln))  # [N, 2] variance
     sel = (extra > 0).any(-1)
+    if where is not None:
+        if tuple(where.shape) != tuple(footprint.shape):
+            raise ValueError(f"stretch_to_patches: where must have shape {list(footprint.shape)}, got {list(where.shape)}")
+        sel &= where.reshape(-1).to(sel.device)
     if not bool(sel.any()):
         return g
     u = s[sel] / ln[sel].clamp_min(1e-12)[..., None]  # [M, 2, 3]
@@ -441,3 +448,26 @@ def stretch_to_patches(g, steps: Tensor, footprint: Tensor, sigma_per_step: floa
     scales[sel] = ev.clamp_min(1e-14).sqrt().to(scales)
     quats[sel] = matrix_to_quaternion(vec).to(quats)
     return g.replace(scales=scales, quats=quats)
+
+
+def behind_occluding_edges(t: Tensor, cameras: Cameras, radius_px: int = 3, jump: float = 6.0) -> Tensor:
+    """``[V, H, W]`` bool: pixels within ``radius_px`` behind an occluding edge of the surface.
+
+    A pixel is behind an edge when a pixel within ``radius_px`` (a square window) is nearer the
+    camera by more than ``jump`` of its footprints (``t / f``): the far side of the nose ridge, of
+    the jaw seen from below, of an ear. There a view sees the surface at a grazing angle, and a
+    tracking error of a few millimetres moves what the photo shows there (the far eye's corner, the
+    nose's shaded flank) across it. Pixels off the head take a hit pixel's distance
+    (``surface_ray_depth``), so a head's outline against the background is not an edge.
+
+    Raises:
+        ValueError: when ``t`` is not ``[V, H, W]`` of the cameras' batch and size.
+    """
+    cams = cameras.flatten()
+    v, h, w = len(cams.K), cams.height, cams.width
+    if tuple(t.shape) != (v, h, w):
+        raise ValueError(f"behind_occluding_edges: t must have shape [{v}, {h}, {w}], got {list(t.shape)}")
+    t = t.float()
+    tmin = -torch.nn.functional.max_pool2d(-t[:, None], 2 * radius_px + 1, stride=1, padding=radius_px)[:, 0]
+    foot = t / cams.K[:, 0, 0].to(t.device, torch.float32)[:, None, None]
+    return (t - tmin) > jump * foot
