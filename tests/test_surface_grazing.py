@@ -11,7 +11,7 @@ import torch
 
 from fastgha_core.cameras import Cameras
 from fastgha_core.gaussians import Gaussians
-from fastgha_core.model.surface import stretch_to_patches, surface_steps
+from fastgha_core.model.surface import behind_occluding_edges, stretch_to_patches, surface_steps
 from fastgha_core.render import render
 
 S = 48
@@ -85,3 +85,21 @@ def test_stretch_checks_its_sizes():
         stretch_to_patches(g[: len(g) - 1], steps, foot)
     with pytest.raises(ValueError, match="t must have shape"):
         surface_steps(t[0], cam)
+
+
+def test_only_pixels_just_behind_an_occluding_edge_are_flagged():
+    cam, t = _plane_view(0.0)
+    assert not bool(behind_occluding_edges(t, cam).any())  # a smooth surface has no edge
+    stepped = t.clone()
+    stepped[:, :, S // 2 :] += 0.05  # the right half 5 cm further: behind the left half's edge
+    m = behind_occluding_edges(stepped, cam, radius_px=3)[0]
+    cols = m.any(0).nonzero()[:, 0].tolist()
+    assert cols == list(range(S // 2, S // 2 + 3))  # three columns behind the edge, none in front of it
+    # where= limits the stretch to those pixels
+    slope_cam, slope_t = _plane_view(75.0)
+    g = _pixel_gaussians(slope_cam, slope_t)
+    where = torch.zeros(1, S, S, dtype=torch.bool)
+    where[:, :, 20:25] = True
+    out = stretch_to_patches(g, *surface_steps(slope_t, slope_cam), where=where)
+    changed = (out.scales != g.scales).any(-1).reshape(S, S)
+    assert bool(changed[:, 20:25].all()) and not bool(changed[:, :20].any() or changed[:, 25:].any())
