@@ -38,6 +38,13 @@ bare face only (``SurfaceDepth.face_hit``) and the network's depth elsewhere, jo
 fading offset: the head model has no hair volume, and on held-out synthetic subjects replacing the
 hair's depth too lost 1.5 dB (``docs/model-card.md``).
 
+Just behind an occluding edge of the head as a view sees it (the far side of the nose ridge in a
+turned view) the view meets the surface at a grazing angle: each pixel's patch of skin is several
+footprints long, and from the front its pixel-sized Gaussians leave gaps. Through them the back of
+the head showed a dark hatched streak down the nose of frontal renders (real photo sets, issue 17).
+``FastGHA.reconstruct`` lengthens those Gaussians along the surface (``surface_steps``,
+``behind_occluding_edges``, ``stretch_to_patches``).
+
 Photos that come with their own cameras (held-out synthetic renders, a request's ``cameras.json``)
 have a world of their own: ``tracking.pipeline.track_known_cameras`` fits the head through those
 cameras and gives the surface a ``head_to_world`` transform (``tracking.fit.fit_known_cameras``).
