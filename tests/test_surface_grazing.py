@@ -103,3 +103,39 @@ def test_only_pixels_just_behind_an_occluding_edge_are_flagged():
     out = stretch_to_patches(g, *surface_steps(slope_t, slope_cam), where=where)
     changed = (out.scales != g.scales).any(-1).reshape(S, S)
     assert bool(changed[:, 20:25].all()) and not bool(changed[:, :20].any() or changed[:, 25:].any())
+
+
+def test_reconstruct_lengthens_only_the_gaussians_behind_the_nose_ridge_when_asked():
+    import numpy as np
+
+    from fastgha_core.constants import BACKGROUND_RGB
+    from fastgha_core.model.fastgha import load_model
+    from fastgha_core.model.surface import HeadSurface, surface_ray_depth
+    from fastgha_core.tracking.camera import pose_to_cameras
+    from fastgha_core.tracking.fit import FRONTAL_R, default_intrinsics, rodrigues
+
+    model = load_model("tiny")
+    s = model.config.input_size
+    yaws = [0.0, 35.0, -35.0]
+    R = np.stack([FRONTAL_R @ rodrigues(np.array([0.0, np.radians(y), 0.0])) for y in yaws])
+    cams = pose_to_cameras(R, np.tile([0.0, 0.01, 0.6], (3, 1)), default_intrinsics(s, s, 30.0), s, s)
+    head = HeadSurface(np.zeros(100, np.float32), np.zeros((3, 53), np.float32))
+    imgs = torch.tensor(BACKGROUND_RGB, dtype=torch.float32).view(1, 3, 1, 1).repeat(3, 1, s, s)
+    imgs[:, :, s // 4 : 3 * s // 4, s // 4 : 3 * s // 4] = torch.rand(3, 3, s // 2, s // 2)
+    gc = model.config.gaussians
+    saved = (gc.grazing_stretch, gc.prune_opacity, model.config.deform.prior)
+    try:
+        gc.prune_opacity, model.config.deform.prior = 0.0, False  # keep every pixel's Gaussian, in order
+        gc.grazing_stretch = 0.0
+        off = model.reconstruct(imgs, cams, surface=head).gaussians
+        gc.grazing_stretch = 1.0
+        on = model.reconstruct(imgs, cams, surface=head).gaussians
+    finally:
+        gc.grazing_stretch, gc.prune_opacity, model.config.deform.prior = saved
+    assert torch.equal(on.means, off.means)
+    changed = (on.scales != off.scales).any(-1).reshape(3, s, s)
+    near = behind_occluding_edges(surface_ray_depth(head, cams).t, cams, gc.grazing_edge_px)
+    assert bool(changed[1:].any())  # the turned views see the far side of the nose at a grazing angle
+    assert not bool((changed & ~near).any())  # nothing away from an occluding edge
+    grown = on.scales.max(-1).values.reshape(3, s, s)[changed] / off.scales.max(-1).values.reshape(3, s, s)[changed]
+    assert float(grown.min()) >= 1.0 - 1e-5 and float(grown.max()) > 1.5

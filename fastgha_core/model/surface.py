@@ -42,8 +42,9 @@ Just behind an occluding edge of the head as a view sees it (the far side of the
 turned view) the view meets the surface at a grazing angle: each pixel's patch of skin is several
 footprints long, and from the front its pixel-sized Gaussians leave gaps. Through them the back of
 the head showed a dark hatched streak down the nose of frontal renders (real photo sets, issue 17).
-``FastGHA.reconstruct`` lengthens those Gaussians along the surface (``surface_steps``,
-``behind_occluding_edges``, ``stretch_to_patches``).
+``FastGHA.reconstruct`` can lengthen those Gaussians along the surface (``surface_steps``,
+``behind_occluding_edges``, ``stretch_to_patches``; ``GaussianHeadConfig.grazing_stretch``, off by
+default: it removes the streak but costs identity distance, ``docs/model-card.md``).
 
 Photos that come with their own cameras (held-out synthetic renders, a request's ``cameras.json``)
 have a world of their own: ``tracking.pipeline.track_known_cameras`` fits the head through those
