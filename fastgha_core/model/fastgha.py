@@ -525,7 +525,7 @@ class FastGHA(nn.Module):
 
             gc, c32 = self.config.gaussians, cameras.to(dev, torch.float32)
             near = behind_occluding_edges(sd.t.to(dev), c32, gc.grazing_edge_px) if gc.grazing_edge_px > 0 else None
-            g = stretch_to_patches(g, *surface_steps(sd.t.to(dev), c32), gc.grazing_stretch, where=near)
+            g = stretch_to_patches(g, *surface_steps(sd.t.to(dev), c32), gc.grazing_stretch, gc.grazing_min_ratio, where=near)
         margin = self.config.gaussians.edge_margin_px
         if margin > 0:  # matte-outline pixels are part wall: on profiles they would draw a streak down the face's midline
             from .gaussian_head import edge_source_index, edge_weight
