@@ -463,7 +463,10 @@ class FastGHA(nn.Module):
         (``config.gaussians.coverage_target``, ``model/coverage.py``; with
         ``coverage_surface_only=False`` on the network's depth as well), and with ``"replace"`` the
         scalp is laid out by a hair thickness fitted to the inputs' mattes
-        (``config.gaussians.hair_fit``, ``surface.fit_hair_thickness``).
+        (``config.gaussians.hair_fit``, ``surface.fit_hair_thickness``); with
+        ``config.gaussians.grazing_stretch > 0`` (off by default) the Gaussians of pixels just behind an
+        occluding edge of the head (the far side of the nose ridge), which see it at a grazing angle,
+        are lengthened along it to cover their patch of skin (``surface.stretch_to_patches``).
         """
         s, vmax = self.config.input_size, self.config.max_views
         hint = "use model.prepare(images, cameras) to crop/resize them"
@@ -519,6 +522,14 @@ class FastGHA(nn.Module):
             images.to(dev, torch.float32)[None], cameras.to(dev, torch.float32)[None], ray_depth if ray_depth is None or callable(ray_depth) else ray_depth.to(dev)
         )[0]
         view_index = torch.arange(v, device=dev).repeat_interleave(len(g) // v)  # Gaussians are V*S*S, view-major
+        if surface is not None and surface_mode == "replace" and self.config.gaussians.grazing_stretch > 0:
+            from .surface import stretch_to_patches, surface_steps  # grazing views' Gaussians cover their patch (model/surface.py)
+
+            from .surface import behind_occluding_edges
+
+            gc, c32 = self.config.gaussians, cameras.to(dev, torch.float32)
+            near = behind_occluding_edges(sd.t.to(dev), c32, gc.grazing_edge_px) if gc.grazing_edge_px > 0 else None
+            g = stretch_to_patches(g, *surface_steps(sd.t.to(dev), c32), gc.grazing_stretch, gc.grazing_min_ratio, where=near)
         margin = self.config.gaussians.edge_margin_px
         if margin > 0:  # matte-outline pixels are part wall: on profiles they would draw a streak down the face's midline
             from .gaussian_head import edge_source_index, edge_weight

@@ -38,6 +38,14 @@ bare face only (``SurfaceDepth.face_hit``) and the network's depth elsewhere, jo
 fading offset: the head model has no hair volume, and on held-out synthetic subjects replacing the
 hair's depth too lost 1.5 dB (``docs/model-card.md``).
 
+Just behind an occluding edge of the head as a view sees it (the far side of the nose ridge in a
+turned view) the view meets the surface at a grazing angle: each pixel's patch of skin is several
+footprints long, and from the front its pixel-sized Gaussians leave gaps. Through them the back of
+the head showed a dark hatched streak down the nose of frontal renders (real photo sets, issue 17).
+``FastGHA.reconstruct`` can lengthen those Gaussians along the surface (``surface_steps``,
+``behind_occluding_edges``, ``stretch_to_patches``; ``GaussianHeadConfig.grazing_stretch``, off by
+default: it removes the streak but costs identity distance, ``docs/model-card.md``).
+
 Photos that come with their own cameras (held-out synthetic renders, a request's ``cameras.json``)
 have a world of their own: ``tracking.pipeline.track_known_cameras`` fits the head through those
 cameras and gives the surface a ``head_to_world`` transform (``tracking.fit.fit_known_cameras``).
@@ -62,6 +70,9 @@ __all__ = [
     "blend_network_depth",
     "hair_vertex_weight",
     "fit_hair_thickness",
+    "surface_steps",
+    "stretch_to_patches",
+    "behind_occluding_edges",
 ]
 
 HAIR_CANDIDATES_M = (0.0, 0.005, 0.01, 0.015, 0.02, 0.025, 0.03)  # fit_hair_thickness' default choices (metres)
@@ -357,3 +368,114 @@ def surface_ray_depth(surface: HeadSurface, cameras: Cameras, hair_m: float = 0.
         beyond[i] = ~covered & (dist > 1.5) & face[iy, ix] & (r < chin_row)
         front[i] = hit & (m.color[..., 2] > 0.5)
     return SurfaceDepth(torch.from_numpy(out), torch.from_numpy(hits), torch.from_numpy(beyond), torch.from_numpy(front))
+
+
+def surface_steps(t: Tensor, cameras: Cameras, jump: float = 6.0) -> tuple[Tensor, Tensor]:
+    """Each pixel's patch of the surface its Gaussian sits on: the steps to its neighbours' points.
+
+    Args:
+        t: ``[V, H, W]`` distances along each pixel's unit ray (metres), e.g. ``SurfaceDepth.t``.
+        cameras: ``Cameras [V]`` of the ``W x H`` views (``Cameras.pixel_rays``).
+        jump: a neighbour whose point is more than ``jump`` footprints away is across an occluding
+            edge (e.g. behind the nose ridge) and does not count.
+    Returns:
+        ``(steps [V, H, W, 2, 3], footprint [V, H, W])``: world vectors (metres) from the point of
+        pixel ``x - 1/2`` to that of ``x + 1/2`` (central difference, one-sided next to an edge,
+        zero without a neighbour), and ``y`` likewise; and the pixel's footprint at its distance
+        (``t / f``, metres). Where the ray meets the surface at incidence ``theta``, the step along
+        the slope is about ``footprint / cos(theta)``.
+    Raises:
+        ValueError: when ``t`` is not ``[V, H, W]`` of the cameras' batch and size.
+    """
+    cams = cameras.flatten()
+    v, h, w = len(cams.K), cams.height, cams.width
+    if tuple(t.shape) != (v, h, w):
+        raise ValueError(f"surface_steps: t must have shape [{v}, {h}, {w}], got {list(t.shape)}")
+    o, d = cams.to(t.device, torch.float32).pixel_rays()
+    p = o + t.float()[..., None] * d  # [V, H, W, 3]
+    foot = t.float() / cams.K[:, 0, 0].to(t.device, torch.float32)[:, None, None]
+    steps = []
+    for dim in (2, 1):  # x, then y
+        fwd = torch.diff(p, dim=dim, append=p.narrow(dim, p.shape[dim] - 1, 1))  # p[i+1] - p[i]
+        bwd = torch.diff(p, dim=dim, prepend=p.narrow(dim, 0, 1))  # p[i] - p[i-1]
+        ok_f = (fwd.norm(dim=-1) <= jump * foot) & (fwd.norm(dim=-1) > 0)
+        ok_b = (bwd.norm(dim=-1) <= jump * foot) & (bwd.norm(dim=-1) > 0)
+        n = (ok_f.float() + ok_b.float()).clamp_min(1)[..., None]
+        steps.append((fwd * ok_f[..., None] + bwd * ok_b[..., None]) / n)
+    return torch.stack(steps, dim=-2), foot
+
+
+def stretch_to_patches(g, steps: Tensor, footprint: Tensor, sigma_per_step: float = 0.5, min_ratio: float = 1.5, where: Tensor | None = None):
+    """Lengthen pixel-aligned Gaussians along the surface where their pixel's patch is longer than
+    its footprint (the view sees the surface at a grazing angle).
+
+    Why (issue 17, measured on video-6): the nose's far flank, which every input view sees only at
+    a grazing angle just behind the nose ridge, gets a few columns of Gaussians the size of a pixel
+    footprint; a frontal camera sees them spread over the flank with gaps between them, and through
+    the gaps the back-of-head shell's dark hair (``model.prior.back_shell``) drew a dark hatched
+    streak down the nose. Each Gaussian's covariance gets, for each image axis whose step ``s`` is
+    longer than ``min_ratio`` footprints ``f``, ``sigma_per_step**2 (|s|**2 - f**2)`` more variance
+    along ``s``: it then covers its own patch of skin. Steps lie nearly along the ray at grazing
+    angles, so the view's own image barely changes; a pixel seen head-on (``|s| ~ f``) is untouched.
+
+    Args:
+        g: ``V * H * W`` Gaussians, view-major (``FastGHA.forward_gaussians``' layout).
+        steps, footprint: ``surface_steps`` of the same views.
+        sigma_per_step: standard deviation added per metre of patch length beyond the footprint.
+        min_ratio: patches at most this many footprints long are left as they are.
+        where: optional ``[V, H, W]`` bool, the only pixels whose Gaussians may change (e.g.
+            ``behind_occluding_edges``).
+    Returns:
+        The Gaussians with new ``scales`` and ``quats`` (same order and count).
+    Raises:
+        ValueError: when the counts disagree.
+    """
+    from ..render.projection import quat_to_rotmat
+    from .gaussian_head import matrix_to_quaternion
+
+    if len(g) != footprint.numel() or tuple(steps.shape) != (*footprint.shape, 2, 3):
+        raise ValueError(f"stretch_to_patches: expected {footprint.numel()} Gaussians and steps {[*footprint.shape, 2, 3]}, got {len(g)} and {list(steps.shape)}")
+    s = steps.reshape(-1, 2, 3).to(g.means)
+    f = footprint.reshape(-1, 1).to(g.means)
+    ln = s.norm(dim=-1)  # [N, 2]
+    extra = torch.where(ln > min_ratio * f, sigma_per_step**2 * (ln**2 - f**2), torch.zeros_like(ln))  # [N, 2] variance
+    sel = (extra > 0).any(-1)
+    if where is not None:
+        if tuple(where.shape) != tuple(footprint.shape):
+            raise ValueError(f"stretch_to_patches: where must have shape {list(footprint.shape)}, got {list(where.shape)}")
+        sel &= where.reshape(-1).to(sel.device)
+    if not bool(sel.any()):
+        return g
+    u = s[sel] / ln[sel].clamp_min(1e-12)[..., None]  # [M, 2, 3]
+    R = quat_to_rotmat(g.quats[sel])
+    cov = R @ torch.diag_embed(g.scales[sel] ** 2) @ R.transpose(-1, -2)
+    cov = cov + torch.einsum("mk,mki,mkj->mij", extra[sel], u, u)
+    ev, vec = torch.linalg.eigh(cov.double())
+    vec = torch.where(torch.linalg.det(vec)[:, None, None] < 0, vec * torch.tensor([-1.0, 1.0, 1.0], dtype=vec.dtype), vec)
+    scales, quats = g.scales.clone(), g.quats.clone()
+    scales[sel] = ev.clamp_min(1e-14).sqrt().to(scales)
+    quats[sel] = matrix_to_quaternion(vec).to(quats)
+    return g.replace(scales=scales, quats=quats)
+
+
+def behind_occluding_edges(t: Tensor, cameras: Cameras, radius_px: int = 3, jump: float = 6.0) -> Tensor:
+    """``[V, H, W]`` bool: pixels within ``radius_px`` behind an occluding edge of the surface.
+
+    A pixel is behind an edge when a pixel within ``radius_px`` (a square window) is nearer the
+    camera by more than ``jump`` of its footprints (``t / f``): the far side of the nose ridge, of
+    the jaw seen from below, of an ear. There a view sees the surface at a grazing angle, and a
+    tracking error of a few millimetres moves what the photo shows there (the far eye's corner, the
+    nose's shaded flank) across it. Pixels off the head take a hit pixel's distance
+    (``surface_ray_depth``), so a head's outline against the background is not an edge.
+
+    Raises:
+        ValueError: when ``t`` is not ``[V, H, W]`` of the cameras' batch and size.
+    """
+    cams = cameras.flatten()
+    v, h, w = len(cams.K), cams.height, cams.width
+    if tuple(t.shape) != (v, h, w):
+        raise ValueError(f"behind_occluding_edges: t must have shape [{v}, {h}, {w}], got {list(t.shape)}")
+    t = t.float()
+    tmin = -torch.nn.functional.max_pool2d(-t[:, None], 2 * radius_px + 1, stride=1, padding=radius_px)[:, 0]
+    foot = t / cams.K[:, 0, 0].to(t.device, torch.float32)[:, None, None]
+    return (t - tmin) > jump * foot
