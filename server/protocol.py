@@ -236,22 +236,26 @@ def parse_camera(value: Any) -> Cameras:
         raise ProtocolError("invalid_camera", str(e)) from None
 
 
+def _loads_part(text: str | bytes, part: str, expected: str):
+    """One JSON part of a multipart upload, read by ``loads_strict``; its errors name the ``part``
+    and say what was ``expected`` (the upload carries other parts too)."""
+    try:
+        return loads_strict(text)
+    except ProtocolError as e:
+        if e.code != "invalid_json":
+            raise ProtocolError(e.code, f"{part}: {e.message}") from None
+        detail = e.message.removeprefix("message is not valid JSON").lstrip(": ")
+        if detail.startswith("(") and detail.endswith(")"):
+            detail = detail[1:-1]
+        raise ProtocolError("invalid_json", f"{part} is not valid JSON ({detail}); expected {expected}") from None
+
+
 def parse_cameras_json(text: str | bytes) -> list[Cameras]:
     """The ``cameras`` field of ``POST /v1/avatars``: a JSON array of camera objects, each within
     ``check_camera``'s bounds. Raises ``ProtocolError`` with code ``invalid_json`` /
     ``non_finite_number`` (see ``loads_strict``) or ``invalid_cameras``; the messages name the
     ``cameras`` field, since the upload carries other parts too."""
-    try:
-        data = loads_strict(text)
-    except ProtocolError as e:
-        if e.code != "invalid_json":
-            raise ProtocolError(e.code, f"cameras: {e.message}") from None
-        detail = e.message.removeprefix("message is not valid JSON").lstrip(": ")
-        if detail.startswith("(") and detail.endswith(")"):
-            detail = detail[1:-1]
-        raise ProtocolError(
-            "invalid_json", f"cameras is not valid JSON ({detail}); expected a JSON array of camera objects"
-        ) from None
+    data = _loads_part(text, "cameras", "a JSON array of camera objects")
     try:
         if isinstance(data, str):  # cameras_from_json would parse a string as JSON text again
             raise ValueError("cameras must be a non-empty JSON array of camera objects, got a JSON string")
@@ -277,15 +281,7 @@ def parse_head_json(text: str | bytes, num_images: int):
     messages name the ``head`` part and say what was expected."""
     from fastgha_core.headfile import head_surface_from_json
 
-    try:
-        data = loads_strict(text)
-    except ProtocolError as e:
-        if e.code != "invalid_json":
-            raise ProtocolError(e.code, f"head: {e.message}") from None
-        detail = e.message.removeprefix("message is not valid JSON").lstrip(": ")
-        if detail.startswith("(") and detail.endswith(")"):
-            detail = detail[1:-1]
-        raise ProtocolError("invalid_json", f"head is not valid JSON ({detail}); expected head.json of `fastgha track` with an 'expressions' list") from None
+    data = _loads_part(text, "head", "head.json of `fastgha track` with an 'expressions' list")
     try:
         head = head_surface_from_json(data, None, source="head")
     except ValueError as e:
