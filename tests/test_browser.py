@@ -89,13 +89,26 @@ def _wait_settled(page, frames_before: int) -> None:
     page.wait_for_function(_SETTLED % frames_before, timeout=60_000)
 
 
+def _load_sample(page, key: str = API_KEY) -> None:
+    """Type ``key`` and load the shipped sample into the page, ready for "Create"."""
+    page.wait_for_function("!document.getElementById('load-sample').disabled", timeout=30_000)
+    page.fill("#api-key", key)
+    page.click("#load-sample")
+    page.wait_for_function("!document.getElementById('create').disabled", timeout=30_000)
+
+
+def _stream_sample(page, timeout: int) -> None:
+    """Load the sample, create its avatar and wait (``timeout`` ms) until its first frame settles."""
+    _load_sample(page)
+    page.click("#create")
+    page.wait_for_function("window.fastghaDemo.frames >= 1", timeout=timeout)
+    _wait_settled(page, 0)
+
+
 def test_demo_streams_and_reacts_to_slider_and_camera(page, tmp_path):
     import numpy as np
 
-    page.wait_for_function("!document.getElementById('load-sample').disabled", timeout=30_000)
-    page.fill("#api-key", API_KEY)
-    page.click("#load-sample")
-    page.wait_for_function("!document.getElementById('create').disabled", timeout=30_000)
+    _load_sample(page)
     assert "4 photo(s), 4 camera(s), 4 mask(s)" in page.inner_text("#input-summary")
     assert page.locator("#thumbs img").count() == 4
     # sliders are named from GET /v1/model; the main ones first, the rest behind "more…"
@@ -156,10 +169,7 @@ def test_demo_streams_and_reacts_to_slider_and_camera(page, tmp_path):
 
 
 def test_demo_reports_a_refused_api_key(page):
-    page.wait_for_function("!document.getElementById('load-sample').disabled", timeout=30_000)
-    page.fill("#api-key", "wrong-key")
-    page.click("#load-sample")
-    page.wait_for_function("!document.getElementById('create').disabled", timeout=30_000)
+    _load_sample(page, key="wrong-key")
     page.click("#create")
     page.wait_for_function("document.getElementById('messages').innerText.includes('invalid_api_key')", timeout=30_000)
     assert page.evaluate("window.fastghaDemo.avatar") is None
@@ -231,10 +241,7 @@ def test_demo_creates_an_avatar_from_one_photo_alone_and_shows_progress(page, se
 
 
 def test_demo_reports_a_full_queue_with_its_retry_time(page, server):
-    page.wait_for_function("!document.getElementById('load-sample').disabled", timeout=30_000)
-    page.fill("#api-key", API_KEY)
-    page.click("#load-sample")
-    page.wait_for_function("!document.getElementById('create').disabled", timeout=30_000)
+    _load_sample(page)
     socks = _hold_places(server, 2)  # this API key's share (FASTGHA_MAX_JOBS_PER_CLIENT=2)
     try:
         page.click("#create")
@@ -367,13 +374,7 @@ def test_demo_stops_a_sequence_the_server_refuses_and_recovers(page, server):
     """A sequence file with a name the server does not know used to leave that name in every later
     request (each refused, one log line per frame, sliders dead until a reload): the player stops,
     the log says it once, and the sliders work again."""
-    page.wait_for_function("!document.getElementById('load-sample').disabled", timeout=30_000)
-    page.fill("#api-key", API_KEY)
-    page.click("#load-sample")
-    page.wait_for_function("!document.getElementById('create').disabled", timeout=30_000)
-    page.click("#create")
-    page.wait_for_function("window.fastghaDemo.frames >= 1", timeout=60_000)
-    _wait_settled(page, 0)
+    _stream_sample(page, timeout=60_000)
     bad = [{"jawOpenn": i / 10} for i in range(10)]
     page.set_input_files("#file-input", files=[{"name": "seq.json", "mimeType": "application/json", "buffer": json.dumps(bad).encode()}])
     page.wait_for_function("document.getElementById('input-summary').innerText.includes('10-frame sequence')", timeout=10_000)
@@ -402,13 +403,7 @@ def test_jaw_open_changes_the_mouth_region(shipped_server):
     import numpy as np
 
     for pg in _page_of(shipped_server):
-        pg.wait_for_function("!document.getElementById('load-sample').disabled", timeout=30_000)
-        pg.fill("#api-key", API_KEY)
-        pg.click("#load-sample")
-        pg.wait_for_function("!document.getElementById('create').disabled", timeout=30_000)
-        pg.click("#create")
-        pg.wait_for_function("window.fastghaDemo.frames >= 1", timeout=120_000)
-        _wait_settled(pg, 0)
+        _stream_sample(pg, timeout=120_000)
         neutral = _pixels(pg)
         n = pg.evaluate("window.fastghaDemo.frames")
         pg.fill("#s-jawOpen", "1")
