@@ -144,6 +144,10 @@ class DeformConfig:
     # with the prior: relight what an expression moves (model/prior.py, ``shading_basis``): a photo's
     # baked light otherwise stays on a moved surface (no smile creases, an evenly lit dropped lip)
     prior_shading: bool = True
+    # with the prior: each bound Gaussian turns with its triangle of the fitted head (model/prior.py,
+    # ``PriorRuntime.rotation``), faded by its binding weight; off, the prior moves centres only and an
+    # opening jaw keeps the lips' splats in their neutral orientation
+    prior_rotate: bool = True
     flame_model: str | None = None  # flame120 models: FLAME model file (else $FASTGHA_FLAME_MODEL)
 
 

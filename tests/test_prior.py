@@ -346,12 +346,18 @@ def test_animate_frame_path_matches_the_plain_path(model_and_avatar):
         with torch.inference_mode():
             dxyz, drgb = model.deform.forward_split(model._deform_partial(avatar), z)
             shade = rt.shading(z)
-            plain = _combine(g, dxyz, drgb, rt.displacement(z), avatar.num_interior, model._gate(z, rt), trim=True, shade=shade)
+            rot = rt.rotation(z)  # the surface rotation (on in tiny): the plain path's torch version
+            plain = _combine(g, dxyz, drgb, rt.displacement(z), avatar.num_interior, model._gate(z, rt), trim=True, shade=shade, rot=rot)
         n = len(fast)
         assert n_rec <= n <= len(plain)
         torch.testing.assert_close(fast.means, plain.means[:n], rtol=0, atol=2e-7)
         torch.testing.assert_close(fast.colors, plain.colors[:n], rtol=0, atol=1e-6)  # the shading: float32 rounding
-        for k in ("opacities", "quats", "scales", "features"):
+        torch.testing.assert_close(fast.quats, plain.quats[:n], rtol=0, atol=2e-5)  # the rotation: float32 rounding
+        if float(z.abs().sum()) > 0:  # the surface rotation turns the bound Gaussians
+            assert float((plain.quats[:n_rec] - g.quats[:n_rec]).abs().max()) > 0.05
+        else:
+            assert fast.quats.data_ptr() == g.quats.data_ptr()  # a neutral frame: the canonical rotations, not a copy
+        for k in ("opacities", "scales", "features"):
             assert torch.equal(getattr(fast, k), getattr(plain, k)[:n]), k
         if float(z.abs().sum()) > 0:  # the expression shading is in both paths
             assert float((shade[:n_rec] - 1).abs().max()) > 0.05
