@@ -370,6 +370,12 @@ def test_animate_frame_path_matches_the_plain_path(model_and_avatar):
             assert n < len(plain) == len(g) and plain.opacities[-1] > 0
     with pytest.raises(ValueError, match="float32 CPU tensors"):
         avatar.prior_runtime.frame(g.to(dtype=torch.float64), avatar.num_interior, dxyz, drgb, zs[0])
+    # prior_rotate off (a config option): the runtime is rebuilt and the prior moves centres only
+    on = model.animate(avatar, zs[1])
+    model.config.deform.prior_rotate = False
+    off = model.animate(avatar, zs[1])
+    assert not avatar.prior_runtime.rotate_on
+    assert torch.equal(off.quats, g.quats[: len(off)]) and torch.equal(off.means, on.means) and not torch.equal(on.quats, off.quats)
 
 
 def test_avatar_file_and_ply_keep_the_prior_and_the_mouth(model_and_avatar, tmp_path):
@@ -384,7 +390,11 @@ def test_avatar_file_and_ply_keep_the_prior_and_the_mouth(model_and_avatar, tmp_
     for k, t in avatar.prior.tensors().items():
         assert torch.equal(back.prior.tensors()[k], t), k
     z = torch.rand(53) * 0.5
-    torch.testing.assert_close(model.animate(back, z).means, model.animate(avatar, z).means)
+    a_back, a_here = model.animate(back, z), model.animate(avatar, z)
+    torch.testing.assert_close(a_back.means, a_here.means)
+    # the surface rotation comes from the saved binding alone (no tensor of its own in the file)
+    assert model.config.deform.prior_rotate and not torch.equal(a_here.quats, avatar.gaussians.quats[: len(a_here)])
+    torch.testing.assert_close(a_back.quats, a_here.quats)
     avatar.to_ply(tmp_path / "a.ply")
     g = load_ply(tmp_path / "a.ply")
     assert len(g) == len(avatar.gaussians)
