@@ -145,3 +145,41 @@ def test_training_gradient_reaches_the_gaussians_rotation(bound):
     torch.testing.assert_close(q.grad, quaternion_multiply(conj, c), rtol=0, atol=1e-6)
     assert float((q.grad - c).abs().max()) > 1e-3  # the turned Gaussians' gradient is turned too
     torch.testing.assert_close(q.grad[2], c[2])  # unbound: unchanged
+
+
+def test_an_input_photos_expression_is_undone_in_the_rotations_too():
+    """``build_prior`` with the photos' expressions subtracts each photo's displacement from its
+    Gaussians (a neutral canonical head); with ``prior_rotate`` it also turns them back by that
+    expression's surface rotation, so animating the avatar to the photo's own expression gives the
+    photographed rotations back, and a neutral photo's Gaussians keep theirs."""
+    from fastgha_core.config import get_preset
+    from fastgha_core.data.headmodel import HeadModel
+    from fastgha_core.model.avatar import CanonicalAvatar
+    from fastgha_core.model.fastgha import FastGHA
+
+    hm = HeadModel.load()
+    names = hm.expression_names
+    jaw_z = torch.zeros(53)
+    jaw_z[names.index("jawOpen")] = 0.7
+    torch.manual_seed(0)
+    cfg = get_preset("tiny")
+    cfg.deform.prior_rotate = True
+    model = FastGHA(cfg).eval()
+    v = torch.from_numpy(hm.neutral[:11248:2].copy())
+    n = len(v)
+    jaw = torch.from_numpy(hm.expression_basis[names.index("jawOpen"), :11248:2].copy())
+    q = torch.randn(2 * n, 4, generator=torch.Generator().manual_seed(3))
+    q = q / q.norm(dim=1, keepdim=True)
+    g = Gaussians(torch.cat([v, v + 0.7 * jaw]), q, torch.full((2 * n, 3), 0.002), torch.full((2 * n,), 0.9), torch.full((2 * n, 3), 0.6), torch.randn(2 * n, 32) * 0.1)
+    vi = torch.arange(2).repeat_interleave(n)  # view 0 neutral, view 1 photographed with the jaw 0.7 open
+    g2, binding, n_int = model.build_prior(g, vi, torch.stack([torch.zeros(53), jaw_z]))
+    assert torch.equal(g2.quats[:n], q[:n])  # the neutral photo: untouched
+    turned = (g2.quats[n : 2 * n] - q[n:]).abs().max(1).values > 1e-3
+    assert int(turned.sum()) > 500  # the jaw's Gaussians of the open photo were turned back
+    avatar = CanonicalAvatar(g2, "tiny", "ict53", binding, n_int)
+    again = model.animate(avatar, jaw_z)  # the photo's own expression: its rotations come back
+    torch.testing.assert_close(again.quats[n : 2 * n], q[n:], rtol=0, atol=2e-5)
+    cfg_off = get_preset("tiny")
+    assert not cfg_off.deform.prior_rotate  # off by default: the prior moves centres only
+    g3, _, _ = FastGHA(cfg_off).eval().build_prior(g, vi, torch.stack([torch.zeros(53), jaw_z]))
+    assert torch.equal(g3.quats[: 2 * n], q)

@@ -346,6 +346,12 @@ class FastGHA(nn.Module):
                 except (ValueError, np.linalg.LinAlgError):
                     pass
             g = g.replace(means=g.means - shift.to(dev, g.means.dtype))
+            if self.config.deform.prior_rotate:  # and its surface rotation, so a frame's rotation starts from neutral
+                from .gaussian_head import quaternion_multiply
+
+                rt = self._runtime(binding)
+                back = rt.rotation(ve)[vi, torch.arange(len(g))] * torch.tensor([1.0, -1.0, -1.0, -1.0])  # [N, 4] inverse
+                g = g.replace(quats=quaternion_multiply(back.to(dev, g.quats.dtype), g.quats))
             # lips of open-mouthed photos (their teeth and gap undone onto the closed lips) fade out as the mouth opens
             binding = hide_open_lips(binding, means - shift, vi, open_mouth_views(ve, basis), basis)
             drawn = means - shift
