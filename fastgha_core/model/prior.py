@@ -1144,7 +1144,8 @@ class PriorRuntime:
         ``displacement`` (the sparse ``W``, its own copy of the slots and weights there). Used by the
         server's avatar budget, where the compact basis is most of it (7.2 MB for the shipped sample's
         avatar, against 6.9 MB of Gaussians). ``rotate``: plus the bound triangles' edges ``[N, 6]``
-        float32 and, on the CPU, a frame's rotated quaternions ``[N, 4]``.
+        float32 and, on the CPU, ``triangles`` (``[N]`` int32 and ``[T, 3 + 15]`` for the ``T``
+        distinct bound triangles), a frame's triangle rotations ``[T, 4]`` and rotated quaternions ``[N, 4]``.
         """
         n, e = len(binding), basis.num_expression
         ids = binding.vertex_ids.cpu().numpy()
@@ -1155,7 +1156,10 @@ class PriorRuntime:
         own = n * 3 * 8 + n * 3 * 4 + n * 8 + n + g * e * 4 + g * 2 * 4  # local, coef (= coef3), group index int64 + int8, gates
         own += e * (int(_moving_vertices(basis).sum()) + 1) * 4  # shade_u: the shading per slot
         if rotate:
-            own += n * 6 * 4 + (n * 4 * 4 if torch.device(device).type == "cpu" else 0)  # edges, out quats
+            own += n * 6 * 4  # edges
+            if torch.device(device).type == "cpu":
+                t = len(np.unique(ids[binding.weight.cpu().numpy() > 0], axis=0))  # distinct bound triangles
+                own += n * 4 + t * (18 + 4) * 4 + n * 4 * 4  # triangles, their rotations, out quats
         if torch.device(device).type == "cpu":
             return own + e * used * 4 * 4 + n * 3 * 4 + n * 4  # compact basis + shading and slots, the opacity reference
         return own + (n + 1) * 8 + n * 3 * 8 + n * 3 * 4  # W: CSR rows, columns, values
