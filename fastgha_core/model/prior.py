@@ -25,6 +25,9 @@ Pieces (all numpy/torch on CPU, no learning):
   fitted head under a generic light (``SHADE_AMBIENT``, ``SHADE_LIGHT``); ``PriorRuntime.shading(z)``
   gathers it like the displacement into a colour factor for the reconstructed Gaussians, whose
   colours carry the photo's light baked in at the neutral pose.
+- ``PriorRuntime.rotation(z)`` (config ``deform.prior_rotate``, off by default): each bound Gaussian's
+  covariance turns with its triangle of the fitted head (the triangle's frame on the neutral and the
+  displaced head), faded by its weight; from the binding alone, nothing more is saved.
 - ``mouth_interior(fit, basis)``: Gaussians on the teeth, gums/tongue and mouth-socket meshes of the
   fitted head, coloured as the synthetic renderer shows them (``INTERIOR_SHADE``) and set back behind
   the avatar's own lips (``interior_inset``), bound to their own vertex (so they follow the jaw), with
