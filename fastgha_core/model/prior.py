@@ -1258,7 +1258,7 @@ class PriorRuntime:
         order) that Gaussians with weight > 0 and a non-degenerate triangle bind to, each Gaussian's
         index among them (-1: none, its rotation is the identity), their corners' slots in the
         ``compact`` basis, and their neutral edges (``edges``) followed by their neutral frame's
-        columns x, y, n (``prior_kernels.triangle_rotations``). Fewer triangles than Gaussians (17k
+        columns x, y, n (``prior_kernels.triangle_rotations``). Fewer triangles than Gaussians (11.6k
         for 34k bound Gaussians of the shipped sample's avatar): the rotation is computed per triangle."""
         if self._tri is None:
             ids = self._bind_fit[0].cpu().numpy()
