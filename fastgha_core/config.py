@@ -144,6 +144,11 @@ class DeformConfig:
     # with the prior: relight what an expression moves (model/prior.py, ``shading_basis``): a photo's
     # baked light otherwise stays on a moved surface (no smile creases, an evenly lit dropped lip)
     prior_shading: bool = True
+    # with the prior: each bound Gaussian turns with its triangle of the fitted head (model/prior.py,
+    # ``PriorRuntime.rotation``), faded by its binding weight. Off by default (tiny too): on 4 x 20
+    # held-out subjects it moved the dlib responses by dlib's jitter and cost 0.10-0.14 dB of mouth
+    # PSNR on jawOpen (docs/model-card.md); off, the prior moves centres only
+    prior_rotate: bool = False
     flame_model: str | None = None  # flame120 models: FLAME model file (else $FASTGHA_FLAME_MODEL)
 
 

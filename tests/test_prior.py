@@ -329,6 +329,7 @@ def test_animate_frame_path_matches_the_plain_path(model_and_avatar):
 
     model0, avatar, n_rec = model_and_avatar
     model = copy.deepcopy(model0)
+    model.config.deform.prior_rotate = True  # the surface rotation (off by default): its numba path too
     with torch.no_grad():  # a residual that moves and recolours (and clamps some colours)
         torch.manual_seed(1)
         model.deform.out.weight.normal_(0.0, 0.02)
@@ -346,12 +347,18 @@ def test_animate_frame_path_matches_the_plain_path(model_and_avatar):
         with torch.inference_mode():
             dxyz, drgb = model.deform.forward_split(model._deform_partial(avatar), z)
             shade = rt.shading(z)
-            plain = _combine(g, dxyz, drgb, rt.displacement(z), avatar.num_interior, model._gate(z, rt), trim=True, shade=shade)
+            rot = rt.rotation(z)  # the surface rotation (on in tiny): the plain path's torch version
+            plain = _combine(g, dxyz, drgb, rt.displacement(z), avatar.num_interior, model._gate(z, rt), trim=True, shade=shade, rot=rot)
         n = len(fast)
         assert n_rec <= n <= len(plain)
         torch.testing.assert_close(fast.means, plain.means[:n], rtol=0, atol=2e-7)
         torch.testing.assert_close(fast.colors, plain.colors[:n], rtol=0, atol=1e-6)  # the shading: float32 rounding
-        for k in ("opacities", "quats", "scales", "features"):
+        torch.testing.assert_close(fast.quats, plain.quats[:n], rtol=0, atol=2e-5)  # the rotation: float32 rounding
+        if float(z.abs().sum()) > 0:  # the surface rotation turns the bound Gaussians
+            assert float((plain.quats[:n_rec] - g.quats[:n_rec]).abs().max()) > 0.05
+        else:
+            assert fast.quats.data_ptr() == g.quats.data_ptr()  # a neutral frame: the canonical rotations, not a copy
+        for k in ("opacities", "scales", "features"):
             assert torch.equal(getattr(fast, k), getattr(plain, k)[:n]), k
         if float(z.abs().sum()) > 0:  # the expression shading is in both paths
             assert float((shade[:n_rec] - 1).abs().max()) > 0.05
@@ -364,13 +371,23 @@ def test_animate_frame_path_matches_the_plain_path(model_and_avatar):
             assert n < len(plain) == len(g) and plain.opacities[-1] > 0
     with pytest.raises(ValueError, match="float32 CPU tensors"):
         avatar.prior_runtime.frame(g.to(dtype=torch.float64), avatar.num_interior, dxyz, drgb, zs[0])
+    # prior_rotate off (a config option): the runtime is rebuilt and the prior moves centres only
+    on = model.animate(avatar, zs[1])
+    model.config.deform.prior_rotate = False
+    off = model.animate(avatar, zs[1])
+    assert not avatar.prior_runtime.rotate_on
+    assert torch.equal(off.quats, g.quats[: len(off)]) and torch.equal(off.means, on.means) and not torch.equal(on.quats, off.quats)
 
 
 def test_avatar_file_and_ply_keep_the_prior_and_the_mouth(model_and_avatar, tmp_path):
     from fastgha_core.io import load_ply
     from fastgha_core.model.avatar import CanonicalAvatar
 
+    import copy
+
     model, avatar, _ = model_and_avatar
+    model = copy.deepcopy(model)
+    model.config.deform.prior_rotate = True  # the surface rotation: from the saved binding alone
     p = tmp_path / "a.safetensors"
     avatar.save(p)
     back = CanonicalAvatar.load(p)
@@ -378,7 +395,11 @@ def test_avatar_file_and_ply_keep_the_prior_and_the_mouth(model_and_avatar, tmp_
     for k, t in avatar.prior.tensors().items():
         assert torch.equal(back.prior.tensors()[k], t), k
     z = torch.rand(53) * 0.5
-    torch.testing.assert_close(model.animate(back, z).means, model.animate(avatar, z).means)
+    a_back, a_here = model.animate(back, z), model.animate(avatar, z)
+    torch.testing.assert_close(a_back.means, a_here.means)
+    # the surface rotation comes from the saved binding alone (no tensor of its own in the file)
+    assert not torch.equal(a_here.quats, avatar.gaussians.quats[: len(a_here)])
+    torch.testing.assert_close(a_back.quats, a_here.quats)
     avatar.to_ply(tmp_path / "a.ply")
     g = load_ply(tmp_path / "a.ply")
     assert len(g) == len(avatar.gaussians)

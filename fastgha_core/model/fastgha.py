@@ -68,14 +68,15 @@ def _apply_deformation(g: Gaussians, dxyz: Tensor, drgb: Tensor) -> Gaussians:
     return g.replace(means=g.means + dxyz, colors=(g.colors + drgb).clamp(0.0, 1.0))
 
 
-def _combine(g: Gaussians, dxyz: Tensor, drgb: Tensor, prior_d: Tensor | None, n_int: int, gate: Tensor | None, trim: bool = False, shade: Tensor | None = None) -> Gaussians:
+def _combine(g: Gaussians, dxyz: Tensor, drgb: Tensor, prior_d: Tensor | None, n_int: int, gate: Tensor | None, trim: bool = False, shade: Tensor | None = None, rot: Tensor | None = None) -> Gaussians:
     """Deformed ``g`` from the MLP's ``dxyz``/``drgb [N_rec, 3]`` (first ``N - n_int`` Gaussians), the
     prior's displacement ``[N, 3]`` (or None), per-Gaussian opacity factors ``gate [N]`` (or None) and
     the prior's expression shading ``shade [N]`` (or None): the reconstructed Gaussians' colour factor.
 
     ``trim``: drop the trailing interior Gaussians whose gate is 0 (the interior is ordered back-of-head
     shell (ungated), mouth, left lid, right lid, so a neutral frame renders no more Gaussians than an
-    avatar without the gated ones)."""
+    avatar without the gated ones). ``rot [N, 4]`` (or None): the prior's surface rotation
+    (``PriorRuntime.rotation``), applied after each Gaussian's own rotation."""
     if prior_d is None and n_int == 0 and gate is None:
         return _apply_deformation(g, dxyz, drgb)
     if trim and n_int and gate is not None:
@@ -85,6 +86,11 @@ def _combine(g: Gaussians, dxyz: Tensor, drgb: Tensor, prior_d: Tensor | None, n
         if end < len(g):
             g, gate, n_int = g[:end], gate[:end], end - n_rec
             prior_d = None if prior_d is None else prior_d[:end]
+            rot = None if rot is None else rot[:end]
+    if rot is not None:
+        from .gaussian_head import quaternion_multiply
+
+        g = g.replace(quats=quaternion_multiply(rot, g.quats))
     n_rec = len(g) - n_int
     if shade is not None:
         rec_colors = ((g.colors[:n_rec] + drgb).clamp(0.0, 1.0) * shade[:n_rec, None]).clamp(0.0, 1.0)
@@ -258,7 +264,8 @@ class FastGHA(nn.Module):
                 gate = self._gate(z, rt)
                 n_rec = len(g) - n_int
                 dxyz, drgb = self.deform(g.features[:n_rec], g.means[:n_rec], z)
-                deformed.append(_combine(g, dxyz, drgb, rt.displacement(z), n_int, gate, shade=rt.shading(z) if rt.shading_on else None))
+                rot = rt.rotation(z) if rt.rotate_on else None
+                deformed.append(_combine(g, dxyz, drgb, rt.displacement(z), n_int, gate, shade=rt.shading(z) if rt.shading_on else None, rot=rot))
             else:
                 dxyz, drgb = self.deform(g.features, g.means, z)
                 deformed.append(_apply_deformation(g, dxyz, drgb))
@@ -274,7 +281,7 @@ class FastGHA(nn.Module):
     def _runtime(self, binding):
         from .prior import PriorRuntime
 
-        return PriorRuntime(binding, self.head_basis(), device=binding.vertex_ids.device, shading=self.config.deform.prior_shading)
+        return PriorRuntime(binding, self.head_basis(), device=binding.vertex_ids.device, shading=self.config.deform.prior_shading, rotate=self.config.deform.prior_rotate)
 
     @staticmethod
     def _gate(z: Tensor, rt) -> Tensor | None:
@@ -339,6 +346,12 @@ class FastGHA(nn.Module):
                 except (ValueError, np.linalg.LinAlgError):
                     pass
             g = g.replace(means=g.means - shift.to(dev, g.means.dtype))
+            if self.config.deform.prior_rotate:  # and its surface rotation, so a frame's rotation starts from neutral
+                from .gaussian_head import quaternion_multiply
+
+                rt = self._runtime(binding)
+                back = rt.rotation(ve)[vi, torch.arange(len(g))] * torch.tensor([1.0, -1.0, -1.0, -1.0])  # [N, 4] inverse
+                g = g.replace(quats=quaternion_multiply(back.to(dev, g.quats.dtype), g.quats))
             # lips of open-mouthed photos (their teeth and gap undone onto the closed lips) fade out as the mouth opens
             binding = hide_open_lips(binding, means - shift, vi, open_mouth_views(ve, basis), basis)
             drawn = means - shift
@@ -595,7 +608,7 @@ class FastGHA(nn.Module):
             if self.config.deform.prior and len(avatar.prior) == n:
                 from .prior import PriorRuntime
 
-                total += PriorRuntime.estimate_nbytes(avatar.prior, self.head_basis(), self.device.type)
+                total += PriorRuntime.estimate_nbytes(avatar.prior, self.head_basis(), self.device.type, rotate=self.config.deform.prior_rotate)
         return total
 
     def compile_deformation(self, bf16: bool = False, cuda_graphs: bool = False) -> float:
@@ -658,7 +671,7 @@ class FastGHA(nn.Module):
         dxyz, drgb = dxyz.float(), drgb.float()
         g = avatar.gaussians if avatar.gaussians.means.device == dev else avatar.gaussians.to(dev)
         n_int = avatar.num_interior
-        prior_d = gate = shade = None
+        prior_d = gate = shade = rot = None
         if self.config.deform.prior and avatar.prior is not None:
             rt = avatar.prior_runtime
             if (
@@ -667,6 +680,7 @@ class FastGHA(nn.Module):
                 or rt.n != len(g)
                 or rt.basis_u.device != dev
                 or rt.shading_on != bool(self.config.deform.prior_shading)
+                or rt.rotate_on != bool(self.config.deform.prior_rotate)
             ):
                 with torch.inference_mode(False):
                     rt = avatar.prior_runtime = self._runtime(avatar.prior.to(dev))
@@ -676,11 +690,12 @@ class FastGHA(nn.Module):
             if prior:
                 prior_d = rt.displacement(z)  # [N, 3] or [B, N, 3]
                 shade = rt.shading(z) if rt.shading_on else None  # [N] or [B, N]
+                rot = rt.rotation(z) if rt.rotate_on else None  # [N, 4] or [B, N, 4]
             gate = self._gate(z, rt)
         if z.ndim == 1:
-            return _combine(g, dxyz, drgb, prior_d, n_int, gate, trim=True, shade=shade)
+            return _combine(g, dxyz, drgb, prior_d, n_int, gate, trim=True, shade=shade, rot=rot)
         return [
-            _combine(g, dxyz[i], drgb[i], None if prior_d is None else prior_d[i], n_int, None if gate is None else gate[i], trim=True, shade=None if shade is None else shade[i])
+            _combine(g, dxyz[i], drgb[i], None if prior_d is None else prior_d[i], n_int, None if gate is None else gate[i], trim=True, shade=None if shade is None else shade[i], rot=None if rot is None else rot[i])
             for i in range(z.shape[0])
         ]
 

@@ -25,6 +25,9 @@ Pieces (all numpy/torch on CPU, no learning):
   fitted head under a generic light (``SHADE_AMBIENT``, ``SHADE_LIGHT``); ``PriorRuntime.shading(z)``
   gathers it like the displacement into a colour factor for the reconstructed Gaussians, whose
   colours carry the photo's light baked in at the neutral pose.
+- ``PriorRuntime.rotation(z)`` (config ``deform.prior_rotate``, off by default): each bound Gaussian's
+  covariance turns with its triangle of the fitted head (the triangle's frame on the neutral and the
+  displaced head), faded by its weight; from the binding alone, nothing more is saved.
 - ``mouth_interior(fit, basis)``: Gaussians on the teeth, gums/tongue and mouth-socket meshes of the
   fitted head, coloured as the synthetic renderer shows them (``INTERIOR_SHADE``) and set back behind
   the avatar's own lips (``interior_inset``), bound to their own vertex (so they follow the jaw), with
@@ -1061,6 +1064,7 @@ def _moving_vertices(basis: HeadBasis) -> np.ndarray:
 
 
 _SHARED: dict = {}
+_NO_QUATS, _NO_TIDX = np.zeros((0, 4), np.float32), np.zeros(0, np.int32)  # frame() without rotation
 
 
 def _shared_basis(basis: HeadBasis, device) -> tuple[Tensor, np.ndarray]:
@@ -1091,11 +1095,19 @@ class PriorRuntime:
     it reads a per-avatar copy of the used slots (``compact``) and writes the deformed Gaussians.
     ``shading(z)`` -> ``[N]`` (``[B, N]``): the colour factor of the expression shading
     (``shading_basis``, gathered and weighted like the displacement; 1 everywhere with ``shading=False``).
+    ``rotation(z)`` -> ``[N, 4]`` (``[B, N, 4]``) wxyz: each Gaussian's surface rotation (its bound
+    triangle's turn between the neutral fitted head and the displaced one, faded by its weight), which
+    ``rotate=True`` makes ``frame`` apply to the Gaussians' own rotations (``fastgha._combine`` on the
+    other paths).
     """
 
-    def __init__(self, binding: PriorBinding, basis: HeadBasis, device=None, shading: bool = True):
+    def __init__(self, binding: PriorBinding, basis: HeadBasis, device=None, shading: bool = True, rotate: bool = False):
         dev = device or binding.vertex_ids.device
         self.shading_on = bool(shading)  # expression shading of the reconstructed Gaussians' colours
+        self.rotate_on = bool(rotate)  # bound Gaussians turn with their triangle (``rotation``)
+        self._bind_fit = (binding.vertex_ids, binding.transform, binding.identity)  # for ``edges``
+        self._edges: Tensor | None = None  # [N, 6], built on first use
+        self._tri: tuple | None = None  # frame()'s per-triangle tables (``triangles``)
         self.source = binding  # the binding it was built from (``FastGHA.animate`` sets the avatar's own: its cache key)
         self.identity = binding.identity.detach().cpu().numpy()
         self._shade_u: Tensor | None = None  # [E, U] per slot, built on first use (``shade_u``)
@@ -1127,14 +1139,16 @@ class PriorRuntime:
         self._run_max: tuple | None = None  # frame()'s per-avatar constants, keyed on the Gaussians' tensors
 
     @staticmethod
-    def estimate_nbytes(binding: PriorBinding, basis: HeadBasis, device: str = "cpu") -> int:
+    def estimate_nbytes(binding: PriorBinding, basis: HeadBasis, device: str = "cpu", rotate: bool = False) -> int:
         """Bytes a runtime of ``binding`` on ``device`` holds once it has animated a frame: its own
         tensors (the basis shared by every avatar, ``basis_u``, is not counted). On the CPU, the path of
         ``frame`` (per-Gaussian slots and weights, the ``compact`` basis of the ``Uc`` slots the binding
         uses, ``[E, Uc*3]`` float32, and the last frame's opacity reference); elsewhere the path of
         ``displacement`` (the sparse ``W``, its own copy of the slots and weights there). Used by the
         server's avatar budget, where the compact basis is most of it (7.2 MB for the shipped sample's
-        avatar, against 6.9 MB of Gaussians).
+        avatar, against 6.9 MB of Gaussians). ``rotate``: plus the bound triangles' edges ``[N, 6]``
+        float32 and, on the CPU, ``triangles`` (``[N]`` int32 and ``[T, 3 + 15]`` for the ``T``
+        distinct bound triangles), a frame's triangle rotations ``[T, 4]`` and rotated quaternions ``[N, 4]``.
         """
         n, e = len(binding), basis.num_expression
         ids = binding.vertex_ids.cpu().numpy()
@@ -1144,6 +1158,11 @@ class PriorRuntime:
         g = len(basis.gates)
         own = n * 3 * 8 + n * 3 * 4 + n * 8 + n + g * e * 4 + g * 2 * 4  # local, coef (= coef3), group index int64 + int8, gates
         own += e * (int(_moving_vertices(basis).sum()) + 1) * 4  # shade_u: the shading per slot
+        if rotate:
+            own += n * 6 * 4  # edges
+            if torch.device(device).type == "cpu":
+                t = len(np.unique(ids[binding.weight.cpu().numpy() > 0], axis=0))  # distinct bound triangles
+                own += n * 4 + t * (18 + 4) * 4 + n * 4 * 4  # triangles, their rotations, out quats
         if torch.device(device).type == "cpu":
             return own + e * used * 4 * 4 + n * 3 * 4 + n * 4  # compact basis + shading and slots, the opacity reference
         return own + (n + 1) * 8 + n * 3 * 8 + n * 3 * 4  # W: CSR rows, columns, values
@@ -1216,6 +1235,97 @@ class PriorRuntime:
             return (1.0 + r[:, 0]).clamp(*SHADE_RANGE)
         return (1.0 + (self.W @ su.T).T).clamp(*SHADE_RANGE)  # [B, N]
 
+    @property
+    def edges(self) -> Tensor:
+        """``[N, 6]`` float32: each Gaussian's bound triangle's edges ``b - a`` and ``c - a`` on the
+        neutral fitted head in the avatar's frame (metres; ``PriorBinding.fitted_vertices``), corners
+        in ``vertex_ids`` order. Zero for a Gaussian bound to one vertex (the mouth interior, the
+        eyelids, the back shell), whose rotation is then the identity."""
+        if self._edges is None:
+            ids, transform, identity = self._bind_fit
+            b = PriorBinding(ids[:1], torch.zeros(1, 3), torch.zeros(1), transform, identity, self.basis.space)
+            v = b.fitted_vertices(self.basis).astype(np.float64)
+            tri = v[ids.cpu().numpy()]  # [N, 3, 3]
+            e = np.concatenate([tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]], axis=1).astype(np.float32)
+            with torch.inference_mode(False):
+                self._edges = torch.from_numpy(np.ascontiguousarray(e)).to(self.basis_u.device)
+        return self._edges
+
+    @property
+    def triangles(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What ``frame`` reads for the rotation, built on first use: ``(tidx [N] int32, tslots [T, 3]
+        int32, tgeom [T, 15] float32)``: the ``T`` distinct triangles (corners in ``vertex_ids``
+        order) that Gaussians with weight > 0 and a non-degenerate triangle bind to, each Gaussian's
+        index among them (-1: none, its rotation is the identity), their corners' slots in the
+        ``compact`` basis, and their neutral edges (``edges``) followed by their neutral frame's
+        columns x, y, n (``prior_kernels.triangle_rotations``). Fewer triangles than Gaussians (11.6k
+        for 34k bound Gaussians of the shipped sample's avatar): the rotation is computed per triangle."""
+        if self._tri is None:
+            ids = self._bind_fit[0].cpu().numpy()
+            e = self.edges.cpu().numpy()
+            w = self.coef3.sum(-1).cpu().numpy()
+            n1 = np.cross(e[:, :3].astype(np.float64), e[:, 3:].astype(np.float64))
+            ok = (w > 0) & (np.linalg.norm(e[:, :3], axis=1) > 1e-12) & (np.linalg.norm(n1, axis=1) > 1e-18)
+            tidx = np.full(self.n, -1, np.int32)
+            first = np.zeros(0, np.int64)
+            if ok.any():
+                sel = np.flatnonzero(ok)
+                _, first_k, inv = np.unique(ids[sel], axis=0, return_index=True, return_inverse=True)
+                tidx[sel] = inv.reshape(-1).astype(np.int32)
+                first = sel[first_k]
+            slots = self.compact[1].numpy()
+            e1, e2 = e[first, :3].astype(np.float64), e[first, 3:].astype(np.float64)
+            x = e1 / np.linalg.norm(e1, axis=1, keepdims=True)
+            nrm = np.cross(e1, e2)
+            nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+            geom = np.concatenate([e[first], x, np.cross(nrm, x), nrm], axis=1).astype(np.float32)
+            self._tri = (tidx, np.ascontiguousarray(slots[first]), np.ascontiguousarray(geom))
+        return self._tri
+
+    def rotation(self, z: Tensor) -> Tensor:
+        """Surface rotation ``[N, 4]`` wxyz for ``z [E]`` (``[B, N, 4]`` for ``[B, E]``), plain torch.
+
+        Per Gaussian, its bound triangle (corners ``vertex_ids``) on the neutral fitted head and
+        displaced by the blendshapes (``du`` of each corner, as ``displacement`` gathers them): the
+        orthonormal frame ``F = [x, y, n]`` of each (``x`` along ``b - a``, ``n`` the normal, ``y = n x x``,
+        as GaussianAvatars, Qian et al. 2024, orients a triangle) gives the rotation ``R = F_disp F_neutral^T``;
+        the result is ``nlerp(identity, q(R), w)`` with ``w`` the Gaussian's fade weight (``sum_k coef_k``,
+        barycentrics sum to 1), so unbound Gaussians (weight 0), Gaussians bound to one vertex
+        (degenerate triangle) and unmoved triangles get exactly ``(1, 0, 0, 0)``. No gradient flows
+        to ``z``; the Gaussians' own rotations take it through ``quaternion_multiply`` (``fastgha._combine``).
+        ``prior_kernels.triangle_rotations`` is the same maths (``frame``'s path, once per bound triangle,
+        then the weight's nlerp in ``prior_kernels.prior_frame``).
+        """
+        from .gaussian_head import matrix_to_quaternion
+
+        z = z.detach().to(self.basis_u.dtype)
+        lead = z.shape[:-1]
+        du = (z @ self.basis_u).view(*lead, -1, 3) @ self.M.T  # [..., U, 3]
+        d = du[..., self.local, :].view(*lead, self.n, 3, 3)  # corner displacements
+        e = self.edges.view(self.n, 2, 3)
+        e1, e2 = e[:, 0], e[:, 1]
+        d1, d2 = d[..., 1, :] - d[..., 0, :], d[..., 2, :] - d[..., 0, :]
+
+        def frame(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
+            n = torch.linalg.cross(a, b, dim=-1)
+            la, ln = a.norm(dim=-1, keepdim=True), n.norm(dim=-1, keepdim=True)
+            ok = (la[..., 0] > 1e-12) & (ln[..., 0] > 1e-18)
+            x, n = a / la.clamp_min(1e-30), n / ln.clamp_min(1e-30)
+            return torch.stack([x, torch.linalg.cross(n, x, dim=-1), n], dim=-1), ok  # columns x, y, n
+
+        f0, ok0 = frame(e1, e2)
+        f1, ok1 = frame(e1 + d1, e2 + d2)
+        q = matrix_to_quaternion(f1 @ f0.transpose(-1, -2))  # [..., N, 4], w >= 0
+        w = self.coef3.sum(-1).clamp(0.0, 1.0)  # [N]
+        moved = (d1 != 0).any(-1) | (d2 != 0).any(-1)
+        keep = ok0 & ok1 & moved & (w > 0)
+        ident = torch.zeros_like(q)
+        ident[..., 0] = 1.0
+        wq = w[:, None]
+        q = (1.0 - wq) * ident + wq * q
+        q = q / q.norm(dim=-1, keepdim=True)
+        return torch.where(keep[..., None], q, ident)
+
     def factor_table(self, z: Tensor) -> Tensor:
         """The opacity factor of each gate slot for ``z [E]`` -> ``[2G + 1]`` (``opacity_factors`` is it at ``group_index``)."""
         return factor_table(z.to(self.gates.dtype), self.gates, self.gate_ranges)
@@ -1227,18 +1337,19 @@ class PriorRuntime:
 
         The same Gaussians as the plain path ``fastgha._combine(g, dxyz, drgb, displacement(z), n_int,
         opacity_factors(z), trim=True, shade=shading(z))`` (positions and colours to float32 rounding,
-        opacities exactly),
+        opacities exactly; with ``rotate`` also ``quats`` = ``quaternion_multiply(rotation(z), g.quats)``),
         from one numba pass (``prior_kernels.prior_frame``), except for which hidden Gaussians are left
         out: a trailing run of one gate group is dropped when every gated opacity in it is below the
         rasterizer's ``ALPHA_MIN`` (the rasterizer skips such splats, so the image is the same), where
-        the plain path drops trailing ones only at a gate of exactly 0. ``quats``, ``scales`` and
-        ``features`` of the result are views of ``g``'s.
+        the plain path drops trailing ones only at a gate of exactly 0. ``scales`` and ``features`` of
+        the result are views of ``g``'s, and so are ``quats`` without ``rotate`` or at a frame with no
+        blendshape weight.
         Raises:
             ValueError: tensors not float32 on the CPU, or shapes that do not match the binding.
         """
         from ..gaussians import Gaussians
         from ..render.projection import ALPHA_MIN
-        from .prior_kernels import prior_frame
+        from .prior_kernels import prior_frame, triangle_rotations
 
         n, n_rec = len(g), len(g) - n_int
         if n != self.n or dxyz.shape != (n_rec, 3) or drgb.shape != (n_rec, 3) or z.shape != (self.basis_u.shape[0],):
@@ -1253,7 +1364,7 @@ class PriorRuntime:
         # reads (a .numpy() call costs ~20 us), the largest canonical opacity of each gate run, and
         # the gates' ranges as gate_factors computes them (so the table below is bit-equal to it)
         c = self._run_max
-        if c is None or c[0] is not g.opacities or c[1] is not g.means or c[2] is not g.colors:
+        if c is None or c[0] is not g.opacities or c[1] is not g.means or c[2] is not g.colors or c[-2] is not g.quats:
             op = g.opacities
             basis_c, slots = self.compact
             rng = self.gate_ranges
@@ -1262,8 +1373,9 @@ class PriorRuntime:
                 [np.float32(op[a:b].max()) if b > a else np.float32(0) for a, b, _ in self.runs],
                 basis_c, slots.numpy(), self.coef3.numpy(), self.group_index8.numpy(),
                 rng[:, 0].numpy(), (rng[:, 1] - rng[:, 0]).numpy(),
+                g.quats, (g.quats.numpy(), *self.triangles) if self.rotate_on else None,
             )
-        op_np, means_np, colors_np, run_max, basis_c, slots_np, coef_np, gidx_np, r0, span = c[3:]
+        op_np, means_np, colors_np, run_max, basis_c, slots_np, coef_np, gidx_np, r0, span = c[3:13]
         # factor_table(z) in numpy after the same product: the same float32 operations in the same order
         x = np.clip(((z @ self.gates.T).numpy() - r0) / span, 0.0, 1.0)
         f = x * x * (3.0 - 2.0 * x)
@@ -1283,6 +1395,8 @@ class PriorRuntime:
         else:
             d = z @ basis_c
         out_means, out_colors, out_op = torch.empty(end, 3), torch.empty(end, 3), torch.empty(end)
+        rot = self.rotate_on and len(nz) > 0
+        out_quats = torch.empty(end if rot else 0, 4)
         import numba
 
         from ..render.cpu_backend import num_threads
@@ -1290,16 +1404,23 @@ class PriorRuntime:
         prev = numba.get_num_threads()
         numba.set_num_threads(num_threads())
         try:
+            du = d.view(-1, 4).numpy()
+            if rot:
+                quats_np, tidx, tslots, tgeom = c[-1]
+                tq = np.empty((len(tslots), 4), np.float32)
+                triangle_rotations(du, tslots, tgeom, tq)
+            else:
+                quats_np, tidx, tq = _NO_QUATS, _NO_TIDX, _NO_QUATS
             prior_frame(
-                means_np, colors_np, op_np, dxyz.numpy(), drgb.numpy(), d.view(-1, 4).numpy(),
+                means_np, colors_np, op_np, dxyz.numpy(), drgb.numpy(), du,
                 slots_np, coef_np, gidx_np, table, n_rec,
                 np.float32(SHADE_RANGE[0]), np.float32(SHADE_RANGE[1]),
-                out_means.numpy(), out_colors.numpy(), out_op.numpy(),
+                out_means.numpy(), out_colors.numpy(), out_op.numpy(), quats_np, tidx, tq, out_quats.numpy(),
             )
         finally:
             numba.set_num_threads(prev)
         return Gaussians(
-            means=out_means, quats=g.quats[:end], scales=g.scales[:end], opacities=out_op, colors=out_colors,
+            means=out_means, quats=out_quats if rot else g.quats[:end], scales=g.scales[:end], opacities=out_op, colors=out_colors,
             features=None if g.features is None else g.features[:end],
         )
 
