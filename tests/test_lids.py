@@ -104,6 +104,12 @@ def test_show_closed_lids_leaves_other_groups_and_checks_shapes(basis):
     assert (out[:L] == grp[:L]).all()  # view 0 has its eyes open
     assert (out[L : L + 5] == lip_hide_group(basis)).all()
     assert set(out[L + 5 :].tolist()) == {1, 2}
+    # only the closed-eyed view draws that eye (a side view sees it, the open one does not): left as
+    # it was, no hole in the neutral eye
+    far_away = pts.copy()
+    far_away[:L] += np.float32([0.0, 0.0, -0.08])  # view 0's Gaussians nowhere near the eyes
+    alone = show_closed_lids(b, far_away, vi, np.stack([np.zeros(53), blink]), fit, basis).groups().numpy()
+    assert (alone == grp).all()
     # no closed-eyed view: the same binding back
     assert show_closed_lids(b, pts, vi, np.zeros((2, 53)), fit, basis) is b
     with pytest.raises(ValueError, match="shapes"):

@@ -24,23 +24,33 @@ from torch import Tensor
 
 from .prior import HeadBasis, HeadFit, PriorBinding, gate_factors
 
-__all__ = ["CLOSED_VIEW_GATE", "CLOSED_LID_RADIUS", "closed_lid_views", "show_closed_lids"]
+__all__ = ["CLOSED_VIEW_GATE", "CLOSED_LID_RADIUS", "OPEN_COVER", "closed_lid_views", "show_closed_lids"]
 
 # A view closes an eye when that eye's lid gate (``basis.gates[k]``, ``gate_factors``) is at least this.
 CLOSED_VIEW_GATE = 0.5
 # Gaussians of a closed-eyed view within this distance (metres, times the fit's scale) of that eye's
 # closed upper lid (the fitted lid vertices at the view's expression) are its closed lid.
 CLOSED_LID_RADIUS = 0.004
+# ... and only when the views that show that eye open put at least this many Gaussians (times the
+# closed view's count) within that distance of the closed lid: a side view may not see the eye, and
+# hiding the closed view's lid there would leave a hole in the neutral avatar's eye.
+OPEN_COVER = 0.5
+
+
+def _lid_factors(ve: np.ndarray, basis: HeadBasis) -> np.ndarray:
+    """``[V, G - 1]``: each view's lid gate factors (``gate_factors``; 0 = open, 1 = closed)."""
+    z = torch.as_tensor(np.asarray(ve, np.float32))
+    return gate_factors(z, torch.as_tensor(basis.gates), torch.as_tensor(basis.gate_ranges)).numpy()[:, 1:]
 
 
 def closed_lid_views(view_expressions: np.ndarray | Tensor, basis: HeadBasis) -> np.ndarray:
     """``[V, G - 1]`` bool: input views whose expression ``view_expressions [V, E]`` closes the eye of
     lid gate ``k = 1..G-1`` (gate factor >= ``CLOSED_VIEW_GATE``). An eye no view shows open is marked
     in no view (the neutral avatar keeps an eye). Raises ``ValueError`` for another shape."""
-    ve = torch.as_tensor(np.asarray(view_expressions.detach().cpu() if isinstance(view_expressions, Tensor) else view_expressions, np.float32))
+    ve = np.asarray(view_expressions.detach().cpu() if isinstance(view_expressions, Tensor) else view_expressions, np.float32)
     if ve.ndim != 2 or ve.shape[1] != basis.num_expression:
         raise ValueError(f"closed_lid_views: expected view expressions [V, {basis.num_expression}], got {list(ve.shape)}")
-    f = gate_factors(ve, torch.as_tensor(basis.gates), torch.as_tensor(basis.gate_ranges)).numpy()[:, 1:]  # [V, G-1]
+    f = _lid_factors(ve, basis)
     closed = f >= CLOSED_VIEW_GATE
     closed[:, ~(f <= 0.0).any(0)] = False  # no view with that eye open: leave it
     return closed
@@ -62,7 +72,9 @@ def show_closed_lids(binding: PriorBinding, points: np.ndarray | Tensor, view_in
         The binding with group ``k`` (appear with lid gate ``k``) for each Gaussian of a view that
         closes eye ``k`` (``closed_lid_views``), with weight > 0, within ``CLOSED_LID_RADIUS`` (times
         the fit's scale) of that eye's closed upper lid at that view's expression, and no gate group or
-        that eye's eyeball group (``G - 1 + k``, which hides as the lid closes).
+        that eye's eyeball group (``G - 1 + k``, which hides as the lid closes); only where the views
+        that show that eye open have at least ``OPEN_COVER`` times as many Gaussians within that
+        distance (else that view's lid is left as it was: no hole in the neutral eye).
     Raises:
         ValueError: ``points`` or ``view_index`` not ``[N, 3]`` / ``[N]``.
     """
@@ -85,6 +97,7 @@ def show_closed_lids(binding: PriorBinding, points: np.ndarray | Tensor, view_in
     scale = float(np.cbrt(abs(np.linalg.det(M))))
     grp = binding.groups().cpu().numpy().copy()
     live = binding.weight.cpu().numpy() > 0
+    opened = _lid_factors(ve, basis) <= 0.0  # [V, G-1]: views that show each eye open
     for k in range(1, G):
         lid = basis.interior_vertices[(ig == k) & ~lash]
         for v in np.flatnonzero(closed[:, k - 1]):
@@ -92,8 +105,13 @@ def show_closed_lids(binding: PriorBinding, points: np.ndarray | Tensor, view_in
             if not len(mine):
                 continue
             at = fit.vertices[lid].astype(np.float64) + np.tensordot(ve[v], basis.expression_basis[:, lid], axes=1) @ M.T
-            d, _ = cKDTree(at).query(p[mine])
-            grp[mine[d < CLOSED_LID_RADIUS * scale]] = k
+            tree = cKDTree(at)
+            sel = mine[tree.query(p[mine])[0] < CLOSED_LID_RADIUS * scale]
+            # only where the open-eyed views draw that eye too (a side view may not see it): else a hole
+            other = np.flatnonzero(opened[vi, k - 1] & live)
+            cover = int((tree.query(p[other])[0] < CLOSED_LID_RADIUS * scale).sum()) if len(other) else 0
+            if cover >= OPEN_COVER * len(sel):
+                grp[sel] = k
     return PriorBinding(
         binding.vertex_ids, binding.bary, binding.weight, binding.transform, binding.identity, binding.space,
         torch.from_numpy(grp).to(binding.vertex_ids.device),
