@@ -308,6 +308,7 @@ class FastGHA(nn.Module):
             ``(gaussians, binding, num_interior)``; the returned Gaussians keep ``g``'s autograd graph
             (means are shifted by a constant when neutralising).
         """
+        from .lids import show_closed_lids
         from .prior import PriorBinding, back_shell, back_shell_vertices, bind, fit_head, generic_fit, hide_open_lips, interior_inset, mouth_interior, open_mouth_views
 
         basis = self.head_basis()
@@ -354,6 +355,8 @@ class FastGHA(nn.Module):
                 g = g.replace(quats=quaternion_multiply(back.to(dev, g.quats.dtype), g.quats))
             # lips of open-mouthed photos (their teeth and gap undone onto the closed lips) fade out as the mouth opens
             binding = hide_open_lips(binding, means - shift, vi, open_mouth_views(ve, basis), basis)
+            # closed-eyed photos' lids appear only as the avatar's lids close (model/lids.py)
+            binding = show_closed_lids(binding, means, vi, ve, fit, basis)
             drawn = means - shift
         binding = binding.to(dev)
         n_int = 0
