@@ -14,6 +14,9 @@ per variant:
   centres on the tracked surface along the 256² pixel rays, colours from the 256² photo;
 - ``g256face_photo``: the 256² grid on the bare face only (``SurfaceDepth.face_hit`` at 128²), the
   128² grid elsewhere, colours from the 256² photo;
+- ``viewTAU`` (e.g. ``view20``, not a resolution variant): the shipped avatar, each input view's
+  Gaussians' opacity multiplied by ``exp(-(a_i - min_j a_j) / TAU)`` at render time, ``a_i`` the
+  angle (degrees) between input camera ``i``'s and the render camera's direction from the head;
 
 and reports masked PSNR, SSIM, dlib identity distance, HOG/CNN face counts and Gaussian counts.
 ``--reproduce`` adds the input-view check: the avatar of all of a set's photos, and each photo's own
@@ -37,6 +40,9 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 VARIANTS = ("shipped", "g128_photo", "g256_photo", "g256face_photo")
+# not resolution: the shipped avatar drawn with each input view's Gaussians' opacity times
+# exp(-(angle to the render camera - smallest such angle) / tau), tau in degrees ("view20" = 20)
+VIEW_WEIGHT_PREFIX = "view"
 
 
 def _maps(model, imgs, cams):
@@ -82,7 +88,7 @@ def reconstruct_variant(model, name, imgs128, cams128, photos, photo_cams, expr,
     from fastgha_core.model.gaussian_head import foreground_weight
     from fastgha_core.model.surface import fit_hair_thickness
 
-    if name == "shipped":
+    if name == "shipped" or name.startswith(VIEW_WEIGHT_PREFIX):
         return model.reconstruct(imgs128, cams128, expressions=expr, surface=surface)
     with torch.no_grad():
         gc = model.config.gaussians
@@ -108,6 +114,34 @@ def reconstruct_variant(model, name, imgs128, cams128, photos, photo_cams, expr,
         avatar = CanonicalAvatar(g, model.config.name, model.config.expression_space, prior, n_int)
         model._deform_partial(avatar)
         return avatar
+
+
+def _view_index(model):
+    """Wrap ``model.build_prior`` so that each reconstruction leaves the source view of its
+    reconstructed Gaussians (in order, ``[N_rec]``) in ``model._last_view_index``."""
+    orig = model.build_prior
+
+    def build_prior(g, view_index=None, *args, **kwargs):
+        model._last_view_index = view_index
+        return orig(g, view_index, *args, **kwargs)
+
+    model.build_prior = build_prior
+
+
+def _view_weighted(g, view_index, in_cams, camera, tau_deg):
+    """``g`` with each input view's reconstructed Gaussians' opacity weighted by its camera's angle
+    to ``camera`` (module doc, ``viewTAU``)."""
+    import torch
+
+    dirs = in_cams.centers.reshape(-1, 3)
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True)
+    c = camera.centers.reshape(3)
+    ang = torch.rad2deg(torch.arccos((dirs @ (c / c.norm())).clamp(-1, 1)))
+    w = torch.exp(-(ang - ang.min()) / tau_deg)
+    op = g.opacities.clone()
+    n = len(view_index)
+    op[:n] = op[:n] * w[view_index.long()].to(op)
+    return g.replace(opacities=op)
 
 
 def _score(faces, pred, target, mask, box=None):
@@ -190,6 +224,7 @@ def main(argv=None) -> int:
         return 1
     faces = rs._load_cnn(faces)
     variants = args.variants.split(",")
+    _view_index(model)
     bg = torch.tensor(BACKGROUND_RGB).view(1, 3, 1, 1)
     rows, rep_rows, grid, timing = [], [], [], None
     for folder in sets:
@@ -214,7 +249,10 @@ def main(argv=None) -> int:
             for name in variants:
                 av = reconstruct_variant(model, name, imgs128, cams128, matted[keep], cams[keep], expr[keep], head.subset(keep))
                 avatars[name] = av
-                pred = render(model.animate(av, expr[k]), cams[k : k + 1], background=BACKGROUND_RGB).rgb.clamp(0, 1)
+                g = model.animate(av, expr[k])
+                if name.startswith(VIEW_WEIGHT_PREFIX):
+                    g = _view_weighted(g, model._last_view_index, cams[keep], cams[k], float(name[len(VIEW_WEIGHT_PREFIX) :]))
+                pred = render(g, cams[k : k + 1], background=BACKGROUND_RGB).rgb.clamp(0, 1)
                 row = dict(set=folder.name, left_out=names[k], variant=name, gaussians=len(av.gaussians), **_score(faces, pred, target, mask))
                 rows.append(row)
                 print(json.dumps(row), flush=True)
