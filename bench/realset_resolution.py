@@ -17,6 +17,10 @@ per variant:
 - ``viewTAU`` (e.g. ``view20``, not a resolution variant): the shipped avatar, each input view's
   Gaussians' opacity multiplied by ``exp(-(a_i - min_j a_j) / TAU)`` at render time, ``a_i`` the
   angle (degrees) between input camera ``i``'s and the render camera's direction from the head;
+- ``blendTAU`` (e.g. ``blend20``): the shipped feature (``model/viewblend.py``,
+  ``GaussianHeadConfig.view_blend_tau_deg = TAU``): as ``viewTAU`` but the minimum runs over the
+  views that see each Gaussian's point (its coverage mask), so regions only far views cover keep
+  their best view opaque;
 
 and reports masked PSNR, SSIM, dlib identity distance, HOG/CNN face counts and Gaussian counts.
 ``--reproduce`` adds the input-view check: the avatar of all of a set's photos, and each photo's own
@@ -43,6 +47,7 @@ VARIANTS = ("shipped", "g128_photo", "g256_photo", "g256face_photo")
 # not resolution: the shipped avatar drawn with each input view's Gaussians' opacity times
 # exp(-(angle to the render camera - smallest such angle) / tau), tau in degrees ("view20" = 20)
 VIEW_WEIGHT_PREFIX = "view"
+BLEND_PREFIX = "blend"  # the shipped per-Gaussian normalised weighting, tau in degrees ("blend20")
 
 
 def _maps(model, imgs, cams):
@@ -88,7 +93,7 @@ def reconstruct_variant(model, name, imgs128, cams128, photos, photo_cams, expr,
     from fastgha_core.model.gaussian_head import foreground_weight
     from fastgha_core.model.surface import fit_hair_thickness
 
-    if name == "shipped" or name.startswith(VIEW_WEIGHT_PREFIX):
+    if name == "shipped" or name.startswith(VIEW_WEIGHT_PREFIX) or name.startswith(BLEND_PREFIX):
         return model.reconstruct(imgs128, cams128, expressions=expr, surface=surface)
     with torch.no_grad():
         gc = model.config.gaussians
@@ -114,6 +119,11 @@ def reconstruct_variant(model, name, imgs128, cams128, photos, photo_cams, expr,
         avatar = CanonicalAvatar(g, model.config.name, model.config.expression_space, prior, n_int)
         model._deform_partial(avatar)
         return avatar
+
+
+def _shipped_like(name: str) -> bool:
+    """Variants drawing the shipped avatar (one reconstruction serves them all)."""
+    return name == "shipped" or name.startswith(VIEW_WEIGHT_PREFIX) or name.startswith(BLEND_PREFIX)
 
 
 def _view_index(model):
@@ -225,6 +235,8 @@ def main(argv=None) -> int:
     faces = rs._load_cnn(faces)
     variants = args.variants.split(",")
     _view_index(model)
+    tau0 = model.config.gaussians.view_blend_tau_deg
+    model.config.gaussians.view_blend_tau_deg = 0.0  # only the blendTAU variants weight
     bg = torch.tensor(BACKGROUND_RGB).view(1, 3, 1, 1)
     rows, rep_rows, grid, timing = [], [], [], None
     for folder in sets:
@@ -247,11 +259,17 @@ def main(argv=None) -> int:
             pics = [target[0], via[0]]
             avatars = {}
             for name in variants:
-                av = reconstruct_variant(model, name, imgs128, cams128, matted[keep], cams[keep], expr[keep], head.subset(keep))
+                same = [n for n in avatars if _shipped_like(n)] if _shipped_like(name) else []
+                av = avatars[same[0]] if same else reconstruct_variant(model, name, imgs128, cams128, matted[keep], cams[keep], expr[keep], head.subset(keep))
                 avatars[name] = av
-                g = model.animate(av, expr[k])
+                if name.startswith(BLEND_PREFIX):
+                    model.config.gaussians.view_blend_tau_deg = float(name[len(BLEND_PREFIX) :])
+                    g = model.animate(av, expr[k], camera=cams[k : k + 1])
+                    model.config.gaussians.view_blend_tau_deg = tau0
+                else:
+                    g = model.animate(av, expr[k])
                 if name.startswith(VIEW_WEIGHT_PREFIX):
-                    g = _view_weighted(g, model._last_view_index, cams[keep], cams[k], float(name[len(VIEW_WEIGHT_PREFIX) :]))
+                    g = _view_weighted(g, av.view_blend.source_view, cams[keep], cams[k], float(name[len(VIEW_WEIGHT_PREFIX) :]))
                 pred = render(g, cams[k : k + 1], background=BACKGROUND_RGB).rgb.clamp(0, 1)
                 row = dict(set=folder.name, left_out=names[k], variant=name, gaussians=len(av.gaussians), **_score(faces, pred, target, mask))
                 rows.append(row)
