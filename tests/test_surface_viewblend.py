@@ -163,15 +163,31 @@ def tiny():
     return load_model("tiny")
 
 
-def _reconstructed(model):
+def _reconstructed(model, surface=True):
     from fastgha_core.constants import BACKGROUND_RGB
+    from fastgha_core.model.surface import HeadSurface
 
     s = model.config.input_size
     cams = _cams([0.0, 40.0, -40.0], size=s, dist=0.6)
     g = torch.Generator().manual_seed(3)
     imgs = torch.tensor(BACKGROUND_RGB, dtype=torch.float32).view(1, 3, 1, 1).repeat(3, 1, s, s)
     imgs[:, :, s // 8 : 7 * s // 8, s // 4 : 3 * s // 4] = 0.2 + 0.5 * torch.rand(3, 3, 3 * s // 4, s // 2, generator=g)
-    return model.reconstruct(imgs, cams), cams
+    head = HeadSurface(np.zeros(100, np.float32), np.zeros((3, 53), np.float32)) if surface else None
+    return model.reconstruct(imgs, cams, surface=head), cams
+
+
+def test_only_avatars_on_a_tracked_surface_get_view_data_unless_asked(tiny):
+    """On the network-depth path blending lowered held-out synthetic PSNR: no per-view data there by default."""
+    assert tiny.config.gaussians.view_blend_surface_only
+    net, _ = _reconstructed(tiny, surface=False)
+    assert net.view_blend is None
+    tiny.config.gaussians.view_blend_surface_only = False
+    try:
+        net2, _ = _reconstructed(tiny, surface=False)
+    finally:
+        tiny.config.gaussians.view_blend_surface_only = True
+    assert net2.view_blend is not None and len(net2.view_blend) == net2.num_reconstructed
+    assert torch.equal(net2.gaussians.opacities, net.gaussians.opacities)  # recording changes nothing else
 
 
 @pytest.mark.parametrize("prior", [True, False])  # the one-pass CPU frame and the general path

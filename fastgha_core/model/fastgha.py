@@ -468,6 +468,9 @@ class FastGHA(nn.Module):
         ``config.gaussians.grazing_stretch > 0`` (off by default) the Gaussians of pixels just behind an
         occluding edge of the head (the far side of the nose ridge), which see it at a grazing angle,
         are lengthened along it to cover their patch of skin (``surface.stretch_to_patches``).
+        On a surface (or everywhere with ``config.gaussians.view_blend_surface_only=False``) the
+        avatar also records each reconstructed Gaussian's source view and which input views see its
+        point (``avatar.view_blend``, ``model/viewblend.py``) for view-dependent frames.
         """
         s, vmax = self.config.input_size, self.config.max_views
         hint = "use model.prepare(images, cameras) to crop/resize them"
@@ -556,7 +559,7 @@ class FastGHA(nn.Module):
             )
         thr = self.config.gaussians.prune_opacity
         blend_data = None
-        if v <= MAX_BLEND_VIEWS:  # each view's depth, before pruning, for which views see each Gaussian (model/viewblend.py)
+        if v <= MAX_BLEND_VIEWS and (surface is not None or not self.config.gaussians.view_blend_surface_only):  # each view's depth, before pruning, for which views see each Gaussian (model/viewblend.py)
             from .gaussian_head import foreground_weight
 
             c32 = cameras.to(dev, torch.float32)
