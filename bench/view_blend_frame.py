@@ -36,6 +36,7 @@ def main(argv=None) -> int:
     from server.frames import FrameRenderer
 
     model = bench_model(args.model)
+    model.config.gaussians.view_blend_surface_only = False  # per-view data on this (network-depth) avatar too: the cost is the same
     avatar = bench_avatar(model, args.views)
     renderer = FrameRenderer(model, "cpu")
     cam = Cameras.look_at((0.3, 0.05, 0.95), fov_deg=20.0, width=256, height=256)

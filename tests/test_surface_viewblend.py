@@ -41,6 +41,8 @@ def test_factors_match_a_plain_per_gaussian_loop():
     mask = torch.randint(0, 1 << len(yaws), (n,), generator=gen)
     mask[src >= 0] |= 1 << src[src >= 0]  # a source view covers its own point
     f = blend_factors(src, mask.to(torch.uint8), view_directions(cams), render_cam, 20.0)
+    # the per-frame path (one gather of a per-(mask, source) table) gives the same
+    assert torch.allclose(ViewBlend(src.to(torch.int8), mask.to(torch.uint8), view_directions(cams)).factors(render_cam, 20.0), f, rtol=1e-6)
     c = render_cam.centers[0].numpy()
     for i in range(n):
         if src[i] < 0:

@@ -169,13 +169,30 @@ class ViewBlend:
         return int(self.source_view.shape[0])
 
     def factors(self, camera: Cameras, tau_deg: float) -> Tensor:
-        """``[N]`` opacity factors for ``camera`` (``blend_factors``)."""
-        return blend_factors(self.source_view, self.mask, self.directions, camera, tau_deg)
+        """``[N]`` opacity factors for ``camera``, the same as ``blend_factors``.
+
+        Per frame: the factor of every (mask, source view) pair, a ``[2^V * V + 1]`` table (the
+        last entry 1 for Gaussians without a source view), and one gather of it by each Gaussian's
+        pair index (``mask * V + source``, computed once and cached on this object)."""
+        if tau_deg <= 0:
+            raise ValueError(f"ViewBlend.factors: tau_deg must be > 0, got {tau_deg}")
+        v = self.directions.shape[0]
+        key = self.__dict__.get("_key")
+        if key is None or key.device != self.mask.device:
+            sv = self.source_view.long()
+            key = torch.where(sv >= 0, (self.mask.long() & ((1 << v) - 1)) * v + sv.clamp(min=0), torch.full_like(sv, (1 << v) * v))
+            self.__dict__["_key"] = key
+        ang = angles_deg(self.directions, camera)  # [V]
+        table = min_angle_table(ang)  # [2^V]
+        f = torch.exp(-(ang[None, :] - table[:, None]).clamp(min=0) / float(tau_deg)).reshape(-1)  # [2^V * V]
+        return torch.cat([f, f.new_ones(1)])[key]
 
     def subset(self, keep: Tensor) -> "ViewBlend":
         return ViewBlend(self.source_view[keep], self.mask[keep], self.directions)
 
     def to(self, device) -> "ViewBlend":
+        if self.mask.device == torch.device(device):
+            return self  # keeps the cached pair index
         return ViewBlend(self.source_view.to(device), self.mask.to(device), self.directions.to(device))
 
     def tensors(self) -> dict[str, Tensor]:
