@@ -223,3 +223,13 @@ def test_frames_with_view_blending_equal_the_plain_reference(tiny, prior):
     assert not torch.allclose(on.opacities, plain.opacities)
     for name in ("means", "scales", "quats", "colors"):
         assert torch.equal(getattr(on, name), getattr(plain, name))
+
+
+def test_the_avatar_budget_counts_the_view_data_a_blended_frame_holds(tiny):
+    av, _ = _reconstructed(tiny)
+    vb = av.view_blend
+    without = tiny.serving_nbytes(type(av)(av.gaussians, av.model_name, av.expression_space, av.prior, av.num_interior))
+    assert "_key" not in vb.__dict__
+    tiny.animate(av, torch.zeros(tiny.config.expression_dim), camera=_cams([10.0], size=64, dist=0.6))  # tau 20 by default
+    held = sum(t.untyped_storage().nbytes() for t in (vb.source_view, vb.mask, vb.directions, vb.__dict__["_key"]))
+    assert tiny.serving_nbytes(av) - without == held

@@ -601,12 +601,15 @@ class FastGHA(nn.Module):
     def serving_nbytes(self, avatar: CanonicalAvatar) -> int:
         """Bytes ``avatar`` holds once this model has animated it: its Gaussians, its prior binding, the
         deformation MLP's cached first layer (``[N_reconstructed, H]`` float32) and the binding's
-        per-frame runtime on this model's device (``PriorRuntime.estimate_nbytes``). What
+        per-frame runtime on this model's device (``PriorRuntime.estimate_nbytes``), and the view-blending
+        data (``ViewBlend.nbytes``). What
         the server's avatar budget counts; an avatar without a binding counts none (it gets one on its
         first frame). Computed from the sizes, without building the caches.
         """
         n = len(avatar.gaussians)
         total = int(avatar.nbytes) + avatar.num_reconstructed * int(self.config.deform.hidden_size) * 4
+        if avatar.view_blend is not None:  # per-view data and its per-frame pair index (model/viewblend.py)
+            total += avatar.view_blend.nbytes
         if avatar.prior is not None:
             total += sum(t.numel() * t.element_size() for t in vars(avatar.prior).values() if isinstance(t, Tensor))
             if self.config.deform.prior and len(avatar.prior) == n:

@@ -187,6 +187,11 @@ class ViewBlend:
         f = torch.exp(-(ang[None, :] - table[:, None]).clamp(min=0) / float(tau_deg)).reshape(-1)  # [2^V * V]
         return torch.cat([f, f.new_ones(1)])[key]
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes held once a frame has been drawn: the tensors and the cached int64 pair index."""
+        return sum(t.numel() * t.element_size() for t in (self.source_view, self.mask, self.directions)) + 8 * len(self)
+
     def subset(self, keep: Tensor) -> "ViewBlend":
         return ViewBlend(self.source_view[keep], self.mask[keep], self.directions)
 
