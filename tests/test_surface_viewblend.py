@@ -233,3 +233,15 @@ def test_the_avatar_budget_counts_the_view_data_a_blended_frame_holds(tiny):
     tiny.animate(av, torch.zeros(tiny.config.expression_dim), camera=_cams([10.0], size=64, dist=0.6))  # tau 20 by default
     held = sum(t.untyped_storage().nbytes() for t in (vb.source_view, vb.mask, vb.directions, vb.__dict__["_key"]))
     assert tiny.serving_nbytes(av) - without == held
+
+
+def test_refinement_keeps_the_view_data_of_the_gaussians_it_keeps(tiny):
+    from fastgha_core.refine import RefineConfig, refine_avatar
+
+    av, cams = _reconstructed(tiny)
+    s = tiny.config.input_size
+    imgs = torch.rand(3, 3, s, s, generator=torch.Generator().manual_seed(4))
+    res = refine_avatar(tiny, av, imgs, cams, config=RefineConfig(steps=2, resolution=64, coarse_resolution=32))
+    out = res.avatar
+    assert out.view_blend is not None and len(out.view_blend) == out.num_reconstructed
+    assert torch.equal(out.view_blend.directions, av.view_blend.directions)

@@ -35,7 +35,7 @@ from torch import Tensor
 
 from ..cameras import Cameras
 
-__all__ = ["ViewBlend", "coverage_masks", "view_directions", "min_angle_table", "blend_factors", "MAX_BLEND_VIEWS", "COVER_DEPTH_TOL_M"]
+__all__ = ["ViewBlend", "angles_deg", "blend_factors", "coverage_masks", "min_angle_table", "view_depth_maps", "view_directions", "MAX_BLEND_VIEWS", "COVER_DEPTH_TOL_M"]
 
 MAX_BLEND_VIEWS = 8  # coverage masks are uint8
 COVER_DEPTH_TOL_M = 0.015  # a point counts as seen by a view if at most this far behind that view's surface (metres)
