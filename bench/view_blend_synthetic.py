@@ -2,7 +2,8 @@
 
 The same evaluation as ``python -m fastgha_core.cli eval --model tiny --subjects 4 --resolution 256
 --no-faces`` (the network-depth path), once per ``--taus`` value of
-``GaussianHeadConfig.view_blend_tau_deg`` (0 = off), with mean PSNR / SSIM per value:
+``GaussianHeadConfig.view_blend_tau_deg`` (0 = off), with ``view_blend_surface_only`` off so that
+these avatars (no tracked surface) carry per-view data, with mean PSNR / SSIM per value:
 
     python bench/view_blend_synthetic.py --taus 0,10,20,30
 """
@@ -32,6 +33,7 @@ def main(argv=None) -> int:
     from fastgha_core.train.evaluate import EvalConfig, evaluate
 
     model = load_model(args.model)
+    model.config.gaussians.view_blend_surface_only = False  # record per-view data on the network-depth path too
     cfg = EvalConfig(resolution=args.resolution)
     res = args.resolution or int(model.config.render_size)
     sources = build_eval_sources("synthetic-heldout", args.subjects, resolution=max(res, int(model.config.input_size)), num_cameras=max(16, cfg.num_inputs + cfg.num_target_views))
