@@ -91,7 +91,7 @@ def run_set(model, folder: Path, size: int, det, pictures: Path | None, drop_unt
         frames = {}
         for name, w in EXPRESSIONS.items():
             with torch.inference_mode():
-                g = model.animate(avatar, space.parse(w))
+                g = model.animate(avatar, space.parse(w), camera=cam)  # as the server draws it (view blending, model/viewblend.py)
                 frames[name] = _u8(render(g, cam, background=BACKGROUND_RGB).rgb[0].float().clamp(0, 1))
         return frames
 

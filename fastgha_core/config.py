@@ -117,6 +117,8 @@ class GaussianHeadConfig:
     grazing_stretch: float = 0.0  # reconstruct() on a tracked head surface: lengthen each pixel's Gaussian along the surface by this x its patch's excess length where the view sees the surface at a grazing angle (0 = off, the default: 1.0 removes most of the nose streak of real-photo frontal renders, +0.16 dB mean leave-one-out PSNR, but identity distance +0.015 on two of three sets; docs/model-card.md; model/surface.py stretch_to_patches)
     grazing_edge_px: int = 3  # ... only within this many pixels behind an occluding edge of the surface (the far side of the nose ridge; 0 = everywhere; model/surface.py behind_occluding_edges)
     grazing_min_ratio: float = 2.5  # ... only Gaussians whose patch of surface is longer than this many pixel footprints (incidence beyond ~66 deg; model/surface.py stretch_to_patches min_ratio)
+    view_blend_tau_deg: float = 20.0  # frames: each input view's Gaussians' opacity x exp(-(angle of its camera to the render camera - smallest such angle among the views that see the Gaussian's point) / tau), degrees (0 = off; 20 from real-photo leave-one-out, docs/model-card.md; model/viewblend.py; avatars without view data render unweighted)
+    view_blend_surface_only: bool = True  # record the per-view data (and so blend) only for avatars reconstructed on a tracked head surface (on the network-depth path tau 20 lowered held-out synthetic PSNR; docs/model-card.md)
 
     @property
     def channels(self) -> int:

@@ -72,7 +72,7 @@ class FrameRenderer:
 
         t0 = time.perf_counter()
         with torch.inference_mode():
-            g = self.model.animate(avatar, expression.to(self.device), bf16=self.bf16)
+            g = self.model.animate(avatar, expression.to(self.device), bf16=self.bf16, camera=camera)  # camera: view blending (model/viewblend.py)
             if self.device.type == "cuda":
                 torch.cuda.synchronize(self.device)
             t1 = time.perf_counter()

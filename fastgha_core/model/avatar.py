@@ -11,6 +11,12 @@ Gaussian's binding to a head surface fitted to it (nearest triangle's vertex ids
 coordinates, fade weight, the fit's transform and identity; ``model/prior.py``), saved as extra
 ``prior.*`` tensors of the avatar file, and ``num_interior`` mouth-interior Gaussians (teeth, gums,
 mouth socket) at the end of ``gaussians``: part of the file, the PLY export and every render.
+
+``view_blend`` (``model/viewblend.py``): each reconstructed Gaussian's source input view and the
+mask of input views that see its point, with the input cameras' directions, saved as ``view.*``
+tensors; frames then weight each view's Gaussians by its camera's angle to the render camera
+(``GaussianHeadConfig.view_blend_tau_deg``). Files written without them load with ``None`` (frames
+unweighted). The PLY export is a static file: it holds the unweighted opacities.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from torch import Tensor
 
 from ..gaussians import Gaussians
 from .prior import PriorBinding
+from .viewblend import ViewBlend
 
 __all__ = ["CanonicalAvatar"]
 
@@ -44,6 +51,8 @@ class CanonicalAvatar:
         prior_runtime: the binding's per-frame compact basis (a cache, not saved; ``FastGHA.animate``
             rebuilds it when ``prior`` is replaced, the Gaussian count or device changes, or the
             model's ``prior_shading`` differs).
+        view_blend: ``ViewBlend`` of the first ``num_reconstructed`` Gaussians (``None``: no per-view
+            data, frames are not view-weighted).
     """
 
     gaussians: Gaussians
@@ -51,6 +60,7 @@ class CanonicalAvatar:
     expression_space: str
     prior: PriorBinding | None = None
     num_interior: int = 0
+    view_blend: ViewBlend | None = None
     deform_cache: Tensor | None = field(default=None, repr=False, compare=False)
     deform_cache_owner: int | None = field(default=None, repr=False, compare=False)
     deform_cache_source: Gaussians | None = field(default=None, repr=False, compare=False)
@@ -63,6 +73,8 @@ class CanonicalAvatar:
             raise ValueError(f"CanonicalAvatar: prior binds {len(self.prior)} Gaussians, the avatar has {len(self.gaussians)}")
         if not 0 <= self.num_interior <= len(self.gaussians):
             raise ValueError(f"CanonicalAvatar: num_interior must lie in [0, {len(self.gaussians)}], got {self.num_interior}")
+        if self.view_blend is not None and len(self.view_blend) != self.num_reconstructed:
+            raise ValueError(f"CanonicalAvatar: view_blend covers {len(self.view_blend)} Gaussians, the avatar has {self.num_reconstructed} reconstructed ones")
 
     @property
     def num_reconstructed(self) -> int:
@@ -86,7 +98,10 @@ class CanonicalAvatar:
     def save(self, path: str | Path) -> None:
         from ..io import save_avatar_file
 
-        extra = self.prior.to("cpu").tensors() if self.prior is not None else None
+        extra = dict(self.prior.to("cpu").tensors()) if self.prior is not None else {}
+        if self.view_blend is not None:
+            extra.update(self.view_blend.to("cpu").tensors())
+        extra = extra or None
         save_avatar_file(path, self.gaussians.detach().to("cpu"), self.metadata(), extra)
 
     @classmethod
@@ -100,16 +115,21 @@ class CanonicalAvatar:
         try:
             prior = PriorBinding.from_tensors(extra, meta["expression_space"], len(g))
             n_int = int(meta.get("num_interior", "0"))
+            blend = ViewBlend.from_tensors(extra, len(g) - n_int)
         except ValueError as e:
             raise ValueError(f"avatar file {str(path)!r}: {e}") from None
-        return cls(g, meta["model_name"], meta["expression_space"], prior, n_int)
+        return cls(g, meta["model_name"], meta["expression_space"], prior, n_int, blend)
 
     def to_ply(self, path: str | Path) -> None:
-        """Export the canonical Gaussians as a standard 3DGS PLY (features are not part of that layout)."""
+        """Export the canonical Gaussians as a standard 3DGS PLY (features are not part of that layout).
+
+        A PLY is static: it cannot depend on the render camera, so it holds the unweighted opacities
+        (no view blending, ``model/viewblend.py``)."""
         from ..io import save_ply
 
         save_ply(path, self.gaussians.detach().to("cpu"))
 
     def to(self, device) -> "CanonicalAvatar":
         prior = self.prior.to(device) if self.prior is not None else None
-        return CanonicalAvatar(self.gaussians.to(device), self.model_name, self.expression_space, prior, self.num_interior)
+        blend = self.view_blend.to(device) if self.view_blend is not None else None
+        return CanonicalAvatar(self.gaussians.to(device), self.model_name, self.expression_space, prior, self.num_interior, blend)

@@ -40,6 +40,7 @@ from .deform import DeformationMLP
 from .encoders import ColourEncoder, SemanticEncoder
 from .gaussian_head import GaussianHead, GaussianLayout
 from .transformer import MultiViewTransformer
+from .viewblend import MAX_BLEND_VIEWS, ViewBlend, coverage_masks, view_depth_maps, view_directions
 
 __all__ = ["FastGHA", "FastGHAOutput", "load_model", "ASSET_MODELS_DIR", "CONFIG_NAME", "WEIGHTS_NAME"]
 
@@ -483,6 +484,9 @@ class FastGHA(nn.Module):
         ``config.gaussians.grazing_stretch > 0`` (off by default) the Gaussians of pixels just behind an
         occluding edge of the head (the far side of the nose ridge), which see it at a grazing angle,
         are lengthened along it to cover their patch of skin (``surface.stretch_to_patches``).
+        On a surface (or everywhere with ``config.gaussians.view_blend_surface_only=False``) the
+        avatar also records each reconstructed Gaussian's source view and which input views see its
+        point (``avatar.view_blend``, ``model/viewblend.py``) for view-dependent frames.
         """
         s, vmax = self.config.input_size, self.config.max_views
         hint = "use model.prepare(images, cameras) to crop/resize them"
@@ -570,13 +574,26 @@ class FastGHA(nn.Module):
                 g, cameras.to(dev, torch.float32), foreground_weight(images.to(dev, torch.float32)), cover, None if surface is None else sd.beyond_face.to(dev)
             )
         thr = self.config.gaussians.prune_opacity
+        blend_data = None
+        if v <= MAX_BLEND_VIEWS and (surface is not None or not self.config.gaussians.view_blend_surface_only):  # each view's depth, before pruning, for which views see each Gaussian (model/viewblend.py)
+            from .gaussian_head import foreground_weight
+
+            c32 = cameras.to(dev, torch.float32)
+            fg = foreground_weight(images.to(dev, torch.float32))
+            depth = view_depth_maps(g.means, c32, (g.opacities >= max(thr, 1e-6)) & (fg.reshape(-1) > 0.5))
+            blend_data = (c32, fg, depth)
         if thr > 0:
             keep = g.opacities >= thr
             g, view_index = g[keep], view_index[keep]
+        blend = None
+        if blend_data is not None:
+            c32, fg, depth = blend_data
+            mask = coverage_masks(g.means, c32, fg, depth, view_index)
+            blend = ViewBlend(view_index.to(torch.int8), mask, view_directions(c32))
         prior, n_int = None, 0
         if self.config.deform.prior:
             g, prior, n_int = self.build_prior(g, view_index if expressions is not None else None, expressions, head_fit=head_fit)
-        avatar = CanonicalAvatar(g, self.config.name, self.config.expression_space, prior, n_int)
+        avatar = CanonicalAvatar(g, self.config.name, self.config.expression_space, prior, n_int, blend)
         self._deform_partial(avatar)
         return avatar
 
@@ -600,12 +617,15 @@ class FastGHA(nn.Module):
     def serving_nbytes(self, avatar: CanonicalAvatar) -> int:
         """Bytes ``avatar`` holds once this model has animated it: its Gaussians, its prior binding, the
         deformation MLP's cached first layer (``[N_reconstructed, H]`` float32) and the binding's
-        per-frame runtime on this model's device (``PriorRuntime.estimate_nbytes``). What
+        per-frame runtime on this model's device (``PriorRuntime.estimate_nbytes``), and the view-blending
+        data (``ViewBlend.nbytes``). What
         the server's avatar budget counts; an avatar without a binding counts none (it gets one on its
         first frame). Computed from the sizes, without building the caches.
         """
         n = len(avatar.gaussians)
         total = int(avatar.nbytes) + avatar.num_reconstructed * int(self.config.deform.hidden_size) * 4
+        if avatar.view_blend is not None:  # per-view data and its per-frame pair index (model/viewblend.py)
+            total += avatar.view_blend.nbytes
         if avatar.prior is not None:
             total += sum(t.numel() * t.element_size() for t in vars(avatar.prior).values() if isinstance(t, Tensor))
             if self.config.deform.prior and len(avatar.prior) == n:
@@ -637,7 +657,9 @@ class FastGHA(nn.Module):
         return time.perf_counter() - t0
 
     @torch.inference_mode()  # one grad mode for every caller: a compiled MLP then never recompiles
-    def animate(self, avatar: CanonicalAvatar, expression: Any, bf16: bool = False, prior: bool = True) -> Gaussians | list[Gaussians]:
+    def animate(
+        self, avatar: CanonicalAvatar, expression: Any, bf16: bool = False, prior: bool = True, camera: Cameras | None = None
+    ) -> Gaussians | list[Gaussians]:
         """Deform the avatar to ``expression [E]`` (-> ``Gaussians``) or ``[B, E]`` (-> ``list[Gaussians]``).
 
         Uses the split first layer (cached on the avatar). ``bf16=True`` runs the per-frame layers under
@@ -649,6 +671,11 @@ class FastGHA(nn.Module):
         ``avatar.num_reconstructed``). One expression on the CPU in float32 (the server's frame) takes
         ``PriorRuntime.frame``: the same Gaussians in one numba pass, leaving out trailing gated runs
         whose opacity is below the rasterizer's ``ALPHA_MIN`` (the image is the same).
+
+        ``camera`` (batch ``[1]``, the frame's render camera, optional): with
+        ``config.gaussians.view_blend_tau_deg > 0`` and an avatar with per-view data
+        (``avatar.view_blend``), each reconstructed Gaussian's opacity is multiplied by its source
+        view's weight for that camera (``model/viewblend.py``); otherwise the camera is ignored.
         """
         if avatar.expression_space != self.config.expression_space:
             raise ValueError(
@@ -689,18 +716,37 @@ class FastGHA(nn.Module):
                     rt = avatar.prior_runtime = self._runtime(avatar.prior.to(dev))
                 rt.source = avatar.prior  # what this per-avatar cache was built from
             if prior and z.ndim == 1 and dev.type == "cpu" and g.means.dtype == torch.float32:
-                return rt.frame(g, n_int, dxyz, drgb, z)  # one numba pass, the same Gaussians as below
+                return self._view_blend(avatar, rt.frame(g, n_int, dxyz, drgb, z), camera)  # one numba pass, the same Gaussians as below
             if prior:
                 prior_d = rt.displacement(z)  # [N, 3] or [B, N, 3]
                 shade = rt.shading(z) if rt.shading_on else None  # [N] or [B, N]
                 rot = rt.rotation(z) if rt.rotate_on else None  # [N, 4] or [B, N, 4]
             gate = self._gate(z, rt)
         if z.ndim == 1:
-            return _combine(g, dxyz, drgb, prior_d, n_int, gate, trim=True, shade=shade, rot=rot)
+            return self._view_blend(avatar, _combine(g, dxyz, drgb, prior_d, n_int, gate, trim=True, shade=shade, rot=rot), camera)
         return [
-            _combine(g, dxyz[i], drgb[i], None if prior_d is None else prior_d[i], n_int, None if gate is None else gate[i], trim=True, shade=None if shade is None else shade[i], rot=None if rot is None else rot[i])
+            self._view_blend(
+                avatar,
+                _combine(g, dxyz[i], drgb[i], None if prior_d is None else prior_d[i], n_int, None if gate is None else gate[i], trim=True, shade=None if shade is None else shade[i], rot=None if rot is None else rot[i]),
+                camera,
+            )
             for i in range(z.shape[0])
         ]
+
+    def _view_blend(self, avatar: CanonicalAvatar, g: Gaussians, camera: Cameras | None) -> Gaussians:
+        """``g`` (a frame of ``avatar``) with its reconstructed Gaussians' opacity weighted for ``camera``
+        (``model/viewblend.py``); ``g`` itself when the option is off, no camera or no per-view data."""
+        tau = float(self.config.gaussians.view_blend_tau_deg)
+        vb = avatar.view_blend
+        if camera is None or tau <= 0 or vb is None:
+            return g
+        n = avatar.num_reconstructed
+        if len(vb) != n or len(g) < n:
+            return g
+        f = vb.to(g.opacities.device).factors(camera, tau).to(g.opacities.dtype)
+        op = g.opacities.clone()
+        op[:n] = op[:n] * f
+        return g.replace(opacities=op)
 
 
 def load_model(

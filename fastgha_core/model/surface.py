@@ -73,6 +73,7 @@ __all__ = [
     "surface_steps",
     "stretch_to_patches",
     "behind_occluding_edges",
+    "sample_photo_colours",
 ]
 
 HAIR_CANDIDATES_M = (0.0, 0.005, 0.01, 0.015, 0.02, 0.025, 0.03)  # fit_hair_thickness' default choices (metres)
@@ -479,3 +480,42 @@ def behind_occluding_edges(t: Tensor, cameras: Cameras, radius_px: int = 3, jump
     tmin = -torch.nn.functional.max_pool2d(-t[:, None], 2 * radius_px + 1, stride=1, padding=radius_px)[:, 0]
     foot = t / cams.K[:, 0, 0].to(t.device, torch.float32)[:, None, None]
     return (t - tmin) > jump * foot
+
+
+def sample_photo_colours(points: Tensor, cameras: Cameras, photos: Tensor, view_index: Tensor) -> Tensor:
+    """Each point's colour in its own source photo: bilinear at the point's projection.
+
+    Why (issue 17, measured on the real photo sets, ``docs/model-card.md``): the tiny model's
+    Gaussians take their colour from the 128-pixel input (``rgb_residual``: the input pixel's logit
+    plus the network's residual). Sampling the photo at a higher resolution where each Gaussian
+    projects is the oracle that asks how much of the leave-one-out blur is colour resolution.
+
+    Args:
+        points: ``[N, 3]`` world points (metres), e.g. ``Gaussians.means``.
+        cameras: ``Cameras [V]`` of the ``W x H`` photos (any size: not tied to the model's input).
+        photos: ``[V, 3, H, W]`` colours (any range; bilinear interpolation of pixel centres, pixel
+            ``(x, y)``'s centre at ``(x + 0.5, y + 0.5)``, the corner convention of ``Cameras.project``).
+        view_index: ``[N]`` long, the photo each point samples.
+    Returns:
+        ``[N, 3]`` colours; projections outside a photo take its nearest border pixel's colour.
+    Raises:
+        ValueError: when the shapes or the index disagree.
+    """
+    cams = cameras.flatten()
+    v, h, w = len(cams.K), cams.height, cams.width
+    if photos.ndim != 4 or tuple(photos.shape) != (v, 3, h, w):
+        raise ValueError(f"sample_photo_colours: photos must have shape [{v}, 3, {h}, {w}], got {list(photos.shape)}")
+    if points.ndim != 2 or points.shape[1] != 3 or tuple(view_index.shape) != (points.shape[0],):
+        raise ValueError(f"sample_photo_colours: expected points [N, 3] and view_index [N], got {list(points.shape)} and {list(view_index.shape)}")
+    if len(view_index) and (int(view_index.min()) < 0 or int(view_index.max()) >= v):
+        raise ValueError(f"sample_photo_colours: view_index must lie in [0, {v}), got [{int(view_index.min())}, {int(view_index.max())}]")
+    out = torch.empty(points.shape[0], 3, dtype=photos.dtype, device=photos.device)
+    for i in range(v):
+        sel = view_index == i
+        if not bool(sel.any()):
+            continue
+        uv, _ = cams[i].to(points.device, points.dtype).project(points[sel])
+        grid = torch.stack([uv[:, 0] / w * 2 - 1, uv[:, 1] / h * 2 - 1], -1).to(photos.dtype)
+        col = torch.nn.functional.grid_sample(photos[i : i + 1], grid[None, None], mode="bilinear", padding_mode="border", align_corners=False)
+        out[sel] = col[0, :, 0].T
+    return out

@@ -685,7 +685,9 @@ def _refine_avatar(
         kept_d = kept.to(b.vertex_ids.device)
         binding = b.concat(b.index(torch.nonzero(kept_d).squeeze(1)), b.index(torch.arange(n, len(b), device=b.vertex_ids.device)))
         g_all = Gaussians.concat([g.to(dev), avatar.gaussians[n:].detach().to(dev, g.means.dtype)])
-        out = CanonicalAvatar(g_all, avatar.model_name, avatar.expression_space, binding, avatar.num_interior)
+        vb = avatar.view_blend  # per-view data of the kept reconstructed Gaussians (model/viewblend.py)
+        vb = vb.subset(kept.to(vb.source_view.device)) if vb is not None and len(vb) == n else None
+        out = CanonicalAvatar(g_all, avatar.model_name, avatar.expression_space, binding, avatar.num_interior, vb)
     else:
         out = CanonicalAvatar(g.to(dev), avatar.model_name, avatar.expression_space)
         if avatar.prior is not None:

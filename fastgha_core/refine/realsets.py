@@ -185,7 +185,7 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
                 model, avatar0, matted[keep], cams[keep], masks[keep], config=RefineConfig(steps=steps, optimize_cameras=refine_cameras), expressions=expr[keep]
             )
             dt = time.perf_counter() - t1
-            g = model.animate(res.avatar, expr[k])
+            g = model.animate(res.avatar, expr[k], camera=cams[k : k + 1])  # as the server draws it (view blending, model/viewblend.py)
             ro = render(g, cams[k : k + 1], background=BACKGROUND_RGB)
             pred = ro.rgb.clamp(0, 1)  # [1, 3, S, S]
             pm, tm = pred * m + bg * (1 - m), target * m + bg * (1 - m)

@@ -300,7 +300,14 @@ def evaluate(
             tpairs = [(t, c) for c in proto.target_cameras]
             gt = torch.stack([source.view(t, c).image for c in proto.target_cameras]).float()  # [S, 3, H, W]
             gt, cams = fit_square(gt, _cameras_at(source, tpairs), size)
-            pred = render(gauss, cams.to(device), background=BACKGROUND_RGB, backend=cfg.backend).rgb.float().cpu().clamp(0, 1)
+            if cfg.ablation != "static" and model.config.gaussians.view_blend_tau_deg > 0 and avatar.view_blend is not None:
+                # view blending weights opacities per render camera (model/viewblend.py): one render each
+                pred = torch.cat([
+                    render(model.animate(avatar, expr, prior=cfg.ablation != "no-prior", camera=cams[i : i + 1].to(device)), cams[i : i + 1].to(device), background=BACKGROUND_RGB, backend=cfg.backend).rgb
+                    for i in range(len(cams))
+                ]).float().cpu().clamp(0, 1)
+            else:
+                pred = render(gauss, cams.to(device), background=BACKGROUND_RGB, backend=cfg.backend).rgb.float().cpu().clamp(0, 1)
             gt = gt.clamp(0, 1)
             p_vals, s_vals = psnr(pred, gt).tolist(), ssim(pred, gt).tolist()
             l_vals = lpips(pred.to(device), gt.to(device)).cpu().tolist() if lpips is not None else [None] * len(gt)

@@ -1,0 +1,74 @@
+"""Served-frame cost of view blending (``model/viewblend.py``, issue 17), side by side.
+
+The server's ``FrameRenderer.render`` (animate + render + JPEG) of one 4-view avatar
+(``fastgha_core.bench._common.bench_avatar``) at 256², with ``view_blend_tau_deg`` 0 (off) and
+``--tau`` interleaved frame by frame (same expressions, same camera), plus the blending step
+alone (``ViewBlend.factors`` + the opacity product). Medians; timings on a shared machine are noisy.
+
+    python bench/view_blend_frame.py --frames 60
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--model", default="tiny")
+    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--tau", type=float, default=20.0)
+    ap.add_argument("--views", type=int, default=4)
+    args = ap.parse_args(argv)
+    sys.path.insert(0, str(REPO))
+    import fastgha_core  # noqa: F401
+    import torch
+
+    from fastgha_core.bench._common import bench_avatar, bench_model
+    from fastgha_core.cameras import Cameras
+    from server.frames import FrameRenderer
+
+    model = bench_model(args.model)
+    model.config.gaussians.view_blend_surface_only = False  # per-view data on this (network-depth) avatar too: the cost is the same
+    avatar = bench_avatar(model, args.views)
+    renderer = FrameRenderer(model, "cpu")
+    cam = Cameras.look_at((0.3, 0.05, 0.95), fov_deg=20.0, width=256, height=256)
+    gen = torch.Generator().manual_seed(2)
+    exprs = [0.3 * torch.rand(model.config.expression_dim, generator=gen) for _ in range(args.frames + 2)]
+    times = {0.0: [], args.tau: []}
+    for i, e in enumerate(exprs):
+        for tau in times:
+            model.config.gaussians.view_blend_tau_deg = tau
+            t0 = time.perf_counter()
+            renderer.render(avatar, e, cam, 85)
+            if i >= 2:
+                times[tau].append(1e3 * (time.perf_counter() - t0))
+    vb = avatar.view_blend
+    g = model.animate(avatar, exprs[0])
+    step = []
+    for _ in range(200):
+        t0 = time.perf_counter()
+        f = vb.factors(cam, args.tau)
+        op = g.opacities.clone()
+        op[: len(f)] *= f
+        step.append(1e3 * (time.perf_counter() - t0))
+    out = {
+        "gaussians": len(avatar.gaussians),
+        "frame_ms_off": statistics.median(times[0.0]),
+        f"frame_ms_tau{args.tau:g}": statistics.median(times[args.tau]),
+        "ratio_on_off": statistics.median(times[args.tau]) / statistics.median(times[0.0]),
+        "blend_step_ms": statistics.median(step),
+    }
+    print(json.dumps(out))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,231 @@
+"""View-dependent blending of the input views' Gaussians (unstructured-lumigraph style, issue 17).
+
+Every reconstructed Gaussian comes from one pixel of one input view (its *source view*) and sits on
+that view's estimate of the surface. With misregistered inputs (tracked cameras a few mm off, real
+photos) all views' Gaussians of the same skin overlap a few mm apart, and a novel view shows their
+fusion: doubled features, a blurred face. Image-based rendering solves the same problem by weighting
+each input by how close its camera is to the render camera (Buehler et al., "Unstructured Lumigraph
+Rendering", SIGGRAPH 2001). Here, per frame, each reconstructed Gaussian's opacity is multiplied by
+
+    factor = exp(-(a[source] - min_{v in covers} a[v]) / tau)
+
+where ``a[v]`` is the angle (degrees) between input camera ``v``'s and the render camera's
+direction from the head centre (the world origin of the avatar's frame), and ``covers`` is the set
+of input views that see the Gaussian's point (its *coverage mask*, computed at reconstruction:
+inside view ``v``'s matte and not occluded in it). The minimum runs over the views that cover the
+point, not over all views: a region only side photos see (the temple hair behind a frontal photo's
+outline) keeps its best side view at full opacity instead of fading because a frontal camera is
+closer to the render camera. The source view always covers its own point, so ``0 < factor <= 1``;
+the Gaussian of the closest covering view keeps its opacity.
+
+Per frame the cost is ``V`` angles, a table of the minimum over the ``2^V <= 256`` masks, and
+two gathers, an ``exp`` and a product over the ``N`` reconstructed Gaussians.
+
+Conventions: cameras are ``fastgha_core.cameras.Cameras`` (OpenCV, pixel corners at integer
+coordinates); masks are ``uint8`` with bit ``v`` for input view ``v``, so at most 8 views.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..cameras import Cameras
+
+__all__ = ["ViewBlend", "angles_deg", "blend_factors", "coverage_masks", "min_angle_table", "view_depth_maps", "view_directions", "MAX_BLEND_VIEWS", "COVER_DEPTH_TOL_M"]
+
+MAX_BLEND_VIEWS = 8  # coverage masks are uint8
+COVER_DEPTH_TOL_M = 0.015  # a point counts as seen by a view if at most this far behind that view's surface (metres)
+
+
+def view_directions(cameras: Cameras) -> Tensor:
+    """Unit directions ``[V, 3]`` from the head centre (world origin) to each camera's centre.
+
+    ``cameras`` has batch shape ``[V]`` (or ``[1]``/``[]`` for one camera). Raises ``ValueError`` for a
+    camera at the origin.
+    """
+    c = cameras.centers.reshape(-1, 3).float()
+    n = c.norm(dim=-1, keepdim=True)
+    if bool((n < 1e-9).any()):
+        raise ValueError("view_directions: a camera centre lies at the head centre (world origin); its direction is undefined")
+    return c / n
+
+
+def coverage_masks(
+    means: Tensor, cameras: Cameras, foreground: Tensor, depth: Tensor, source_view: Tensor | None = None, tol: float = COVER_DEPTH_TOL_M
+) -> Tensor:
+    """Which input views see each point: ``uint8 [N]``, bit ``v`` set when view ``v`` covers it.
+
+    Args:
+        means: ``[N, 3]`` points (world / head frame, metres).
+        cameras: ``[V]`` input cameras, ``V <= 8``, of size ``W x H``.
+        foreground: ``[V, H, W]`` matte weight of each view in [0, 1]; a point is inside view ``v``'s
+            matte when the pixel it projects into has ``foreground > 0.5``.
+        depth: ``[V, H, W]`` camera-space depth (metres) of view ``v``'s visible surface at each pixel
+            (``inf`` where nothing is there: nothing occludes). The point is occluded in ``v`` when its
+            depth exceeds the largest finite depth of the 3x3 pixels around its pixel by more than
+            ``tol`` (the 3x3 maximum forgives a pixel of misregistration at depth edges).
+        source_view: ``[N]`` optional view index of each point's own view (``-1`` = none), whose bit is
+            always set.
+        tol: depth tolerance in metres.
+    Raises ``ValueError`` for more than 8 views or mismatched shapes.
+    """
+    v = int(cameras.batch_shape.numel())
+    if v > MAX_BLEND_VIEWS:
+        raise ValueError(f"coverage_masks: at most {MAX_BLEND_VIEWS} views fit a uint8 mask, got {v}")
+    h, w = cameras.height, cameras.width
+    if tuple(foreground.shape) != (v, h, w) or tuple(depth.shape) != (v, h, w):
+        raise ValueError(f"coverage_masks: foreground and depth must be [{v}, {h}, {w}], got {list(foreground.shape)} and {list(depth.shape)}")
+    if means.ndim != 2 or means.shape[-1] != 3:
+        raise ValueError(f"coverage_masks: means must be [N, 3], got {list(means.shape)}")
+    cams = cameras.flatten()
+    pts = means.detach().float()
+    d = depth.float()
+    finite = torch.isfinite(d)
+    # the largest finite depth of the 3x3 neighbourhood; inf where the pixel itself has no surface
+    dmax = F.max_pool2d(torch.where(finite, d, torch.full_like(d, -float("inf")))[:, None], 3, stride=1, padding=1)[:, 0]
+    dmax = torch.where(finite, dmax, torch.full_like(d, float("inf")))  # [V, H, W]
+    mask = torch.zeros(len(pts), dtype=torch.int32, device=pts.device)
+    for i in range(v):
+        uv, z = cams[i].to(pts.device, torch.float32).project(pts)  # [N, 2], [N]
+        x, y = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+        inside = (x >= 0) & (x < w) & (y >= 0) & (y < h) & (z > 0)
+        xi, yi = x.clamp(0, w - 1), y.clamp(0, h - 1)
+        fg = foreground[i].to(pts.device)[yi, xi] > 0.5
+        seen = z <= dmax[i].to(pts.device)[yi, xi] + tol
+        mask |= (inside & fg & seen).int() << i
+    if source_view is not None:
+        sv = source_view.to(pts.device).long()
+        own = sv >= 0
+        mask[own] |= (1 << sv[own].clamp(min=0)).int()
+    return mask.to(torch.uint8)
+
+
+def min_angle_table(angles: Tensor) -> Tensor:
+    """``[2^V]`` table: for each coverage mask, the smallest angle among its views (``inf`` for mask 0).
+
+    ``angles [V]`` (``V <= 8``), any unit.
+    """
+    v = angles.shape[0]
+    if angles.ndim != 1 or v > MAX_BLEND_VIEWS:
+        raise ValueError(f"min_angle_table: angles must be [V] with V <= {MAX_BLEND_VIEWS}, got {list(angles.shape)}")
+    m = torch.arange(1 << v, device=angles.device)
+    bits = ((m[:, None] >> torch.arange(v, device=angles.device)) & 1).bool()  # [2^V, V]
+    return torch.where(bits, angles[None].float(), torch.full((), float("inf"), device=angles.device)).amin(dim=1)
+
+
+def angles_deg(directions: Tensor, camera: Cameras) -> Tensor:
+    """``[V]`` angles (degrees) between the input ``directions [V, 3]`` and ``camera``'s direction from the head centre."""
+    c = view_directions(camera)[0].to(directions)
+    return torch.rad2deg(torch.arccos((directions @ c).clamp(-1.0, 1.0)))
+
+
+def blend_factors(source_view: Tensor, mask: Tensor, directions: Tensor, camera: Cameras, tau_deg: float) -> Tensor:
+    """Opacity factors ``[N]`` in (0, 1] for the render ``camera`` (batch ``[1]`` or ``[]``; module doc).
+
+    ``source_view [N]`` int (``-1`` = no source view: factor 1), ``mask [N]`` uint8 coverage masks,
+    ``directions [V, 3]`` the input views' unit directions, ``tau_deg > 0`` the fall-off in degrees.
+    """
+    if tau_deg <= 0:
+        raise ValueError(f"blend_factors: tau_deg must be > 0, got {tau_deg}")
+    ang = angles_deg(directions, camera)  # [V]
+    table = min_angle_table(ang)  # [2^V]
+    sv = source_view.long()
+    own = sv >= 0
+    a_src = ang[sv.clamp(min=0)]
+    a_min = table[mask.long() & ((1 << ang.shape[0]) - 1)]
+    f = torch.exp(-(a_src - a_min).clamp(min=0) / float(tau_deg))
+    return torch.where(own, f, torch.ones_like(f))
+
+
+@dataclass
+class ViewBlend:
+    """Per reconstructed Gaussian: its source view and coverage mask; the input views' directions.
+
+    Attributes:
+        source_view: ``int8 [N]`` input view of each reconstructed Gaussian (``-1`` = none).
+        mask: ``uint8 [N]`` coverage mask (bit ``v``: input view ``v`` sees the Gaussian's point).
+        directions: ``float32 [V, 3]`` unit directions from the head centre to the input cameras.
+    """
+
+    source_view: Tensor
+    mask: Tensor
+    directions: Tensor
+
+    def __post_init__(self) -> None:
+        n, v = self.source_view.shape[0], self.directions.shape[0]
+        if self.source_view.ndim != 1 or self.mask.shape != (n,) or self.directions.shape != (v, 3) or not 1 <= v <= MAX_BLEND_VIEWS:
+            raise ValueError(
+                f"ViewBlend: expected source_view [N], mask [N], directions [V<=8, 3]; got {list(self.source_view.shape)}, "
+                f"{list(self.mask.shape)}, {list(self.directions.shape)}"
+            )
+        if n and int(self.source_view.max()) >= v:
+            raise ValueError(f"ViewBlend: source_view must be < {v} (the number of directions), got {int(self.source_view.max())}")
+
+    def __len__(self) -> int:
+        return int(self.source_view.shape[0])
+
+    def factors(self, camera: Cameras, tau_deg: float) -> Tensor:
+        """``[N]`` opacity factors for ``camera``, the same as ``blend_factors``.
+
+        Per frame: the factor of every (mask, source view) pair, a ``[2^V * V + 1]`` table (the
+        last entry 1 for Gaussians without a source view), and one gather of it by each Gaussian's
+        pair index (``mask * V + source``, computed once and cached on this object)."""
+        if tau_deg <= 0:
+            raise ValueError(f"ViewBlend.factors: tau_deg must be > 0, got {tau_deg}")
+        v = self.directions.shape[0]
+        key = self.__dict__.get("_key")
+        if key is None or key.device != self.mask.device:
+            sv = self.source_view.long()
+            key = torch.where(sv >= 0, (self.mask.long() & ((1 << v) - 1)) * v + sv.clamp(min=0), torch.full_like(sv, (1 << v) * v))
+            self.__dict__["_key"] = key
+        ang = angles_deg(self.directions, camera)  # [V]
+        table = min_angle_table(ang)  # [2^V]
+        f = torch.exp(-(ang[None, :] - table[:, None]).clamp(min=0) / float(tau_deg)).reshape(-1)  # [2^V * V]
+        return torch.cat([f, f.new_ones(1)])[key]
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held once a frame has been drawn: the tensors and the cached int64 pair index."""
+        return sum(t.numel() * t.element_size() for t in (self.source_view, self.mask, self.directions)) + 8 * len(self)
+
+    def subset(self, keep: Tensor) -> "ViewBlend":
+        return ViewBlend(self.source_view[keep], self.mask[keep], self.directions)
+
+    def to(self, device) -> "ViewBlend":
+        if self.mask.device == torch.device(device):
+            return self  # keeps the cached pair index
+        return ViewBlend(self.source_view.to(device), self.mask.to(device), self.directions.to(device))
+
+    def tensors(self) -> dict[str, Tensor]:
+        return {"view.source": self.source_view.to(torch.int8), "view.mask": self.mask.to(torch.uint8), "view.dirs": self.directions.float()}
+
+    @staticmethod
+    def from_tensors(t: dict[str, Tensor], n: int) -> "ViewBlend | None":
+        """From an avatar file's extra tensors; ``None`` when absent (files written before view blending)."""
+        keys = ("view.source", "view.mask", "view.dirs")
+        if not all(k in t for k in keys):
+            return None
+        b = ViewBlend(t[keys[0]].to(torch.int8), t[keys[1]].to(torch.uint8), t[keys[2]].float())
+        if len(b) != n:
+            raise ValueError(f"avatar view blend must cover the {n} reconstructed Gaussians, got {len(b)}")
+        return b
+
+
+def view_depth_maps(means: Tensor, cameras: Cameras, visible: Tensor) -> Tensor:
+    """``[V, S, S]`` camera-space depth of each view's own pixel-aligned Gaussians (``inf`` where not ``visible``).
+
+    ``means [V*S*S, 3]`` view-major (``GaussianHead`` order), ``cameras [V]`` of size ``S x S``,
+    ``visible [V*S*S]`` bool.
+    """
+    v = int(cameras.batch_shape.numel())
+    s = cameras.height
+    if means.shape[0] != v * s * cameras.width:
+        raise ValueError(f"view_depth_maps: expected {v}x{s}x{cameras.width} view-major means, got {means.shape[0]}")
+    pts = means.detach().float().reshape(v, -1, 3)
+    z = cameras.flatten().to(pts.device, torch.float32).world_to_camera(pts)[..., 2]  # [V, S*S]
+    z = torch.where(visible.reshape(v, -1), z, torch.full_like(z, float("inf")))
+    return z.reshape(v, s, cameras.width)
