@@ -128,8 +128,9 @@ def run(args) -> int:
     t0 = time.perf_counter()
     try:
         for i in tqdm(range(len(codes)), desc="animate", unit="frame"):
-            g = model.animate(avatar, codes[i])
-            rgb = render(g, cams[i].to(g.device), background=BACKGROUND_RGB, backend=args.backend).rgb[0]  # [3, S, S]
+            cam = cams[i].to(avatar.gaussians.device)
+            g = model.animate(avatar, codes[i], camera=cam)  # camera: view blending, as the server draws (model/viewblend.py)
+            rgb = render(g, cam, background=BACKGROUND_RGB, backend=args.backend).rgb[0]  # [3, S, S]
             frame = (rgb.clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)  # [S, S, 3]
             if writer is not None:
                 writer.send(np.ascontiguousarray(frame))
