@@ -34,3 +34,4 @@ def test_the_note_says_on_with_tau_and_views_or_why_it_is_off():
     assert "network's depth" not in _blend_note(_model(), _avatar(None), on_surface=True)  # e.g. more than 8 views
     zero = _blend_note(_model(view_blend_tau_deg=0.0), _avatar(3), on_surface=True)
     assert "view_blend_tau_deg is 0" in zero and "unweighted" in zero
+    assert "nothing to weight" in _blend_note(_model(), _avatar(1), on_surface=True)  # one photo: every factor is 1

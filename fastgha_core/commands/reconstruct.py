@@ -124,6 +124,8 @@ def _blend_note(model, avatar, on_surface: bool) -> str:
         return f"view blending: off for this avatar ({why}): frames draw every input view's Gaussians unweighted"
     if tau <= 0:
         return "view blending: per-view data saved, but the model's gaussians.view_blend_tau_deg is 0: frames draw unweighted"
+    if avatar.view_blend.directions.shape[0] == 1:
+        return "view blending: one input view, nothing to weight (2 or more photos from different angles use it)"
     return (
         f"view blending: on (tau {tau:g} deg): each frame weights the {avatar.view_blend.directions.shape[0]} input views' "
         "Gaussians by their camera's angle to the frame's camera (server, animate; not the PLY)"
