@@ -35,3 +35,15 @@ def test_the_note_says_on_with_tau_and_views_or_why_it_is_off():
     zero = _blend_note(_model(view_blend_tau_deg=0.0), _avatar(3), on_surface=True)
     assert "view_blend_tau_deg is 0" in zero and "unweighted" in zero
     assert "nothing to weight" in _blend_note(_model(), _avatar(1), on_surface=True)  # one photo: every factor is 1
+
+
+def test_animate_says_how_the_views_were_drawn():
+    """An avatar file from before view blending (no ``view.*`` tensors) still animates, unweighted;
+    the summary line says so and why, so a user knows to reconstruct again."""
+    from fastgha_core.commands.animate import blend_summary
+
+    assert "blended by angle (tau 20 deg)" in blend_summary(_model(), _avatar(4))
+    old = blend_summary(_model(), _avatar(None))
+    assert "unweighted" in old and "before view blending" in old
+    assert "view_blend_tau_deg is 0" in blend_summary(_model(view_blend_tau_deg=0.0), _avatar(4))
+    assert blend_summary(_model(), _avatar(1)) == "one input view"
