@@ -163,3 +163,62 @@ def test_every_doc_that_describes_the_ply_says_it_is_not_view_blended():
     model = (ROOT / "docs" / "model.md").read_text(encoding="utf-8")
     for where, text in (("conventions.md PLY", conventions), ("protocol.md /ply", ply_route), ("model.md", model), ("README.md", (ROOT / "README.md").read_text(encoding="utf-8"))):
         assert "unweighted" in text, where
+
+
+BENCH = re.compile(r"python bench/(\w+)\.py([^`\n|;&#)]*)")
+
+
+def _bench_parser(name):
+    """The ``argparse`` parser of ``bench/<name>.py``'s ``main`` (caught at ``parse_args``, before any work)."""
+    import importlib.util
+
+    class _Got(Exception):
+        pass
+
+    seen = {}
+
+    def grab(self, *a, **k):
+        seen["p"] = self
+        raise _Got
+
+    spec = importlib.util.spec_from_file_location(f"_docs_bench_{name}", ROOT / "bench" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    import inspect
+    import sys
+
+    if not callable(getattr(mod, "main", None)):
+        return None
+    original, argv = argparse.ArgumentParser.parse_args, sys.argv
+    argparse.ArgumentParser.parse_args, sys.argv = grab, [name]
+    try:
+        mod.main([]) if inspect.signature(mod.main).parameters else mod.main()
+    except _Got:
+        pass
+    finally:
+        argparse.ArgumentParser.parse_args, sys.argv = original, argv
+    return seen.get("p")
+
+
+def test_every_quoted_bench_script_and_flag_exists():
+    """``python bench/X.py --flag`` quoted in README.md and docs/*.md: the script exists and takes the flag."""
+    parsers, found, problems = {}, 0, []
+    for path in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
+        text = re.sub(r"\\\n\s*", " ", path.read_text(encoding="utf-8"))
+        for m in BENCH.finditer(text):
+            found += 1
+            where, name = f"{path.relative_to(ROOT)}:{text[: m.start()].count(chr(10)) + 1}", m.group(1)
+            if not (ROOT / "bench" / f"{name}.py").is_file():
+                problems.append(f"{where}: bench/{name}.py does not exist")
+                continue
+            if name not in parsers:
+                parsers[name] = _bench_parser(name)
+            if parsers[name] is None:
+                continue  # a script without an argparse main
+            options = {o for a in parsers[name]._actions for o in a.option_strings}
+            for tok in m.group(2).split():
+                flag = tok.split("=", 1)[0].rstrip("],.)")
+                if flag.startswith("--") and flag not in options:
+                    problems.append(f"{where}: bench/{name}.py has no {flag}")
+    assert found > 10
+    assert not problems, "\n".join(problems)
