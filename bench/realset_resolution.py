@@ -121,6 +121,17 @@ def reconstruct_variant(model, name, imgs128, cams128, photos, photo_cams, expr,
         return avatar
 
 
+def _valid_variant(name: str) -> bool:
+    """A name ``--variants`` accepts: one of ``VARIANTS``, or ``view``/``blend`` + a non-negative TAU."""
+    for prefix in (VIEW_WEIGHT_PREFIX, BLEND_PREFIX):
+        if name.startswith(prefix):
+            try:
+                return float(name[len(prefix) :]) >= 0
+            except ValueError:
+                return False
+    return name in VARIANTS
+
+
 def _shipped_like(name: str) -> bool:
     """Variants drawing the shipped avatar (one reconstruction serves them all)."""
     return name == "shipped" or name.startswith(VIEW_WEIGHT_PREFIX) or name.startswith(BLEND_PREFIX)
@@ -199,14 +210,22 @@ def _table(rows, key):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--model", default="tiny")
+    ap.add_argument("--model", default="tiny", help="preset name or model folder (default: tiny)")
     ap.add_argument("--sets", default=None, help="comma-separated set names (default: all)")
-    ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument(
+        "--variants",
+        default=",".join(VARIANTS),
+        help=f"comma-separated: {', '.join(VARIANTS)}, viewTAU or blendTAU (TAU in degrees, e.g. view20, blend20: the shipped "
+        f"view blending); default {','.join(VARIANTS)}",
+    )
     ap.add_argument("--reproduce", action="store_true", help="also render each set's avatars at their own input cameras")
     ap.add_argument("--frame", action="store_true", help="also time a served frame (animate + render at 256²) per variant")
-    ap.add_argument("--json", default=None)
+    ap.add_argument("--json", default=None, help="also write the rows and tables here")
     ap.add_argument("--grid", default=None, help="grid picture (NOT inside the repository)")
     args = ap.parse_args(argv)
+    bad = [n for n in args.variants.split(",") if not _valid_variant(n)]
+    if bad:
+        ap.error(f"--variants: unknown {bad}; expected {', '.join(VARIANTS)}, viewTAU or blendTAU with TAU in degrees (view20, blend20)")
     sys.path.insert(0, str(REPO))
     import fastgha_core  # noqa: F401  (OpenMP defaults before torch)
     import torch

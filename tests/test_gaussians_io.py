@@ -208,6 +208,22 @@ def test_export_command(tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
 
 
+def test_export_of_a_view_blended_avatar_says_the_ply_is_unweighted(tmp_path, capsys):
+    """A tracked-head avatar is view-blended per frame; its PLY holds the plain opacities, and the
+    export says so (a viewer shows all views' Gaussians at once). Older files say nothing."""
+    import torch
+
+    g = random_gaussians(20, f=4, seed=5)
+    view = {"view.source": torch.zeros(20, dtype=torch.int8), "view.mask": torch.ones(20, dtype=torch.uint8), "view.dirs": torch.tensor([[0.0, 0.0, 1.0]])}
+    save_avatar_file(tmp_path / "blended.safetensors", g, {"model_name": "tiny", "expression_space": "ict53"}, extra=view)
+    save_avatar_file(tmp_path / "plain.safetensors", g, {"model_name": "tiny", "expression_space": "ict53"})
+    for name, noted in (("blended", True), ("plain", False)):
+        out = tmp_path / f"{name}.ply"
+        assert cli_main(["export", "--avatar", str(tmp_path / f"{name}.safetensors"), "--ply", str(out), "--keep-outliers"]) == 0
+        assert ("unweighted opacities" in capsys.readouterr().out) == noted, name
+        assert_close(load_ply(out).opacities, g.opacities, rtol=0, atol=1e-6)  # the file's own opacities, unweighted
+
+
 # ---------------------------------------------------------------- PLY axes, outliers, compressed PLY
 def test_ply_colmap_axes_by_hand_and_rotation_of_covariances(tmp_path):
     from fastgha_core.render.projection import quat_to_rotmat

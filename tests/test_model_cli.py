@@ -53,7 +53,8 @@ def test_reconstruct_then_animate(tmp_path, model_dir, capsys):
     avatar = CanonicalAvatar.load(out)
     assert f"reconstructed {len(avatar)} Gaussians from 3 views" in printed and " ms " in printed
     assert 0 < len(avatar) <= 3 * 32 * 32 and ply.exists()
-    assert f"wrote the canonical Gaussians as a 3DGS PLY -> {ply}" in printed
+    assert f"wrote the canonical Gaussians as a 3DGS PLY (static: unweighted opacities, no view blending) -> {ply}" in printed
+    assert "view blending: off for this avatar (built on the network's depth" in printed  # no head.json here
 
     np.save(tmp_path / "seq.npy", np.random.default_rng(1).random((3, 53)).astype(np.float32))
     frames = tmp_path / "frames"

@@ -80,6 +80,18 @@ def _fit_square(cam, size: int):
     return cam.resize(sw, sh).crop(-((size - sw) // 2), -((size - sh) // 2), size, size)
 
 
+def blend_summary(model, avatar) -> str:
+    """How the frames drew the input views (``model/viewblend.py``): a few words for the summary line."""
+    tau = float(model.config.gaussians.view_blend_tau_deg)
+    if avatar.view_blend is None:
+        return "views unweighted (no per-view data in the avatar file: written before view blending, or built without a tracked head)"
+    if tau <= 0:
+        return "views unweighted (the model's gaussians.view_blend_tau_deg is 0)"
+    if avatar.view_blend.directions.shape[0] == 1:
+        return "one input view"
+    return f"views blended by angle (tau {tau:g} deg)"
+
+
 _VIDEO_SUFFIXES = (".mp4", ".mkv", ".mov", ".webm")
 # file types a user may ask for that we do not write: refused rather than made into a folder of PNGs
 _NOT_A_FOLDER = (".gif", ".avi", ".wmv", ".flv", ".mpg", ".mpeg", ".m4v", ".png", ".jpg", ".jpeg", ".webp", ".apng", ".bmp", ".tif", ".tiff")
@@ -140,5 +152,5 @@ def run(args) -> int:
         if writer is not None:
             writer.close()
     dt = time.perf_counter() - t0
-    print(f"rendered {len(codes)} frames at {args.size}^2 in {dt:.2f} s ({len(codes) / max(dt, 1e-9):.1f} fps) -> {out}")
+    print(f"rendered {len(codes)} frames at {args.size}^2 in {dt:.2f} s ({len(codes) / max(dt, 1e-9):.1f} fps), {blend_summary(model, avatar)} -> {out}")
     return 0

@@ -4,7 +4,12 @@ HELP = "export an avatar file (.safetensors) as a 3DGS PLY for SuperSplat, gspla
 
 def add_arguments(parser) -> None:
     parser.add_argument("--avatar", required=True, help="avatar file written by `fastgha reconstruct` (.safetensors)")
-    parser.add_argument("--ply", required=True, help="output PLY path (standard 3DGS layout, SH degree 0)")
+    parser.add_argument(
+        "--ply",
+        required=True,
+        help="output PLY path (standard 3DGS layout, SH degree 0; static: the neutral Gaussians with "
+        "unweighted opacities, without the per-frame view blending of the server and `fastgha animate`)",
+    )
     parser.add_argument(
         "--min-opacity", type=float, default=0.0, help="drop Gaussians with opacity below this value (default: keep all)"
     )
@@ -40,7 +45,7 @@ def run(args) -> int:
         raise CLIError(f"--ply must name a .ply file, got {dst}")
     if not 0.0 <= args.min_opacity <= 1.0:
         raise CLIError(f"--min-opacity must lie in [0, 1], got {args.min_opacity}")
-    g, meta, _ = load_avatar_file(src)
+    g, meta, extra = load_avatar_file(src)
     n_in = len(g)
     if args.min_opacity > 0:
         g = g.prune(args.min_opacity)
@@ -52,6 +57,11 @@ def run(args) -> int:
         f"wrote {dst}: {len(g)} Gaussians (of {n_in}; {dropped} stray dropped), axes {args.axes}, from model "
         f"{meta.get('model_name', '?')!r}, expression space {meta.get('expression_space', '?')!r}"
     )
+    if "view.source" in extra:
+        print(
+            "note: this avatar is view-blended per frame (server, `fastgha animate`); the PLY holds its "
+            "unweighted opacities, so a viewer shows every input view's Gaussians at once (docs/model.md)"
+        )
     if args.viewer_settings:
         vs = Path(args.viewer_settings)
         vs.parent.mkdir(parents=True, exist_ok=True)

@@ -113,6 +113,25 @@ def _fit_surface(images, cams, masks):
     return surface
 
 
+def _blend_note(model, avatar, on_surface: bool) -> str:
+    """One line: whether the avatar's frames are view-blended (``model/viewblend.py``) and, if not, why."""
+    tau = float(model.config.gaussians.view_blend_tau_deg)
+    if avatar.view_blend is None:
+        if not on_surface and model.config.gaussians.view_blend_surface_only:
+            why = "built on the network's depth; only avatars on a tracked head (head.json) record the per-view data"
+        else:
+            why = "no per-view data recorded"
+        return f"view blending: off for this avatar ({why}): frames draw every input view's Gaussians unweighted"
+    if tau <= 0:
+        return "view blending: per-view data saved, but the model's gaussians.view_blend_tau_deg is 0: frames draw unweighted"
+    if avatar.view_blend.directions.shape[0] == 1:
+        return "view blending: one input view, nothing to weight (2 or more photos from different angles use it)"
+    return (
+        f"view blending: on (tau {tau:g} deg): each frame weights the {avatar.view_blend.directions.shape[0]} input views' "
+        "Gaussians by their camera's angle to the frame's camera (server, animate; not the PLY)"
+    )
+
+
 def run(args) -> int:
     import time
 
@@ -176,9 +195,10 @@ def run(args) -> int:
         f"reconstructed {len(avatar)} Gaussians from {len(imgs)} views at {model.config.input_size}^2 "
         f"in {dt * 1000:.0f} ms{refine_note} (model {model.config.name!r}, expression space {model.config.expression_space}) -> {args.out}"
     )
+    print(_blend_note(model, avatar, surface is not None))
     if args.ply:
         avatar.to_ply(args.ply)
-        print(f"wrote the canonical Gaussians as a 3DGS PLY -> {args.ply}")
+        print(f"wrote the canonical Gaussians as a 3DGS PLY (static: unweighted opacities, no view blending) -> {args.ply}")
     return 0
 
 
