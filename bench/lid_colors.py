@@ -6,9 +6,9 @@ of ``model.prior`` (``eyeBlink_L`` = ``eyeBlink_R`` = 1), and the colour ``_lid_
 them from the same mesh at the neutral expression (the brighter half of the skin at the crease and
 under the eye, which is what a reconstruction of neutral photos holds there). Prints the Rec. 601
 luma ratio truth lid / sampled skin: over all lid points, and per band of how far the blink moves
-a point (``LID_SHADE_BANDS``: the crease, <= 6 mm; 6-8 mm; the lower part over the eye), and the head model's own Lambert ratio (``prior._brightness`` at
-the closed lid over that at the sampled skin, ``SHADE_LIGHT``) for the same points. ``LID_SHADE`` is
-set from the per-band figures.
+a point (``BANDS``: the crease, <= 6 mm; 6-8 mm; the lower part over the eye), and the head
+model's own Lambert ratio (``prior._brightness`` at the closed lid over that at the sampled skin,
+``SHADE_LIGHT``) for the same points. ``prior.LID_SHADE`` is set from the per-band figures.
 
     python bench/lid_colors.py --subjects 30
 """
@@ -25,8 +25,14 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
+# Bands of how far the blink moves a lid point (metres): the crease (<= 6 mm, where the lid sits
+# above the open eye), 6-8 mm, and the lower part that closes over the eye (its open position is the
+# lash line); the same as ``prior.LID_SHADE_BANDS``.
+BANDS = (0.006, 0.008)
+
+
 def lid_ratios(seeds) -> dict[str, float]:
-    """``{"all": r, "bands": [r per band of LID_SHADE_BANDS], "lambert": r, ...}``: median over the lid
+    """``{"all": r, "bands": [r per band of BANDS], "lambert": r, ...}``: median over the lid
     points (of a band) of the mean over ``seeds`` of truth lid luma / sampled skin luma (``lambert``:
     the head model's Lambert ratio, same points). Raises ``ValueError`` for a held-out seed."""
     from scipy.spatial import cKDTree
@@ -64,15 +70,14 @@ def lid_ratios(seeds) -> dict[str, float]:
         lam.append(P._brightness(vb, s.faces)[ids] / P._brightness(v0, s.faces)[below])
     r = np.mean(ratios, 0)
     la = np.mean(lam, 0)
-    band = np.searchsorted(np.asarray(P.LID_SHADE_BANDS), travel, side="left")  # as ``prior.lid_shade``
+    band = np.searchsorted(np.asarray(BANDS), travel, side="left")
     out = {
         "all": float(np.median(r)),
         "subject_spread": float(np.std([np.median(x) for x in ratios])),
         "lambert": float(np.median(la)),
-        "bands": [float(np.median(r[band == i])) for i in range(len(P.LID_SHADE))],
-        "bands_lambert": [float(np.median(la[band == i])) for i in range(len(P.LID_SHADE))],
-        "band_points": [int((band == i).sum()) for i in range(len(P.LID_SHADE))],
-        "lid_shade": list(P.LID_SHADE),
+        "bands": [float(np.median(r[band == i])) for i in range(len(BANDS) + 1)],
+        "bands_lambert": [float(np.median(la[band == i])) for i in range(len(BANDS) + 1)],
+        "band_points": [int((band == i).sum()) for i in range(len(BANDS) + 1)],
     }
     return out
 

@@ -12,7 +12,7 @@ import torch
 from pathlib import Path
 
 from fastgha_core.data.headmodel import HeadModel
-from fastgha_core.model.prior import LID_SHADE, PriorBinding, PriorRuntime, back_shell_vertices, bind, fit_head, lid_shade, load_basis, mouth_gate, mouth_interior
+from fastgha_core.model.prior import LID_SHADE, LID_SHADE_BANDS, PriorBinding, PriorRuntime, back_shell_vertices, bind, fit_head, lid_shade, load_basis, mouth_gate, mouth_interior
 
 
 REPO_SAMPLES = Path(__file__).resolve().parents[1] / "fastgha_core" / "assets" / "samples"
@@ -657,6 +657,7 @@ def test_closed_lid_is_shaded_as_the_synthetic_truth_lights_it():
     spec.loader.exec_module(mod)
     res = mod.lid_ratios(range(3))
     assert all(n > 30 for n in res["band_points"]), res
+    assert mod.BANDS == LID_SHADE_BANDS
     for got, want in zip(res["bands"], LID_SHADE):
         assert 0.85 < got / want < 1.15, res
     assert res["bands"][0] > res["bands"][-1] + 0.15  # the truth's lid darkens towards the lash line
@@ -721,6 +722,29 @@ def test_lashes_are_gated_with_their_lid_and_dark_without_an_avatar():
                 z[names.index(k)] = val
             f = opacity_factors(z, basis, rt.group_index)[on]
             assert torch.allclose(f, torch.full_like(f, expect)), (side, w)
+
+
+def test_closed_lashes_sit_lash_lift_up_the_fitted_heads_up_axis():
+    """The lash Gaussians are drawn ``LASH_LIFT`` (times the fit's scale) above their vertices along
+    the fitted head's own up axis, also for a scaled, rolled head (at the vertices the dark band sat
+    ~1.5 mm below the truth's, under the shaded lid's darkest part: one thick dark band, issue 16);
+    the lid points stay on their vertices."""
+    from scipy.spatial.transform import Rotation
+
+    from fastgha_core.model.prior import LASH_LIFT, HeadFit
+
+    basis = load_basis("ict53")
+    k = basis.identity_basis.shape[0]
+    T = np.eye(4, dtype=np.float32)
+    T[:3, :3] = 1.1 * Rotation.from_euler("z", 30, degrees=True).as_matrix()
+    T[:3, 3] = [0.01, -0.02, 0.3]
+    v = (basis.neutral @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+    gi, _ = mouth_interior(HeadFit(np.zeros(k, np.float32), T, v, 0.0), basis, 4)
+    d = gi.means.numpy() - v[basis.interior_vertices]
+    up = T[:3, 1] / np.linalg.norm(T[:3, 1])
+    lash, lid = basis.lash, (basis.interior_group > 0) & ~basis.lash
+    assert np.allclose(d[lash], 1.1 * LASH_LIFT * up, atol=1e-6)
+    assert np.abs(d[lid]).max() < 1e-6
 
 
 def test_a_blink_closes_the_eye_in_a_render():

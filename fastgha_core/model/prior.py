@@ -95,6 +95,10 @@ GATE_START, GATE_FULL = 0.04, 0.25  # gate(z) = smoothstep((g.z - START) / (FULL
 # as 1.3 mm Gaussians; their colour is the avatar's own (``_lash_color``), at most LASH_MAX_LUMA
 # times as bright as the closed lid's skin; LASH_DEFAULT without an avatar to take it from.
 LASH_TRAVEL, LASH_STEP, LASH_SCALE = 0.004, 2, 0.0013
+# The closed lashes are drawn LASH_LIFT (metres, times the fit's scale) higher than their vertices, along
+# the fitted head's up axis: at the vertices, the dark band sat 1.8-2.2 px (256², ~1.5 mm) below the
+# truth's, under the shaded lid's darkest part (``LID_SHADE``), which made one thick dark band.
+LASH_LIFT = 0.0015
 TEETH_SCALE = 0.0012  # metres, the teeth Gaussians' scale (gums and socket: 0.9 * 2.2 mm)
 # The mouth interior's brightness (teeth, gums/tongue, socket): factors on albedo-like colours so that
 # they match how the synthetic renderer shows the inside of an open mouth (its albedo under the rig's
@@ -734,6 +738,8 @@ def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "G
         pos[basis.interior_group == 0] -= (float(inset) * fwd).astype(np.float32)
     cols = basis.interior_colors.astype(np.float32).copy()
     lash = np.zeros(n, bool) if basis.lash is None else basis.lash
+    up = M[:, 1] / max(np.linalg.norm(M[:, 1]), 1e-9)
+    pos[lash] += (LASH_LIFT * s * up).astype(np.float32)
     smp = basis.sample_color & ~lash
     cols[lash] = np.array(LASH_DEFAULT, np.float32)
     if smp.any():
