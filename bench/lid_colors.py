@@ -8,7 +8,8 @@ under the eye, which is what a reconstruction of neutral photos holds there). Pr
 luma ratio truth lid / sampled skin: over all lid points, and per band of how far the blink moves
 a point (``BANDS``: the crease, <= 6 mm; 6-8 mm; the lower part over the eye), and the head
 model's own Lambert ratio (``prior._brightness`` at the closed lid over that at the sampled skin,
-``SHADE_LIGHT``) for the same points. ``prior.LID_SHADE`` is set from the per-band figures.
+``SHADE_LIGHT``) for the same points. A closed-lid colour factor from these figures (with the lashes
+lifted 1.5 mm) was tried and not kept: docs/model-card.md, "The closed lid's shade and the lash band".
 
     python bench/lid_colors.py --subjects 30
 """
@@ -27,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 # Bands of how far the blink moves a lid point (metres): the crease (<= 6 mm, where the lid sits
 # above the open eye), 6-8 mm, and the lower part that closes over the eye (its open position is the
-# lash line); the same as ``prior.LID_SHADE_BANDS``.
+# lash line).
 BANDS = (0.006, 0.008)
 
 

@@ -12,7 +12,7 @@ import torch
 from pathlib import Path
 
 from fastgha_core.data.headmodel import HeadModel
-from fastgha_core.model.prior import LID_SHADE, LID_SHADE_BANDS, PriorBinding, PriorRuntime, back_shell_vertices, bind, fit_head, lid_shade, load_basis, mouth_gate, mouth_interior
+from fastgha_core.model.prior import PriorBinding, PriorRuntime, back_shell_vertices, bind, fit_head, load_basis, mouth_gate, mouth_interior
 
 
 REPO_SAMPLES = Path(__file__).resolve().parents[1] / "fastgha_core" / "assets" / "samples"
@@ -640,16 +640,15 @@ def test_the_whole_closed_lid_is_skin_coloured_not_the_open_lids_dark_line():
     )
     gi, _ = mouth_interior(fit, basis, 4, avatar=g)
     luma = gi.colors.numpy() @ _LUMA
-    skin_l = float(skin_c @ _LUMA) * lid_shade(travel)  # the skin, shaded as a closed lid is lit
-    assert np.all(np.abs(luma[near_crease] - skin_l[near_crease]) < 0.05 * skin_l[near_crease]), np.percentile(luma[near_crease], [0, 50, 100])
-    assert np.all(np.abs(luma[lid] - skin_l[lid]) < 0.05 * skin_l[lid])
+    skin_l = float(skin_c @ _LUMA)
+    assert np.all(np.abs(luma[near_crease] - skin_l) < 0.05 * skin_l), np.percentile(luma[near_crease], [0, 50, 100])
+    assert np.all(np.abs(luma[lid] - skin_l) < 0.05 * skin_l)
 
 
-def test_closed_lid_is_shaded_as_the_synthetic_truth_lights_it():
-    """The closed lid is as much darker than the skin it is coloured from as the ground-truth renderer
-    shows it on training subjects, band by band (the crease hardly, the part over the eye, which turns
-    down towards the lash line, most): unshaded, it drew paler than the skin under the eye, an oval
-    dlib took for the white of an open eye at 30 deg of yaw (issue 16)."""
+def test_truth_closed_lid_darkens_towards_the_lash_line_on_training_subjects():
+    """``bench/lid_colors.py``: the ground-truth renderer shows a closed lid darker than the skin the
+    prior colours it from, most where it turns down towards the lash line (training subjects; the
+    figures of the model card's closed-lid shade section), and refuses held-out seeds."""
     import importlib.util
 
     spec = importlib.util.spec_from_file_location("lid_colors", Path(__file__).resolve().parents[1] / "bench" / "lid_colors.py")
@@ -657,22 +656,10 @@ def test_closed_lid_is_shaded_as_the_synthetic_truth_lights_it():
     spec.loader.exec_module(mod)
     res = mod.lid_ratios(range(3))
     assert all(n > 30 for n in res["band_points"]), res
-    assert mod.BANDS == LID_SHADE_BANDS
-    for got, want in zip(res["bands"], LID_SHADE):
-        assert 0.85 < got / want < 1.15, res
-    assert res["bands"][0] > res["bands"][-1] + 0.15  # the truth's lid darkens towards the lash line
-    assert list(LID_SHADE) == sorted(LID_SHADE, reverse=True)
+    assert res["bands"] == sorted(res["bands"], reverse=True), res
+    assert res["bands"][0] < 1.0 and res["bands"][-1] < 0.8, res
     with pytest.raises(ValueError, match="training subjects"):
         mod.lid_ratios([1_000_000])
-
-
-def test_lid_shade_bands_and_errors():
-    t = np.array([0.0, 0.006, 0.007, 0.008, 0.012])
-    want = np.array([LID_SHADE[0], LID_SHADE[0], LID_SHADE[1], LID_SHADE[1], LID_SHADE[2]], np.float32)
-    assert np.array_equal(lid_shade(t), want)
-    for bad in (np.array([-0.001]), np.array([np.nan]), np.zeros((2, 2))):
-        with pytest.raises(ValueError, match="travel"):
-            lid_shade(bad)
 
 
 def test_lash_colour_is_the_avatars_darkest_at_the_lid_or_capped_below_the_skin():
@@ -722,29 +709,6 @@ def test_lashes_are_gated_with_their_lid_and_dark_without_an_avatar():
                 z[names.index(k)] = val
             f = opacity_factors(z, basis, rt.group_index)[on]
             assert torch.allclose(f, torch.full_like(f, expect)), (side, w)
-
-
-def test_closed_lashes_sit_lash_lift_up_the_fitted_heads_up_axis():
-    """The lash Gaussians are drawn ``LASH_LIFT`` (times the fit's scale) above their vertices along
-    the fitted head's own up axis, also for a scaled, rolled head (at the vertices the dark band sat
-    ~1.5 mm below the truth's, under the shaded lid's darkest part: one thick dark band, issue 16);
-    the lid points stay on their vertices."""
-    from scipy.spatial.transform import Rotation
-
-    from fastgha_core.model.prior import LASH_LIFT, HeadFit
-
-    basis = load_basis("ict53")
-    k = basis.identity_basis.shape[0]
-    T = np.eye(4, dtype=np.float32)
-    T[:3, :3] = 1.1 * Rotation.from_euler("z", 30, degrees=True).as_matrix()
-    T[:3, 3] = [0.01, -0.02, 0.3]
-    v = (basis.neutral @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
-    gi, _ = mouth_interior(HeadFit(np.zeros(k, np.float32), T, v, 0.0), basis, 4)
-    d = gi.means.numpy() - v[basis.interior_vertices]
-    up = T[:3, 1] / np.linalg.norm(T[:3, 1])
-    lash, lid = basis.lash, (basis.interior_group > 0) & ~basis.lash
-    assert np.allclose(d[lash], 1.1 * LASH_LIFT * up, atol=1e-6)
-    assert np.abs(d[lid]).max() < 1e-6
 
 
 def test_a_blink_closes_the_eye_in_a_render():

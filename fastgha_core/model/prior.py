@@ -95,10 +95,6 @@ GATE_START, GATE_FULL = 0.04, 0.25  # gate(z) = smoothstep((g.z - START) / (FULL
 # as 1.3 mm Gaussians; their colour is the avatar's own (``_lash_color``), at most LASH_MAX_LUMA
 # times as bright as the closed lid's skin; LASH_DEFAULT without an avatar to take it from.
 LASH_TRAVEL, LASH_STEP, LASH_SCALE = 0.004, 2, 0.0013
-# The closed lashes are drawn LASH_LIFT (metres, times the fit's scale) higher than their vertices, along
-# the fitted head's up axis: at the vertices, the dark band sat 1.8-2.2 px (256², ~1.5 mm) below the
-# truth's, under the shaded lid's darkest part (``LID_SHADE``), which made one thick dark band.
-LASH_LIFT = 0.0015
 TEETH_SCALE = 0.0012  # metres, the teeth Gaussians' scale (gums and socket: 0.9 * 2.2 mm)
 # The mouth interior's brightness (teeth, gums/tongue, socket): factors on albedo-like colours so that
 # they match how the synthetic renderer shows the inside of an open mouth (its albedo under the rig's
@@ -112,15 +108,6 @@ INTERIOR_SHADE = (0.65, 0.69, 0.53)
 INTERIOR_INSET_MAX = 0.006  # metres
 INSET_MIN_POINTS = 20
 LASH_MAX_LUMA = 0.45
-# The closed upper lid's shade: factors on the skin colour that ``_lid_skin_colors`` samples (lit as
-# neutral skin faces, up-forward) for the lid as the synthetic renderer lights it closed, turning
-# down-forward towards its lash line. Per band of how far the blink moves a lid point (LID_SHADE_BANDS,
-# metres: the crease, the upper and the lower part of what closes over the eye), the truth's closed-lid
-# luma over that sampled skin's luma, eyeBlink_L = _R = 1, 30 training subjects (``bench/lid_colors.py``:
-# 0.93 / 0.82 / 0.61). Unshaded, the closed lid drew 1.03-1.06x as bright as the skin under the eye
-# (truth: 0.83-0.84), an oval that dlib took for the white of an open eye at 30 deg of yaw (issue 16).
-LID_SHADE_BANDS = (0.006, 0.008)
-LID_SHADE = (0.93, 0.82, 0.61)
 LASH_DEFAULT = (0.10, 0.08, 0.07)
 _LUMA = np.array([0.299, 0.587, 0.114], np.float32)  # Rec. 601 luma weights
 # Expression shading: a reconstruction bakes the photo's light into its colours, so a moved surface
@@ -641,18 +628,6 @@ def _lid_skin_colors(points: np.ndarray, M: np.ndarray, tree, colors: np.ndarray
     return np.median(np.take_along_axis(c, order[..., None], axis=1), axis=1).astype(np.float32)
 
 
-def lid_shade(travel: np.ndarray) -> np.ndarray:
-    """Colour factor ``[P]`` float32 of closed-lid points from how far the blink moves each
-    (``travel [P]``, metres, in the head model's frame): ``LID_SHADE[i]`` for the band ``i`` of
-    ``LID_SHADE_BANDS`` it falls in (<= 6 mm: the crease; 6-8 mm; further: the lower part of what
-    closes over the eye). Raises ``ValueError`` for a ``travel`` that is not 1-D or has negative or
-    non-finite entries."""
-    t = np.asarray(travel, np.float64)
-    if t.ndim != 1 or not np.all(np.isfinite(t)) or (t < 0).any():
-        raise ValueError(f"lid_shade: travel must be [P] finite and >= 0, got shape {list(t.shape)}")
-    return np.asarray(LID_SHADE, np.float32)[np.searchsorted(np.asarray(LID_SHADE_BANDS), t, side="left")]
-
-
 def _lash_color(lid: np.ndarray, tree, colors: np.ndarray, skin: np.ndarray, k: int = 8) -> np.ndarray:
     """The closed lashes' colour ``[3]`` of one eye, from the avatar.
 
@@ -721,7 +696,7 @@ def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "G
     interior (teeth, gums/tongue, mouth socket; coloured as the synthetic renderer shows them,
     ``INTERIOR_SHADE``; moved ``inset`` metres back along the fitted head's forward axis, see
     ``interior_inset``), the closed upper eyelids (coloured like the avatar's skin around the eye,
-    ``_lid_skin_colors``, shaded as a closed lid is lit, ``lid_shade``; skin grey without ``avatar``) and their lashes (``_lash_color``;
+    ``_lid_skin_colors``; skin grey without ``avatar``) and their lashes (``_lash_color``;
     ``LASH_DEFAULT`` without ``avatar``). ``features`` are zeros ``[I, num_features]``; the binding's
     ``group`` says which gate (``gate_factors``) hides each one."""
     from scipy.spatial import cKDTree
@@ -738,8 +713,6 @@ def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "G
         pos[basis.interior_group == 0] -= (float(inset) * fwd).astype(np.float32)
     cols = basis.interior_colors.astype(np.float32).copy()
     lash = np.zeros(n, bool) if basis.lash is None else basis.lash
-    up = M[:, 1] / max(np.linalg.norm(M[:, 1]), 1e-9)
-    pos[lash] += (LASH_LIFT * s * up).astype(np.float32)
     smp = basis.sample_color & ~lash
     cols[lash] = np.array(LASH_DEFAULT, np.float32)
     if smp.any():
@@ -759,7 +732,7 @@ def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "G
                 travel = np.linalg.norm(basis.expression_basis[blink][:, ids[smp]], axis=-1).max(0) if len(blink) else np.zeros(int(smp.sum()))
                 over_eye = travel > 0.006  # the part that closes over the eye: its open position is the lash line
                 tree = cKDTree(am[solid])
-                cols[smp] = _lid_skin_colors(pos[smp], M, tree, ac) * lid_shade(travel)[:, None]
+                cols[smp] = _lid_skin_colors(pos[smp], M, tree, ac)
                 grp = basis.interior_group
                 for gi in np.unique(grp[lash]):  # each eye's lashes: dark colours at its open upper lid
                     sel = np.flatnonzero(smp)[over_eye & (grp[smp] == gi)]
