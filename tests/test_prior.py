@@ -645,6 +645,23 @@ def test_the_whole_closed_lid_is_skin_coloured_not_the_open_lids_dark_line():
     assert np.all(np.abs(luma[lid] - skin_l) < 0.05 * skin_l)
 
 
+def test_truth_closed_lid_darkens_towards_the_lash_line_on_training_subjects():
+    """``bench/lid_colors.py``: the ground-truth renderer shows a closed lid darker than the skin the
+    prior colours it from, most where it turns down towards the lash line (training subjects; the
+    figures of the model card's closed-lid shade section), and refuses held-out seeds."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("lid_colors", Path(__file__).resolve().parents[1] / "bench" / "lid_colors.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    res = mod.lid_ratios(range(3))
+    assert all(n > 30 for n in res["band_points"]), res
+    assert res["bands"] == sorted(res["bands"], reverse=True), res
+    assert res["bands"][0] < 1.0 and res["bands"][-1] < 0.8, res
+    with pytest.raises(ValueError, match="training subjects"):
+        mod.lid_ratios([1_000_000])
+
+
 def test_lash_colour_is_the_avatars_darkest_at_the_lid_or_capped_below_the_skin():
     """The closed lashes take the darkest colours of the avatar at the open eye's upper lid; a blurred
     eye with nothing dark there still gets a line clearly darker than the lid's skin."""
