@@ -4,6 +4,8 @@ import numpy as np
 import pytest
 import torch
 
+from prior_frames import fast_and_plain
+
 from fastgha_core.data.headmodel import HeadModel
 from fastgha_core.model.prior import load_basis
 
@@ -47,7 +49,7 @@ def test_a_blinking_photos_closed_lids_are_hidden_at_neutral_and_appear_as_the_a
     from fastgha_core.config import get_preset
     from fastgha_core.gaussians import Gaussians
     from fastgha_core.model.avatar import CanonicalAvatar
-    from fastgha_core.model.fastgha import FastGHA, _combine
+    from fastgha_core.model.fastgha import FastGHA
 
     hm = HeadModel.load()
     names = hm.expression_names
@@ -76,11 +78,7 @@ def test_a_blinking_photos_closed_lids_are_hidden_at_neutral_and_appear_as_the_a
     assert (grp[n:][far] < 0).all() and not ((grp[:n] == 1) | (grp[:n] == 2)).any()
     avatar = CanonicalAvatar(g2, "tiny", "ict53", binding, n_int)
     for z, shown in ((torch.zeros(53), 0.0), (one(jawOpen=1.0), 0.0), (blink, 1.0)):
-        fast = model.animate(avatar, z)  # CPU, one expression: PriorRuntime.frame
-        rt = avatar.prior_runtime
-        with torch.inference_mode():
-            dxyz, drgb = model.deform.forward_split(model._deform_partial(avatar), z)
-            plain = _combine(g2, dxyz, drgb, rt.displacement(z), n_int, model._gate(z, rt), trim=True, shade=rt.shading(z))
+        fast, plain = fast_and_plain(model, avatar, z)
         for out in (fast, plain):
             op = out.opacities[: 2 * n]
             assert torch.allclose(op[n:][over], torch.full((int(over.sum()),), 0.9 * shown))

@@ -11,6 +11,8 @@ import torch
 
 from pathlib import Path
 
+from prior_frames import fast_and_plain
+
 from fastgha_core.data.headmodel import HeadModel
 from fastgha_core.model.prior import PriorBinding, PriorRuntime, back_shell_vertices, bind, fit_head, load_basis, mouth_gate, mouth_interior
 
@@ -347,7 +349,7 @@ def test_animate_frame_path_matches_the_plain_path(model_and_avatar):
         with torch.inference_mode():
             dxyz, drgb = model.deform.forward_split(model._deform_partial(avatar), z)
             shade = rt.shading(z)
-            rot = rt.rotation(z)  # the surface rotation (on in tiny): the plain path's torch version
+            rot = rt.rotation(z)  # the surface rotation (turned on above): the plain path's torch version
             plain = _combine(g, dxyz, drgb, rt.displacement(z), avatar.num_interior, model._gate(z, rt), trim=True, shade=shade, rot=rot)
         n = len(fast)
         assert n_rec <= n <= len(plain)
@@ -819,7 +821,7 @@ def test_open_mouthed_views_lose_their_lips_as_the_avatar_opens_its_mouth():
     from fastgha_core.config import get_preset
     from fastgha_core.gaussians import Gaussians
     from fastgha_core.model.avatar import CanonicalAvatar
-    from fastgha_core.model.fastgha import FastGHA, _combine
+    from fastgha_core.model.fastgha import FastGHA
     from fastgha_core.model.prior import LIP_RADIUS, lip_hide_group, open_mouth_views
 
     basis = load_basis("ict53")
@@ -850,11 +852,7 @@ def test_open_mouthed_views_lose_their_lips_as_the_avatar_opens_its_mouth():
     assert hidden[n:][lips].all() and not hidden[n:][far].any() and not hidden[:n].any()
     avatar = CanonicalAvatar(g2, "tiny", "ict53", binding, n_int)
     for z, open_factor in ((torch.zeros(53), 1.0), (one(mouthSmile_L=1.0, mouthSmile_R=1.0), 1.0), (one(jawOpen=1.0), 0.0)):
-        fast = model.animate(avatar, z)  # CPU, one expression: PriorRuntime.frame
-        rt = avatar.prior_runtime
-        with torch.inference_mode():
-            dxyz, drgb = model.deform.forward_split(model._deform_partial(avatar), z)
-            plain = _combine(g2, dxyz, drgb, rt.displacement(z), n_int, model._gate(z, rt), trim=True, shade=rt.shading(z))
+        fast, plain = fast_and_plain(model, avatar, z)
         for out in (fast, plain):
             op = out.opacities[: 2 * n]
             assert torch.allclose(op[n:][lips], torch.full((int(lips.sum()),), 0.9 * open_factor))
