@@ -83,8 +83,10 @@ def test_stretch_checks_its_sizes():
     steps, foot = surface_steps(t, cam)
     with pytest.raises(ValueError, match="expected"):
         stretch_to_patches(g[: len(g) - 1], steps, foot)
-    with pytest.raises(ValueError, match="t must have shape"):
+    with pytest.raises(ValueError, match="surface_steps: t must have shape"):
         surface_steps(t[0], cam)
+    with pytest.raises(ValueError, match="behind_occluding_edges: t must have shape"):
+        behind_occluding_edges(t[0], cam)
 
 
 def test_only_pixels_just_behind_an_occluding_edge_are_flagged():

@@ -371,6 +371,19 @@ def surface_ray_depth(surface: HeadSurface, cameras: Cameras, hair_m: float = 0.
     return SurfaceDepth(torch.from_numpy(out), torch.from_numpy(hits), torch.from_numpy(beyond), torch.from_numpy(front))
 
 
+def _per_pixel_of(cameras: Cameras, t: Tensor, who: str) -> Cameras:
+    """``cameras`` flattened, after checking that ``t`` is ``[V, H, W]``: one value per pixel of each view.
+
+    Raises:
+        ValueError: naming ``who`` when ``t`` has another shape.
+    """
+    cams = cameras.flatten()
+    v, h, w = len(cams.K), cams.height, cams.width
+    if tuple(t.shape) != (v, h, w):
+        raise ValueError(f"{who}: t must have shape [{v}, {h}, {w}], got {list(t.shape)}")
+    return cams
+
+
 def surface_steps(t: Tensor, cameras: Cameras, jump: float = 6.0) -> tuple[Tensor, Tensor]:
     """Each pixel's patch of the surface its Gaussian sits on: the steps to its neighbours' points.
 
@@ -388,10 +401,7 @@ def surface_steps(t: Tensor, cameras: Cameras, jump: float = 6.0) -> tuple[Tenso
     Raises:
         ValueError: when ``t`` is not ``[V, H, W]`` of the cameras' batch and size.
     """
-    cams = cameras.flatten()
-    v, h, w = len(cams.K), cams.height, cams.width
-    if tuple(t.shape) != (v, h, w):
-        raise ValueError(f"surface_steps: t must have shape [{v}, {h}, {w}], got {list(t.shape)}")
+    cams = _per_pixel_of(cameras, t, "surface_steps")
     o, d = cams.to(t.device, torch.float32).pixel_rays()
     p = o + t.float()[..., None] * d  # [V, H, W, 3]
     foot = t.float() / cams.K[:, 0, 0].to(t.device, torch.float32)[:, None, None]
@@ -472,10 +482,7 @@ def behind_occluding_edges(t: Tensor, cameras: Cameras, radius_px: int = 3, jump
     Raises:
         ValueError: when ``t`` is not ``[V, H, W]`` of the cameras' batch and size.
     """
-    cams = cameras.flatten()
-    v, h, w = len(cams.K), cams.height, cams.width
-    if tuple(t.shape) != (v, h, w):
-        raise ValueError(f"behind_occluding_edges: t must have shape [{v}, {h}, {w}], got {list(t.shape)}")
+    cams = _per_pixel_of(cameras, t, "behind_occluding_edges")
     t = t.float()
     tmin = -torch.nn.functional.max_pool2d(-t[:, None], 2 * radius_px + 1, stride=1, padding=radius_px)[:, 0]
     foot = t / cams.K[:, 0, 0].to(t.device, torch.float32)[:, None, None]
