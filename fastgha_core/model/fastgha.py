@@ -716,16 +716,16 @@ class FastGHA(nn.Module):
                     rt = avatar.prior_runtime = self._runtime(avatar.prior.to(dev))
                 rt.source = avatar.prior  # what this per-avatar cache was built from
             if prior and z.ndim == 1 and dev.type == "cpu" and g.means.dtype == torch.float32:
-                return self._view_blend(avatar, rt.frame(g, n_int, dxyz, drgb, z), camera)  # one numba pass, the same Gaussians as below
+                return self.blend_views(avatar, rt.frame(g, n_int, dxyz, drgb, z), camera)  # one numba pass, the same Gaussians as below
             if prior:
                 prior_d = rt.displacement(z)  # [N, 3] or [B, N, 3]
                 shade = rt.shading(z) if rt.shading_on else None  # [N] or [B, N]
                 rot = rt.rotation(z) if rt.rotate_on else None  # [N, 4] or [B, N, 4]
             gate = self._gate(z, rt)
         if z.ndim == 1:
-            return self._view_blend(avatar, _combine(g, dxyz, drgb, prior_d, n_int, gate, trim=True, shade=shade, rot=rot), camera)
+            return self.blend_views(avatar, _combine(g, dxyz, drgb, prior_d, n_int, gate, trim=True, shade=shade, rot=rot), camera)
         return [
-            self._view_blend(
+            self.blend_views(
                 avatar,
                 _combine(g, dxyz[i], drgb[i], None if prior_d is None else prior_d[i], n_int, None if gate is None else gate[i], trim=True, shade=None if shade is None else shade[i], rot=None if rot is None else rot[i]),
                 camera,
@@ -733,9 +733,13 @@ class FastGHA(nn.Module):
             for i in range(z.shape[0])
         ]
 
-    def _view_blend(self, avatar: CanonicalAvatar, g: Gaussians, camera: Cameras | None) -> Gaussians:
-        """``g`` (a frame of ``avatar``) with its reconstructed Gaussians' opacity weighted for ``camera``
-        (``model/viewblend.py``); ``g`` itself when the option is off, no camera or no per-view data."""
+    def blend_views(self, avatar: CanonicalAvatar, g: Gaussians, camera: Cameras | None) -> Gaussians:
+        """``g`` (a frame of ``avatar``, as ``animate`` returns it without a camera) with its first
+        ``avatar.num_reconstructed`` Gaussians' opacities multiplied by their source view's weight for
+        ``camera`` (batch ``[1]``; ``model/viewblend.py``). ``animate(..., camera=c)`` is
+        ``blend_views(avatar, animate(...), c)``; callers that render one frame from several cameras
+        deform once and weight per camera. Returns ``g`` itself when ``gaussians.view_blend_tau_deg``
+        is 0, ``camera`` is None or the avatar has no per-view data."""
         tau = float(self.config.gaussians.view_blend_tau_deg)
         vb = avatar.view_blend
         if camera is None or tau <= 0 or vb is None:

@@ -301,9 +301,11 @@ def evaluate(
             gt = torch.stack([source.view(t, c).image for c in proto.target_cameras]).float()  # [S, 3, H, W]
             gt, cams = fit_square(gt, _cameras_at(source, tpairs), size)
             if cfg.ablation != "static" and model.config.gaussians.view_blend_tau_deg > 0 and avatar.view_blend is not None:
-                # view blending weights opacities per render camera (model/viewblend.py): one render each
+                # view blending weights opacities per render camera (model/viewblend.py): one render each,
+                # of the same deformed Gaussians
+                cams_d = cams.to(device)
                 pred = torch.cat([
-                    render(model.animate(avatar, expr, prior=cfg.ablation != "no-prior", camera=cams[i : i + 1].to(device)), cams[i : i + 1].to(device), background=BACKGROUND_RGB, backend=cfg.backend).rgb
+                    render(model.blend_views(avatar, gauss, cams_d[i : i + 1]), cams_d[i : i + 1], background=BACKGROUND_RGB, backend=cfg.backend).rgb
                     for i in range(len(cams))
                 ]).float().cpu().clamp(0, 1)
             else:
