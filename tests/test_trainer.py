@@ -144,3 +144,24 @@ def test_cosine_schedule_warms_up_then_anneals_to_the_floor(tmp_path, toy_data):
     assert tr.optimizer.param_groups[0]["lr"] == pytest.approx(base * 0.1)
     with pytest.raises(ValueError, match="lr_schedule"):
         _trainer(tmp_path / "bad", toy_data, lr_schedule="linear")
+
+
+def test_evaluate_renders_view_blended_avatars_per_camera(toy_data):
+    """With per-view data (here on the network's depth, ``view_blend_surface_only=False``) the report
+    weights each target camera's render by view blending: an infinite tau (every factor 1) gives the
+    unweighted figures exactly, a finite one changes them."""
+    from fastgha_core.train.evaluate import EvalConfig, evaluate
+
+    seq = toy_data.sequence()
+    cfg = EvalConfig(num_inputs=4, num_target_timesteps=2, num_target_views=2, backend="cpu")
+    torch.manual_seed(0)
+    model = FastGHA(toy_model_config(32)).eval()
+    gcfg = model.config.gaussians
+    off = evaluate(model, [seq], cfg, progress=False)["summary"]["psnr"]
+    gcfg.view_blend_surface_only = False
+    gcfg.view_blend_tau_deg = 1e9
+    flat = evaluate(model, [seq], cfg, progress=False)["summary"]["psnr"]
+    gcfg.view_blend_tau_deg = 5.0
+    sharp = evaluate(model, [seq], cfg, progress=False)["summary"]["psnr"]
+    assert flat == pytest.approx(off, abs=1e-4)
+    assert abs(sharp - off) > 1e-3
