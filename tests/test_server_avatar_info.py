@@ -20,6 +20,7 @@ import pytest
 import torch
 from PIL import Image, ImageOps
 
+from client_demo.client import describe_avatar
 from server.avatar_info import FACT_KEYS, avatar_options
 from server.identity import IdentityChecker, same_person_groups
 from server.jobs import CreationRequest, Photo
@@ -151,6 +152,18 @@ def test_avatar_from_photos_with_cameras_has_no_per_view_data(model_dir, samples
     assert job.result["view_blend"] == {"per_view_data": False, "views": 0, "tau_deg": 20.0, "active": False}
 
 
+def test_describe_avatar_says_each_case():
+    vb = {"per_view_data": True, "views": 4, "tau_deg": 20.0, "active": True}
+    sp = {"checked": True, "photos_compared": 3, "photos_without_face": ["side.jpg"], "max_distance": 0.47, "check_ms": 300.0}
+    said = describe_avatar({"view_blend": vb, "expression_prior": {"enabled": False}, "same_person": sp})
+    assert said == ("view blending on (4 views, tau 20 deg); expression prior off (the deformation MLP alone); "
+                    "same person: 3 photos compared (largest distance 0.47); no frontal face in side.jpg (not compared)")  # fmt: skip
+    assert describe_avatar({"view_blend": {**vb, "tau_deg": 0.0, "active": False}}) == "view blending off (the server's tau is 0)"
+    assert describe_avatar({"view_blend": {**vb, "views": 1, "active": False}}) == "view blending off (one input view)"
+    assert describe_avatar({"same_person": {"checked": False, "reason": "one photo"}}) == "same person: not checked (one photo)"
+    assert describe_avatar({}) == ""  # an older server: nothing to say
+
+
 # ---------------------------------------------------------------- the tau setting
 @pytest.mark.parametrize("bad", [-1.0, float("nan"), float("inf"), 361.0])
 def test_tau_setting_refuses_bad_values_with_a_clear_error(bad):
@@ -209,6 +222,8 @@ def test_http_routes_report_tau_prior_and_same_person(model_dir, samples, tmp_pa
         assert got["view_blend"]["tau_deg"] == 0.0 and not got["view_blend"]["active"]
         assert not set(FACT_KEYS) & set(got)  # the raw facts stay internal
         assert got["num_gaussians"] == created["num_gaussians"] and "active_streams" in got  # the old fields are still there
+        said = describe_avatar(got)  # what `fastgha client` prints
+        assert "view blending off (no per-view data" in said and "expression prior on" in said and "same person:" in said, said
         status = client.get(f"/v1/avatars/{created['avatar_id']}/status", headers=auth).json()
         assert status["avatar"]["view_blend"] == got["view_blend"]
     # metadata written before the facts were recorded (an older server): read from the avatar file after a restart
