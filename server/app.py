@@ -100,6 +100,9 @@ def _load(ctx: ServerContext) -> None:
         _compile_deformation(ctx)
     else:
         log.info("deformation MLP: %s, eager (FASTGHA_COMPILE=%s)", "bf16" if bf16 else "fp32", s.compile)
+    if ctx.identity is not None and ctx.identity.enabled:  # dlib's face models now, not on the first creation (server/identity.py)
+        log.info("same-person check of each avatar's photos: %s", "on (dlib face descriptors)" if ctx.identity.available
+                 else f"off, nothing is checked: {ctx.identity.reason}")  # fmt: skip
     # the budget counts what an avatar holds once it streams: Gaussians, prior binding, the MLP's cached
     # first layer and the prior's per-frame basis (FastGHA.serving_nbytes)
     ctx.store = AvatarStore(s.data_dir, s.cache_max_bytes, s.avatar_ttl_seconds, load_fn=CanonicalAvatar.load, nbytes_fn=ctx.model.serving_nbytes)

@@ -18,7 +18,7 @@ the frontal ones than frontal photos are from each other, in one group.
 Measured on the real photo sets (three people, 4-6 photos each from 0 to 85 degrees of yaw;
 photos downscaled to a 512-pixel longer side, detector without upsampling, as here): photos of one
 person are 0.23-0.56 apart (the largest: one person pitched down against pitched up), photos of
-two different people 0.62-0.86; dlib finds no frontal face in the two 85-degree profiles.
+two different people 0.62-0.85; dlib finds no frontal face in the two 85-degree profiles.
 ``docs/protocol.md`` ("Same person") has the figures and the command that reproduces them.
 
 Without dlib (or with ``FASTGHA_SAME_PERSON_CHECK=false``) nothing is checked and the avatar's

@@ -49,7 +49,9 @@ def test_reconstruct_then_animate(tmp_path, model_dir, capsys):
     req = _request(tmp_path / "req", masks=True)
     out, ply = tmp_path / "avatar.safetensors", tmp_path / "avatar.ply"
     assert main(["reconstruct", "--input", str(req), "--model", str(model_dir), "--out", str(out), "--ply", str(ply)]) == 0
-    printed = capsys.readouterr().out
+    said = capsys.readouterr()
+    printed = said.out
+    assert f"loading model {str(model_dir)!r} ..." in said.err  # shown before the seconds of loading, not after
     avatar = CanonicalAvatar.load(out)
     assert f"reconstructed {len(avatar)} Gaussians from 3 views" in printed and " ms " in printed
     assert 0 < len(avatar) <= 3 * 32 * 32 and ply.exists()
@@ -60,6 +62,7 @@ def test_reconstruct_then_animate(tmp_path, model_dir, capsys):
     frames = tmp_path / "frames"
     args = ["animate", "--avatar", str(out), "--model", str(model_dir), "--expressions", str(tmp_path / "seq.npy"), "--size", "24"]
     assert main(args + ["--out", str(frames)]) == 0
+    assert "loading model" in capsys.readouterr().err
     pngs = sorted(frames.glob("*.png"))
     assert len(pngs) == 3 and Image.open(pngs[0]).size == (24, 24)
 

@@ -107,6 +107,7 @@ def run(args) -> int:
     from ..constants import BACKGROUND_RGB
     from ..model.avatar import CanonicalAvatar
     from ..model.fastgha import load_model
+    from . import loading
     from ..render import render
 
     if args.size <= 0 or args.fps <= 0:
@@ -121,6 +122,7 @@ def run(args) -> int:
     from ..cli import check_device
 
     check_device(args.device)
+    loading(args.model or avatar.model_name)
     model = load_model(args.model or avatar.model_name, device=args.device)
     codes = load_expressions(args.expressions, model.expression_space)  # [T, E]
     cams = frame_cameras(args.cameras, len(codes), args.size, args.radius, args.fov)
