@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -75,6 +76,26 @@ def test_reconstruct_then_animate(tmp_path, model_dir, capsys):
     import imageio.v3 as iio
 
     assert iio.imread(video, index=None).shape[0] == 2  # two frames
+
+
+def test_reconstruct_of_untracked_photos_suggests_a_track_command_that_works(tmp_path, model_dir, capsys, monkeypatch):
+    """A folder of photos without cameras.json: the message suggests tracking them into a new folder
+    (track refuses an --out that holds the photos), and that exact command's --out check passes."""
+    photos = tmp_path / "me"
+    photos.mkdir()
+    for n in ("a.jpg", "b.JPG"):
+        Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(photos / n, format="JPEG")
+    assert main(["reconstruct", "--input", str(photos), "--model", str(model_dir), "--out", str(tmp_path / "a.safetensors")]) == 2
+    err = capsys.readouterr().err
+    assert f"`fastgha track --images {photos}/*.JPG {photos}/*.jpg --out {photos}-tracked`" in err, err
+    assert f"then use --input {photos}-tracked" in err
+    from fastgha_core.commands.track import _earlier_run_files
+
+    from fastgha_core.cli import CLIError
+
+    assert not _earlier_run_files(Path(f"{photos}-tracked"), sorted(photos.iterdir()))  # no refusal of that --out
+    with pytest.raises(CLIError, match="already holds photos"):  # what the old advice (--out the photos' folder) ran into
+        _earlier_run_files(photos, sorted(photos.iterdir()))
 
 
 def test_cli_errors_are_one_line(tmp_path, model_dir, capsys):
