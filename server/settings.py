@@ -7,18 +7,16 @@ takes an explicit ``Settings`` (tests and ``fastgha serve`` build one and pass i
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from fastgha_core.commands import MAX_VIEW_BLEND_TAU_DEG, view_blend_tau_problem
+
 __all__ = ["MAX_VIEW_BLEND_TAU_DEG", "Settings", "get_settings"]
 
-#: Largest view-blending tau (degrees): angles between cameras are at most 180 degrees, so beyond this every
-#: factor is above exp(-1/2) and the setting only hides a typo (0 turns blending off).
-MAX_VIEW_BLEND_TAU_DEG = 360.0
 
 _REPO_STATIC = Path(__file__).resolve().parent.parent / "client_demo" / "static"
 
@@ -186,10 +184,9 @@ class Settings(BaseSettings):
     @field_validator("view_blend_tau_deg")
     @classmethod
     def _tau(cls, v: float | None) -> float | None:
-        if v is not None and not (math.isfinite(v) and 0.0 <= v <= MAX_VIEW_BLEND_TAU_DEG):
-            raise ValueError(
-                f"view_blend_tau_deg must be 0 (off) or a number of degrees in (0, {MAX_VIEW_BLEND_TAU_DEG:g}], got {v!r}"
-            )
+        problem = None if v is None else view_blend_tau_problem(v)
+        if problem:
+            raise ValueError(problem)
         return v
 
     @field_validator("api_keys_file")

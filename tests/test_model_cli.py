@@ -78,6 +78,35 @@ def test_reconstruct_then_animate(tmp_path, model_dir, capsys):
     assert iio.imread(video, index=None).shape[0] == 2  # two frames
 
 
+def test_animate_view_blend_tau_flag(tmp_path, model_dir, capsys):
+    """``animate --view-blend-tau-deg``: the tau the frames use (as the server's setting), said in the
+    summary; bad values are refused in one line before anything loads."""
+    import dataclasses
+
+    from fastgha_core.model.viewblend import ViewBlend
+
+    req = _request(tmp_path / "req", masks=True)
+    out = tmp_path / "avatar.safetensors"
+    assert main(["reconstruct", "--input", str(req), "--model", str(model_dir), "--out", str(out)]) == 0
+    avatar = CanonicalAvatar.load(out)
+    n = avatar.num_reconstructed
+    dirs = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]])
+    vb = ViewBlend((torch.arange(n) % 2).to(torch.int8), torch.full((n,), 3, dtype=torch.uint8), dirs)
+    dataclasses.replace(avatar, view_blend=vb).save(tmp_path / "blended.safetensors")
+    np.save(tmp_path / "seq.npy", np.zeros((2, 53), np.float32))
+    args = ["animate", "--avatar", str(tmp_path / "blended.safetensors"), "--model", str(model_dir), "--expressions", str(tmp_path / "seq.npy"),
+            "--size", "24", "--out", str(tmp_path / "frames")]  # fmt: skip
+    capsys.readouterr()
+    assert main(args + ["--view-blend-tau-deg", "35"]) == 0
+    assert "views blended by angle (tau 35 deg)" in capsys.readouterr().out
+    assert main(args + ["--view-blend-tau-deg", "0"]) == 0
+    assert "views unweighted (tau 0: --view-blend-tau-deg 0" in capsys.readouterr().out
+    for bad in ("-1", "nan", "1e9"):
+        assert main(args + ["--view-blend-tau-deg", bad]) == 2
+        err = capsys.readouterr().err
+        assert "--view-blend-tau-deg: view_blend_tau_deg must be 0 (off)" in err and "loading model" not in err, err
+
+
 def test_reconstruct_of_untracked_photos_suggests_a_track_command_that_works(tmp_path, model_dir, capsys, monkeypatch):
     """A folder of photos without cameras.json: the message suggests tracking them into a new folder
     (track refuses an --out that holds the photos), and that exact command's --out check passes."""
