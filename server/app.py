@@ -91,7 +91,7 @@ def _load(ctx: ServerContext) -> None:
         ctx.model.config.gaussians.view_blend_tau_deg = float(s.view_blend_tau_deg)
     tau = ctx.model.config.gaussians.view_blend_tau_deg
     log.info("view blending of avatars with per-view data: %s (%s)", f"tau {tau:g} deg" if tau > 0 else "off",
-             "FASTGHA_VIEW_BLEND_TAU_DEG" if s.view_blend_tau_deg is not None else "the model's own")  # fmt: skip
+             "FASTGHA_VIEW_BLEND_TAU_DEG / --view-blend-tau-deg" if s.view_blend_tau_deg is not None else "the model's own")  # fmt: skip
     ctx.mlp_choice = _choose_precision(ctx, lambda: step("precision", "timing the deformation MLP in fp32 and bf16 (FASTGHA_MLP_PRECISION=auto)"))
     bf16 = ctx.mlp_choice.bf16
     ctx.renderer = FrameRenderer(ctx.model, ctx.device, s.default_camera_distance, s.default_camera_fov_deg, bf16=bf16)
