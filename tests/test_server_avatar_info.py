@@ -348,3 +348,21 @@ def test_real_sets_pass_and_mixing_two_sets_is_refused():
             with pytest.raises(ApiError) as err:
                 chk.check([f"{a}/{n}" for n, _ in sets[a]] + [f"{b}/{n}" for n, _ in sets[b]], [d for _, d in mixed])
             assert err.value.code == "different_people" and a in err.value.message and b in err.value.message
+
+
+@needs_dlib
+def test_track_refuses_photos_of_two_people_as_the_server_does(tmp_path, capsys):
+    """``fastgha track`` fits one head to all its photos: photos of two people are refused in one line
+    naming them, before any fitting; one person's two photos (a mirrored copy) track."""
+    from fastgha_core.cli import main
+
+    hopper, astro, mirror = tmp_path / "hopper.jpg", tmp_path / "astronaut.jpg", tmp_path / "hopper_mirrored.jpg"
+    hopper.write_bytes((FIX / "grace_hopper_upright.jpg").read_bytes())
+    astro.write_bytes(_astronaut())
+    Image.open(hopper).transpose(Image.Transpose.FLIP_LEFT_RIGHT).save(mirror, quality=92)
+    assert main(["track", "--images", str(hopper), str(astro), "--out", str(tmp_path / "mixed"), "--size", "64"]) == 2
+    err = capsys.readouterr().err
+    assert "do not all show the same person" in err and "hopper.jpg" in err and "astronaut.jpg" in err, err
+    assert "tracking 2 photo(s)" not in err and not (tmp_path / "mixed").exists()  # refused before tracking
+    assert main(["track", "--images", str(hopper), str(mirror), "--out", str(tmp_path / "one"), "--size", "64"]) == 0
+    assert "tracking 2 photo(s): finding the face" in capsys.readouterr().err  # progress before the fit
