@@ -107,7 +107,7 @@ class SamePersonResult:
 
 class IdentityChecker:
     """dlib's face detector, 5-point landmarks and face-recognition model, loaded on first use (one
-    per app; thread-safe). ``available`` is False, with ``reason``, when dlib or
+    per app; thread-safe: descriptors are computed one at a time). ``available`` is False, with ``reason``, when dlib or
     ``face_recognition_models`` is missing."""
 
     def __init__(self, enabled: bool = True, max_distance: float = DLIB_SAME_PERSON_DISTANCE) -> None:
@@ -144,11 +144,6 @@ class IdentityChecker:
         """The 128-d descriptor of the largest frontal face in ``rgb`` (``[H, W, 3]`` uint8, upright),
         looked at with a longer side of at most :data:`CHECK_SIDE`; None when no face is found or
         dlib is missing."""
-        with self._lock:
-            models = self._load()
-        if models is None:
-            return None
-        det, shape5, rec = models
         h, w = rgb.shape[:2]
         s = min(1.0, CHECK_SIDE / max(h, w))
         if s < 1.0:
@@ -156,11 +151,16 @@ class IdentityChecker:
 
             rgb = np.asarray(Image.fromarray(rgb).resize((max(1, round(w * s)), max(1, round(h * s))), Image.BILINEAR))
         img = np.ascontiguousarray(rgb[..., :3], dtype=np.uint8)
-        faces = det(img, 0)
-        if len(faces) == 0:
-            return None
-        box = max(faces, key=lambda r: r.area())
-        return np.asarray(rec.compute_face_descriptor(img, shape5(img, box)), dtype=np.float64)
+        with self._lock:  # dlib's network keeps per-call state: one photo at a time (jobs may run concurrently)
+            models = self._load()
+            if models is None:
+                return None
+            det, shape5, rec = models
+            faces = det(img, 0)
+            if len(faces) == 0:
+                return None
+            box = max(faces, key=lambda r: r.area())
+            return np.asarray(rec.compute_face_descriptor(img, shape5(img, box)), dtype=np.float64)
 
     def check(self, names: list[str], descriptors: list[np.ndarray | None], ms: float = 0.0) -> SamePersonResult:
         """``SamePersonResult`` of photos ``names`` with their descriptors; raises ``ApiError`` 422
