@@ -34,8 +34,8 @@ from .avatar_info import FACT_KEYS, avatar_facts, avatar_options, server_options
 from .context import ServerContext, StreamRegistry
 from .errors import ApiError, CloseCode, error_body
 from .frames import FrameRenderer
-from .jobs import CreationRequest, JobQueue, Photo, extra_stages_for, probe_request, safe_filename
 from .identity import IdentityChecker
+from .jobs import CreationRequest, JobQueue, Photo, extra_stages_for, probe_request, safe_filename
 from .logs import install_token_redaction
 from .metrics import CONTENT_TYPE_LATEST
 from .protocol import ProtocolError, parse_cameras_json, parse_head_json
