@@ -52,6 +52,7 @@ from PIL import Image
 __all__ = [
     "FastGHAClient",
     "Avatar",
+    "describe_avatar",
     "Frame",
     "StreamStats",
     "StreamError",
@@ -106,6 +107,49 @@ class Avatar:
     expression_space: str
     round_trip_ms: float = 0.0  # client-side time of the create call (upload, queue, reconstruction)
     tracking_ms: float | None = None  # server-side photo tracking, when the photos came without cameras
+    # what the server reports about the avatar's frames and photos (docs/protocol.md, GET /v1/avatars/{id}):
+    # "view_blend", "expression_prior", "same_person"; empty from a server that predates them
+    info: dict = field(default_factory=dict, hash=False)
+
+    def describe(self) -> str:
+        """One line for people: whether frames are view-blended, the expression prior, what the
+        same-person check compared (``docs/protocol.md``); empty when the server reported none."""
+        return describe_avatar(self.info)
+
+
+def describe_avatar(info: dict) -> str:
+    """``"view blending on (4 views, tau 20 deg); expression prior on; same person: 4 photos compared
+    (largest distance 0.47)"`` from the ``view_blend`` / ``expression_prior`` / ``same_person`` of a
+    creation answer or ``GET /v1/avatars/{id}``; parts the server did not report are left out."""
+    parts = []
+    vb = info.get("view_blend")
+    if isinstance(vb, dict):
+        if vb.get("active"):
+            parts.append(f"view blending on ({vb.get('views')} views, tau {vb.get('tau_deg'):g} deg)")
+        elif not vb.get("per_view_data"):
+            parts.append("view blending off (no per-view data: photos sent with cameras alone)")
+        elif int(vb.get("views", 0)) < 2:
+            parts.append("view blending off (one input view)")
+        else:
+            parts.append("view blending off (the server's tau is 0)")
+    pr = info.get("expression_prior")
+    if isinstance(pr, dict):
+        parts.append("expression prior " + ("on" if pr.get("enabled") else "off (the deformation MLP alone)"))
+    sp = info.get("same_person")
+    if isinstance(sp, dict):
+        if not sp.get("checked"):
+            parts.append(f"same person: not checked ({sp.get('reason', 'no reason given')})")
+        else:
+            n, skipped = int(sp.get("photos_compared", 0)), sp.get("photos_without_face") or []
+            md = sp.get("max_distance")
+            if n < 2:
+                txt = "same person: fewer than two photos with a frontal face, nothing compared"
+            else:
+                txt = f"same person: {n} photos compared" + (f" (largest distance {md:.2f})" if md is not None else "")
+                if skipped:
+                    txt += f"; no frontal face in {', '.join(skipped)} (not compared)"
+            parts.append(txt)
+    return "; ".join(parts)
 
 
 @dataclass
@@ -453,6 +497,7 @@ class FastGHAClient:
         return Avatar(
             d["avatar_id"], d["token"], int(d["num_gaussians"]), float(d["reconstruction_ms"]), d["expression_space"], rt,
             float(tracking) if tracking is not None else None,
+            {k: d[k] for k in ("view_blend", "expression_prior", "same_person") if k in d},
         )
 
     def create_avatar_from_dir(self, folder: str | Path, **kw: Any) -> Avatar:

@@ -424,9 +424,14 @@ def load_request_folder(folder: str | Path) -> tuple[list[Path], list[Cameras]]:
         raise ValueError(f"request folder {folder} does not exist")
     cam_file = folder / "cameras.json"
     if not cam_file.exists():
+        # track into ANOTHER folder: `track` refuses an --out that holds the photos (reconstruct would take both as views)
+        found = sorted({p.suffix for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.stem.endswith("_mask")})
+        photos = " ".join(f"{folder}/*{x}" for x in found) or "PHOTO..."
+        tracked = f"{str(folder).rstrip('/')}-tracked"
         raise ValueError(
             f"request folder {folder} has no cameras.json; for photos without cameras, run "
-            f"`fastgha track --images PHOTO... --out {folder}` first (it writes cameras.json and head.json)"
+            f"`fastgha track --images {photos} --out {tracked}` first (it writes the crops, masks, cameras.json and "
+            f"head.json into that new folder), then use --input {tracked}"
         )
     images = sorted(
         p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.stem.endswith("_mask")

@@ -30,9 +30,11 @@ from fastgha_core import __version__
 from fastgha_core.cameras import Cameras, orbit_cameras
 
 from . import auth
+from .avatar_info import FACT_KEYS, avatar_facts, avatar_options, server_options
 from .context import ServerContext, StreamRegistry
 from .errors import ApiError, CloseCode, error_body
 from .frames import FrameRenderer
+from .identity import IdentityChecker
 from .jobs import CreationRequest, JobQueue, Photo, extra_stages_for, probe_request, safe_filename
 from .logs import install_token_redaction
 from .metrics import CONTENT_TYPE_LATEST
@@ -85,6 +87,11 @@ def _load(ctx: ServerContext) -> None:
     t0 = time.perf_counter()
     ctx.model = load_model(s.model, device=ctx.device)
     log.info("loaded model %r on %s in %.1f s", ctx.model.config.name, ctx.device, time.perf_counter() - t0)
+    if s.view_blend_tau_deg is not None:  # FASTGHA_VIEW_BLEND_TAU_DEG / --view-blend-tau-deg: the server's tau, 0 = off
+        ctx.model.config.gaussians.view_blend_tau_deg = float(s.view_blend_tau_deg)
+    tau = ctx.model.config.gaussians.view_blend_tau_deg
+    log.info("view blending of avatars with per-view data: %s (%s)", f"tau {tau:g} deg" if tau > 0 else "off",
+             "FASTGHA_VIEW_BLEND_TAU_DEG / --view-blend-tau-deg" if s.view_blend_tau_deg is not None else "the model's own")  # fmt: skip
     ctx.mlp_choice = _choose_precision(ctx, lambda: step("precision", "timing the deformation MLP in fp32 and bf16 (FASTGHA_MLP_PRECISION=auto)"))
     bf16 = ctx.mlp_choice.bf16
     ctx.renderer = FrameRenderer(ctx.model, ctx.device, s.default_camera_distance, s.default_camera_fov_deg, bf16=bf16)
@@ -93,6 +100,9 @@ def _load(ctx: ServerContext) -> None:
         _compile_deformation(ctx)
     else:
         log.info("deformation MLP: %s, eager (FASTGHA_COMPILE=%s)", "bf16" if bf16 else "fp32", s.compile)
+    if ctx.identity is not None and ctx.identity.enabled:  # dlib's face models now, not on the first creation (server/identity.py)
+        log.info("same-person check of each avatar's photos: %s", "on (dlib face descriptors)" if ctx.identity.available
+                 else f"off, nothing is checked: {ctx.identity.reason}")  # fmt: skip
     # the budget counts what an avatar holds once it streams: Gaussians, prior binding, the MLP's cached
     # first layer and the prior's per-frame basis (FastGHA.serving_nbytes)
     ctx.store = AvatarStore(s.data_dir, s.cache_max_bytes, s.avatar_ttl_seconds, load_fn=CanonicalAvatar.load, nbytes_fn=ctx.model.serving_nbytes)
@@ -372,6 +382,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.ctx = ServerContext(settings=s)
     install_security(app, s)  # 507/410 errors and security headers (server/security.py)
+    # do all photos of one avatar show the same person (server/identity.py; loads dlib on first use)
+    app.state.ctx.identity = IdentityChecker(s.same_person_check, s.same_person_max_distance)
     tracker = PhotoTracker()  # photos without cameras (server/tracking.py); loads dlib on first use
     app.state.ctx.jobs = JobQueue(app.state.ctx, tracker, extra_stages_for(app.state.ctx))  # started in lifespan
 
@@ -441,6 +453,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             "max_output_size": ctx.settings.max_output_size,
             "max_images": min(ctx.settings.max_images, int(getattr(cfg, "max_views", ctx.settings.max_images))),
             "device": ctx.device,
+            **server_options(ctx.model),  # view_blend_tau_deg, expression_prior (server/avatar_info.py)
         }
 
     @app.post("/v1/avatars", status_code=201, tags=["avatars"], openapi_extra=_CREATE_OPENAPI)
@@ -531,11 +544,21 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             raise ApiError(403, "invalid_token", "the token does not belong to this avatar")
         return job, None
 
-    def _stored_status(meta: dict) -> dict:
-        keys = ("avatar_id", "num_gaussians", "reconstruction_ms", "expression_space", "tracking_ms")
+    async def _options(ctx: ServerContext, meta: dict) -> dict:
+        """The avatar's ``view_blend`` and ``expression_prior`` (server/avatar_info.py); an avatar stored
+        before its facts were recorded in its metadata gets them from its file."""
+        facts = meta
+        if not all(k in meta for k in FACT_KEYS):
+            item = await ctx.run_work(ctx.store.get, meta["avatar_id"])
+            facts = avatar_facts(item.avatar) if item is not None else {}
+        return avatar_options(ctx.model, facts)
+
+    async def _stored_status(ctx: ServerContext, meta: dict) -> dict:
+        keys = ("avatar_id", "num_gaussians", "reconstruction_ms", "expression_space", "tracking_ms", "same_person")
         # the job's own clock is gone with the job: elapsed_ms is null, but the key is there as in every status
+        avatar = {**{k: meta[k] for k in keys if k in meta}, **await _options(ctx, meta)}
         return {"avatar_id": meta["avatar_id"], "status": "ready", "stage": "ready", "stage_progress": 1.0, "progress": 1.0,
-                "queue_position": None, "elapsed_ms": None, "avatar": {k: meta[k] for k in keys if k in meta}}  # fmt: skip
+                "queue_position": None, "elapsed_ms": None, "avatar": avatar}  # fmt: skip
 
     @app.get("/v1/avatars/{avatar_id}/status", tags=["avatars"])
     async def avatar_status(avatar_id: str, request: Request):
@@ -543,7 +566,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         job, meta = await _job_or_meta(request, avatar_id)
         if job is None:
             done = _ctx(request).jobs.get(avatar_id)  # a ready job still in memory keeps its elapsed_ms
-            return done.snapshot() if done is not None and done.status == "ready" else _stored_status(meta)
+            return done.snapshot() if done is not None and done.status == "ready" else await _stored_status(_ctx(request), meta)
         return JSONResponse(job.snapshot(), headers=None if job.done else {"Retry-After": "1"})
 
     @app.get("/v1/avatars/{avatar_id}/events", tags=["avatars"], response_class=StreamingResponse)
@@ -553,7 +576,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
         async def events():
             if job is None:
-                yield f"event: ready\ndata: {json.dumps(_stored_status(meta))}\n\n"
+                yield f"event: ready\ndata: {json.dumps(await _stored_status(_ctx(request), meta))}\n\n"
                 return
             async for snap in _ctx(request).jobs.watch(job):
                 if snap is None:
@@ -572,7 +595,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         if job is not None:
             raise ApiError(409, "avatar_not_ready", f"the avatar is still being created ({job.status}, stage {job.stage}): see /v1/avatars/{avatar_id}/status")
         ctx = _ctx(request)
-        return {**_public_meta(meta), "active_streams": len(ctx.streams.sessions(avatar_id))}
+        info = {k: v for k, v in _public_meta(meta).items() if k not in FACT_KEYS}
+        return {**info, **await _options(ctx, meta), "active_streams": len(ctx.streams.sessions(avatar_id))}
 
     @app.get("/v1/avatars/{avatar_id}/ply", tags=["avatars"], response_class=Response)
     async def get_ply(avatar_id: str, request: Request):

@@ -78,6 +78,7 @@ class ServerContext:
     reconstruct_slots: asyncio.Semaphore | None = None
     streams: StreamRegistry | None = None
     jobs: Any = None  # JobQueue (server/jobs.py): avatar creation
+    identity: Any = None  # IdentityChecker (server/identity.py): do the photos show one person; None = not checked
     ready: bool = False
     log_throttle: Any = None  # streaming.LogThrottle: one traceback per kind of repeated error
 

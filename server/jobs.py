@@ -603,9 +603,17 @@ class JobQueue:
         # ---- decoding: one file at a time, downscaled while decoding
         n_files = len(req.images) + len(req.masks or [])
         images, masks, cams = [], [], []
+        identity = getattr(ctx, "identity", None)  # server/identity.py: one person in all photos?
+        check_id = identity is not None and identity.enabled and len(req.images) > 1 and identity.available
+        descriptors: list = []
+        id_ms = 0.0
         for i, p in enumerate(req.images):
             rgb, alpha = decode_photo(p, max_pixels=s.max_image_pixels, max_side=max_side)
             h, w = rgb.shape[:2]
+            if check_id:
+                t_id = time.perf_counter()
+                descriptors.append(identity.descriptor(rgb))
+                id_ms += 1e3 * (time.perf_counter() - t_id)
             images.append(_to_float(rgb))
             m = None
             if req.masks is not None:
@@ -622,6 +630,12 @@ class JobQueue:
             del rgb, alpha
             progress("decoding", (i + 1) / len(req.images))
         job.request = None  # the uploaded bytes are no longer needed
+        if identity is None:
+            same_person = {"checked": False, "reason": "no checker configured"}
+        elif len(names) == 1 and identity.enabled:
+            same_person = {"checked": False, "reason": "one photo"}
+        else:  # raises 422 different_people when the photos split into several people
+            same_person = identity.check(names, descriptors, id_ms).as_dict()
         mlist = None if all(m is None for m in masks) else [m if m is not None else torch.ones(1, *im.shape[-2:]) for m, im in zip(masks, images)]
         t1 = time.perf_counter()
         timings = {"decoding_ms": 1e3 * (t1 - t0)}
@@ -695,6 +709,10 @@ class JobQueue:
         }
         if tracking_ms is not None:
             meta["tracking_ms"] = round(tracking_ms, 1)
+        from .avatar_info import avatar_facts
+
+        meta["same_person"] = same_person  # what the same-person check compared (server/identity.py)
+        meta.update(avatar_facts(avatar))  # view blending and prior facts (GET /v1/avatars/{id}, server/avatar_info.py)
         for k, v in state.timings_ms.items():
             meta[k] = round(v, 1)
         if job.cancel_requested:
@@ -709,6 +727,10 @@ class JobQueue:
         for k in ("tracking_ms", *state.timings_ms):
             if k in meta:
                 out[k] = meta[k]
+        from .avatar_info import avatar_options
+
+        out["same_person"] = same_person
+        out.update(avatar_options(model, meta))  # view_blend, expression_prior
         return out
 
 

@@ -13,7 +13,10 @@ from typing import Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-__all__ = ["Settings", "get_settings"]
+from fastgha_core.commands import MAX_VIEW_BLEND_TAU_DEG, view_blend_tau_problem
+
+__all__ = ["MAX_VIEW_BLEND_TAU_DEG", "Settings", "get_settings"]
+
 
 _REPO_STATIC = Path(__file__).resolve().parent.parent / "client_demo" / "static"
 
@@ -117,6 +120,20 @@ class Settings(BaseSettings):
         "pixel, 'blend' the bare face only (the rest the network's depth joined to it); off = the network's depth. "
         "Off by default: on held-out synthetic subjects both lower novel-view PSNR (docs/model-card.md)",
     )
+    view_blend_tau_deg: float | None = Field(
+        None,
+        description="frames of avatars with per-view data (built on a tracked head): each input view's Gaussians are weighted by "
+        "exp(-(angle of its camera to the frame's camera - the smallest such angle) / tau), tau in degrees; 0 = off (every view "
+        "unweighted); unset = the model's own (gaussians.view_blend_tau_deg, 20 for tiny and paper)",
+    )
+    same_person_check: bool = Field(
+        True,
+        description="refuse (422 different_people) photos of one avatar whose dlib face descriptors split into several people "
+        "(faces extra; photos without a frontal face are not compared; without dlib nothing is checked)",
+    )
+    same_person_max_distance: float = Field(
+        0.6, gt=0, le=2, description="largest face-descriptor distance that links two photos as the same person (dlib's threshold: 0.6)"
+    )
     refine_steps: int = Field(0, ge=0, le=1000, description="test-time refinement steps after each reconstruction (0 = off: on real photos it lowers leave-one-out quality today, docs/model-card.md)")
 
     # ------------------------------------------------------------ streaming
@@ -162,6 +179,14 @@ class Settings(BaseSettings):
     def _non_empty(cls, v: str) -> str:
         if not v.strip():
             raise ValueError("model must not be empty")
+        return v
+
+    @field_validator("view_blend_tau_deg")
+    @classmethod
+    def _tau(cls, v: float | None) -> float | None:
+        problem = None if v is None else view_blend_tau_problem(v)
+        if problem:
+            raise ValueError(problem)
         return v
 
     @field_validator("api_keys_file")

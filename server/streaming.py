@@ -26,6 +26,7 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 from fastgha_core.cameras import Cameras, cameras_to_json
 
 from .auth import bearer_from, is_valid_avatar_id, token_matches
+from .avatar_info import avatar_facts, avatar_options
 from .context import ServerContext
 from .errors import CloseCode
 from .frames import fit_camera
@@ -217,6 +218,8 @@ class StreamSession:
                 "max_size": self.max_size,
                 "max_message_bytes": self.ctx.settings.ws_max_message_bytes,
                 "max_messages_per_second": self.ctx.settings.ws_max_messages_per_second,
+                # what this avatar's frames are made with (server/avatar_info.py; as GET /v1/avatars/{id})
+                **avatar_options(self.ctx.model, avatar_facts(self.avatar)),
             }
         )
 

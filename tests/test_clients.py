@@ -172,7 +172,10 @@ def test_client_creates_streams_and_deletes(client, request_dir):
     assert all(im.dtype == np.uint8 and im.std() > 1.0 for im in imgs)  # not a blank picture
     assert np.abs(imgs[0].astype(int) - imgs[1].astype(int)).mean() > 0.1  # the expression changes the frame
     assert client.download_ply(avatar).startswith(b"ply")
-    assert client.avatar_info(avatar)["num_gaussians"] == avatar.num_gaussians
+    got = client.avatar_info(avatar)
+    assert got["num_gaussians"] == avatar.num_gaussians
+    assert avatar.info == {k: got[k] for k in ("view_blend", "expression_prior", "same_person")}  # what the server reports
+    assert "view blending off (no per-view data" in avatar.describe()  # photos with cameras alone
     client.delete(avatar)
     with pytest.raises(RuntimeError, match="avatar_not_found"):
         client.avatar_info(avatar)
@@ -203,6 +206,7 @@ def test_client_command_writes_frames_and_mp4(server, request_dir, tmp_path, cap
     assert out.stat().st_size > 0 and out.read_bytes()[4:8] == b"ftyp"
     assert "6 frames of 6 requested" in text and "fps" in text and "p95" in text
     assert "creating the avatar: decoding" in text or "creating the avatar: queued" in text  # the job's progress
+    assert "view blending off" in text and "expression prior on" in text and "same person:" in text  # what the avatar runs with
 
 
 def test_load_request_dir_says_a_file_is_not_a_folder(request_dir):

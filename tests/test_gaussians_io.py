@@ -214,13 +214,18 @@ def test_export_of_a_view_blended_avatar_says_the_ply_is_unweighted(tmp_path, ca
     import torch
 
     g = random_gaussians(20, f=4, seed=5)
-    view = {"view.source": torch.zeros(20, dtype=torch.int8), "view.mask": torch.ones(20, dtype=torch.uint8), "view.dirs": torch.tensor([[0.0, 0.0, 1.0]])}
+    view = {"view.source": (torch.arange(20) % 2).to(torch.int8), "view.mask": torch.full((20,), 3, dtype=torch.uint8),
+            "view.dirs": torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]])}  # fmt: skip
+    one = {"view.source": torch.zeros(20, dtype=torch.int8), "view.mask": torch.ones(20, dtype=torch.uint8), "view.dirs": torch.tensor([[0.0, 0.0, 1.0]])}
     save_avatar_file(tmp_path / "blended.safetensors", g, {"model_name": "tiny", "expression_space": "ict53"}, extra=view)
+    save_avatar_file(tmp_path / "one.safetensors", g, {"model_name": "tiny", "expression_space": "ict53"}, extra=one)
     save_avatar_file(tmp_path / "plain.safetensors", g, {"model_name": "tiny", "expression_space": "ict53"})
-    for name, noted in (("blended", True), ("plain", False)):
+    for name, noted in (("blended", True), ("one", False), ("plain", False)):
         out = tmp_path / f"{name}.ply"
         assert cli_main(["export", "--avatar", str(tmp_path / f"{name}.safetensors"), "--ply", str(out), "--keep-outliers"]) == 0
-        assert ("unweighted opacities" in capsys.readouterr().out) == noted, name
+        said = capsys.readouterr().out
+        assert ("unweighted opacities" in said) == noted, name
+        assert ("one input view, so its frames are not view-blended" in said) == (name == "one"), said  # weights are all 1
         assert_close(load_ply(out).opacities, g.opacities, rtol=0, atol=1e-6)  # the file's own opacities, unweighted
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -49,7 +50,9 @@ def test_reconstruct_then_animate(tmp_path, model_dir, capsys):
     req = _request(tmp_path / "req", masks=True)
     out, ply = tmp_path / "avatar.safetensors", tmp_path / "avatar.ply"
     assert main(["reconstruct", "--input", str(req), "--model", str(model_dir), "--out", str(out), "--ply", str(ply)]) == 0
-    printed = capsys.readouterr().out
+    said = capsys.readouterr()
+    printed = said.out
+    assert f"loading model {str(model_dir)!r} ..." in said.err  # shown before the seconds of loading, not after
     avatar = CanonicalAvatar.load(out)
     assert f"reconstructed {len(avatar)} Gaussians from 3 views" in printed and " ms " in printed
     assert 0 < len(avatar) <= 3 * 32 * 32 and ply.exists()
@@ -60,6 +63,7 @@ def test_reconstruct_then_animate(tmp_path, model_dir, capsys):
     frames = tmp_path / "frames"
     args = ["animate", "--avatar", str(out), "--model", str(model_dir), "--expressions", str(tmp_path / "seq.npy"), "--size", "24"]
     assert main(args + ["--out", str(frames)]) == 0
+    assert "loading model" in capsys.readouterr().err
     pngs = sorted(frames.glob("*.png"))
     assert len(pngs) == 3 and Image.open(pngs[0]).size == (24, 24)
 
@@ -72,6 +76,55 @@ def test_reconstruct_then_animate(tmp_path, model_dir, capsys):
     import imageio.v3 as iio
 
     assert iio.imread(video, index=None).shape[0] == 2  # two frames
+
+
+def test_animate_view_blend_tau_flag(tmp_path, model_dir, capsys):
+    """``animate --view-blend-tau-deg``: the tau the frames use (as the server's setting), said in the
+    summary; bad values are refused in one line before anything loads."""
+    import dataclasses
+
+    from fastgha_core.model.viewblend import ViewBlend
+
+    req = _request(tmp_path / "req", masks=True)
+    out = tmp_path / "avatar.safetensors"
+    assert main(["reconstruct", "--input", str(req), "--model", str(model_dir), "--out", str(out)]) == 0
+    avatar = CanonicalAvatar.load(out)
+    n = avatar.num_reconstructed
+    dirs = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]])
+    vb = ViewBlend((torch.arange(n) % 2).to(torch.int8), torch.full((n,), 3, dtype=torch.uint8), dirs)
+    dataclasses.replace(avatar, view_blend=vb).save(tmp_path / "blended.safetensors")
+    np.save(tmp_path / "seq.npy", np.zeros((2, 53), np.float32))
+    args = ["animate", "--avatar", str(tmp_path / "blended.safetensors"), "--model", str(model_dir), "--expressions", str(tmp_path / "seq.npy"),
+            "--size", "24", "--out", str(tmp_path / "frames")]  # fmt: skip
+    capsys.readouterr()
+    assert main(args + ["--view-blend-tau-deg", "35"]) == 0
+    assert "views blended by angle (tau 35 deg)" in capsys.readouterr().out
+    assert main(args + ["--view-blend-tau-deg", "0"]) == 0
+    assert "views unweighted (tau 0: --view-blend-tau-deg 0" in capsys.readouterr().out
+    for bad in ("-1", "nan", "1e9"):
+        assert main(args + ["--view-blend-tau-deg", bad]) == 2
+        err = capsys.readouterr().err
+        assert "--view-blend-tau-deg: view_blend_tau_deg must be 0 (off)" in err and "loading model" not in err, err
+
+
+def test_reconstruct_of_untracked_photos_suggests_a_track_command_that_works(tmp_path, model_dir, capsys, monkeypatch):
+    """A folder of photos without cameras.json: the message suggests tracking them into a new folder
+    (track refuses an --out that holds the photos), and that exact command's --out check passes."""
+    photos = tmp_path / "me"
+    photos.mkdir()
+    for n in ("a.jpg", "b.JPG"):
+        Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(photos / n, format="JPEG")
+    assert main(["reconstruct", "--input", str(photos), "--model", str(model_dir), "--out", str(tmp_path / "a.safetensors")]) == 2
+    err = capsys.readouterr().err
+    assert f"`fastgha track --images {photos}/*.JPG {photos}/*.jpg --out {photos}-tracked`" in err, err
+    assert f"then use --input {photos}-tracked" in err
+    from fastgha_core.commands.track import _earlier_run_files
+
+    from fastgha_core.cli import CLIError
+
+    assert not _earlier_run_files(Path(f"{photos}-tracked"), sorted(photos.iterdir()))  # no refusal of that --out
+    with pytest.raises(CLIError, match="already holds photos"):  # what the old advice (--out the photos' folder) ran into
+        _earlier_run_files(photos, sorted(photos.iterdir()))
 
 
 def test_cli_errors_are_one_line(tmp_path, model_dir, capsys):

@@ -193,7 +193,9 @@ def test_health_model_docs(server):
 def test_create_and_read_metadata_and_ply(server, avatar, data_dir):
     from plyfile import PlyData
 
-    assert set(avatar) == {"avatar_id", "token", "num_gaussians", "reconstruction_ms", "expression_space"}
+    # the original fields, and what the frames are made with (server/avatar_info.py); nothing else
+    assert set(avatar) == {"avatar_id", "token", "num_gaussians", "reconstruction_ms", "expression_space",
+                           "same_person", "view_blend", "expression_prior"}  # fmt: skip
     assert avatar["num_gaussians"] > 0 and avatar["expression_space"] == "ict53"
     h = {"Authorization": f"Bearer {avatar['token']}"}
     meta = httpx.get(f"{server.base}/v1/avatars/{avatar['avatar_id']}", headers=h).json()

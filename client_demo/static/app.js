@@ -395,7 +395,7 @@
       const rt = performance.now() - t0;
       S.avatar = av;
       $("recon").textContent = `reconstruction ${av.reconstruction_ms.toFixed(0)} ms` + (av.tracking_ms != null ? `, tracking ${av.tracking_ms.toFixed(0)} ms` : "") +
-        ` (round trip ${rt.toFixed(0)} ms) · ${av.num_gaussians.toLocaleString()} Gaussians`;
+        ` (round trip ${rt.toFixed(0)} ms) · ${av.num_gaussians.toLocaleString()} Gaussians` + describeAvatar(av);
       say(`avatar ${av.avatar_id} created`, "ok");
       $("download-ply").disabled = false;
       openStream();
@@ -678,3 +678,24 @@
   loadModel();
   loadSampleList();
 })();
+
+// What the server reports about an avatar's frames and photos (docs/protocol.md, GET /v1/avatars/{id}),
+// as client_demo/client.py's describe_avatar: " · view blending on (4 views, tau 20°) · same person: ...".
+function describeAvatar(av) {
+  const parts = [];
+  const vb = av.view_blend;
+  if (vb) {
+    if (vb.active) parts.push(`view blending on (${vb.views} views, tau ${vb.tau_deg}°)`);
+    else if (!vb.per_view_data) parts.push("view blending off (no per-view data: photos sent with cameras alone)");
+    else if (vb.views < 2) parts.push("view blending off (one input view)");
+    else parts.push("view blending off (the server's tau is 0)");
+  }
+  const sp = av.same_person;
+  if (sp) {
+    if (!sp.checked) parts.push(`same person: not checked (${sp.reason || "no reason given"})`);
+    else if (sp.photos_compared < 2) parts.push("same person: fewer than two photos with a frontal face, nothing compared");
+    else parts.push(`same person: ${sp.photos_compared} photos compared` + (sp.max_distance != null ? ` (largest distance ${sp.max_distance.toFixed(2)})` : ""));
+  }
+  return parts.map((p) => ` · ${p}`).join("");
+}
+

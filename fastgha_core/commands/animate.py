@@ -15,6 +15,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--fps", type=float, default=25.0, help="frames per second of the video (default 25)")
     parser.add_argument("--radius", type=float, default=1.0, help="orbit camera distance in metres (default 1.0)")
     parser.add_argument("--fov", type=float, default=20.0, help="orbit vertical field of view in degrees (default 20)")
+    parser.add_argument(
+        "--view-blend-tau-deg", type=float, default=None, metavar="DEG",
+        help="avatars with per-view data (built on a tracked head): weight each input view's Gaussians by "
+        "exp(-angle difference / DEG); 0 = off; default: the model's gaussians.view_blend_tau_deg (20); at most 360",
+    )
     parser.add_argument("--backend", default="auto", help="render backend (default auto)")
     parser.add_argument("--device", default="cpu", help="torch device (default: cpu)")
 
@@ -86,7 +91,7 @@ def blend_summary(model, avatar) -> str:
     if avatar.view_blend is None:
         return "views unweighted (no per-view data in the avatar file: written before view blending, or built without a tracked head)"
     if tau <= 0:
-        return "views unweighted (the model's gaussians.view_blend_tau_deg is 0)"
+        return "views unweighted (tau 0: --view-blend-tau-deg 0, or the model's gaussians.view_blend_tau_deg is 0)"
     if avatar.view_blend.directions.shape[0] == 1:
         return "one input view"
     return f"views blended by angle (tau {tau:g} deg)"
@@ -107,10 +112,15 @@ def run(args) -> int:
     from ..constants import BACKGROUND_RGB
     from ..model.avatar import CanonicalAvatar
     from ..model.fastgha import load_model
+    from . import loading
     from ..render import render
 
     if args.size <= 0 or args.fps <= 0:
         raise ValueError(f"--size and --fps must be positive, got {args.size} and {args.fps}")
+    from . import view_blend_tau_problem
+
+    if args.view_blend_tau_deg is not None and view_blend_tau_problem(args.view_blend_tau_deg):
+        raise ValueError(f"--view-blend-tau-deg: {view_blend_tau_problem(args.view_blend_tau_deg)}")
     out = Path(args.out)
     if out.suffix.lower() in _NOT_A_FOLDER and not out.is_dir():
         raise ValueError(
@@ -121,7 +131,10 @@ def run(args) -> int:
     from ..cli import check_device
 
     check_device(args.device)
+    loading(args.model or avatar.model_name)
     model = load_model(args.model or avatar.model_name, device=args.device)
+    if args.view_blend_tau_deg is not None:  # as the server's FASTGHA_VIEW_BLEND_TAU_DEG
+        model.config.gaussians.view_blend_tau_deg = float(args.view_blend_tau_deg)
     codes = load_expressions(args.expressions, model.expression_space)  # [T, E]
     cams = frame_cameras(args.cameras, len(codes), args.size, args.radius, args.fov)
 

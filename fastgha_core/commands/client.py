@@ -338,6 +338,8 @@ def run(args) -> int:
         raise CLIError(key_hint(str(e))) from None
     print(f"avatar {avatar.avatar_id}: {avatar.num_gaussians} Gaussians, reconstruction {avatar.reconstruction_ms:.0f} ms "
           f"(round trip {avatar.round_trip_ms:.0f} ms)")  # fmt: skip
+    if avatar.describe():
+        print(avatar.describe())  # view blending, expression prior, same-person check (docs/protocol.md)
     if driver is not None:
         requests = driver.requests()
     else:

@@ -76,6 +76,7 @@ def run(args) -> int:
     from ..constants import BACKGROUND_RGB
     from ..data.samples import list_samples, load_sample
     from ..model.fastgha import load_model
+    from . import loading
     from ..render import render
     from ..train.metrics import psnr
 
@@ -93,6 +94,7 @@ def run(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
 
     torch.manual_seed(0)
+    loading(args.model)
     model = load_model(args.model)
     sample = load_sample(name)
     if sample.expression_space != model.config.expression_space:

@@ -57,7 +57,10 @@ def run(args) -> int:
         f"wrote {dst}: {len(g)} Gaussians (of {n_in}; {dropped} stray dropped), axes {args.axes}, from model "
         f"{meta.get('model_name', '?')!r}, expression space {meta.get('expression_space', '?')!r}"
     )
-    if "view.source" in extra:
+    views = int(extra["view.dirs"].shape[0]) if "view.dirs" in extra else 0
+    if views == 1:  # one view: every blend weight is 1, the frames hold these opacities too
+        print("note: this avatar has one input view, so its frames are not view-blended; the PLY is what they show at neutral")
+    elif "view.source" in extra:
         print(
             "note: this avatar is view-blended per frame (server, `fastgha animate`); the PLY holds its "
             "unweighted opacities, so a viewer shows every input view's Gaussians at once (docs/model.md)"

@@ -140,6 +140,7 @@ def run(args) -> int:
     from ..cameras import load_request_folder
     from ..cli import CLIError, check_device
     from ..model.fastgha import load_model
+    from . import loading
 
     if args.refine_steps < 0:
         raise CLIError(f"--refine-steps must be >= 0, got {args.refine_steps}")
@@ -166,6 +167,7 @@ def run(args) -> int:
     if any(m is None for m in masks) and any(m is not None for m in masks):
         missing = [p.name for p, m in zip(paths, masks) if m is None]
         raise ValueError(f"some images have masks and some do not; missing masks for {missing}")
+    loading(args.model)
     model = load_model(args.model, device=args.device, dino_weights=args.dino_weights, vae_weights=args.vae_weights)
     imgs, cameras = model.prepare(images, cams, masks if masks[0] is not None else None)
     if not 1 <= len(imgs) <= model.config.max_views:

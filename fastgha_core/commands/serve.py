@@ -16,6 +16,11 @@ def add_arguments(parser) -> None:
         "--api-keys", default=None,
         help="comma-separated API keys (default: FASTGHA_API_KEYS); visible to every local user in `ps`: prefer --api-keys-file",
     )
+    parser.add_argument(
+        "--view-blend-tau-deg", type=float, default=None, metavar="DEG",
+        help="view blending of avatars built on a tracked head: weight each input view's Gaussians by exp(-angle difference / DEG); "
+        "0 = off; default: FASTGHA_VIEW_BLEND_TAU_DEG, else the model's own (20); at most 360",
+    )
     parser.add_argument("--no-warmup", action="store_true", help="skip the start-up warm-up")
     parser.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"], help="uvicorn and server log level (default info)")
     parser.add_argument("--proxy-headers", action="store_true", help="trust X-Forwarded-* from --forwarded-allow-ips (behind a reverse proxy)")
@@ -136,6 +141,8 @@ def run(args) -> int:
         overrides["api_keys_file"] = args.api_keys_file
     if args.forwarded_allow_ips is not None:
         overrides["forwarded_allow_ips"] = args.forwarded_allow_ips
+    if args.view_blend_tau_deg is not None:
+        overrides["view_blend_tau_deg"] = args.view_blend_tau_deg
     if args.no_warmup:
         overrides["warmup"] = False
     try:

@@ -11,6 +11,26 @@ def add_arguments(parser) -> None:
     parser.add_argument("--json", default=None, help="also write a tracking report (poses, landmark errors, expressions) here")
 
 
+def _same_person(photos, names) -> None:
+    """Refuse photos of different people, as the server does (``server/identity.py``: dlib face
+    descriptors, photos without a frontal face not compared; nothing checked without dlib): one head
+    is fitted to all photos, so a mixed set gives a head of nobody. ``CLIError`` naming the photos."""
+    if len(photos) < 2:
+        return
+    from server.errors import ApiError
+    from server.identity import IdentityChecker
+
+    from ..cli import CLIError
+
+    checker = IdentityChecker()
+    if not checker.available:
+        return
+    try:
+        checker.check(list(names), [checker.descriptor(p) for p in photos])
+    except ApiError as e:
+        raise CLIError(f"{e.message} (fastgha track fits one head to all the photos)") from None
+
+
 def _earlier_run_files(out, sources) -> list:
     """Crops and masks an earlier ``fastgha track`` run wrote into ``out`` (listed in its
     expressions.json), to be replaced. ``CLIError`` when ``out`` holds other photos: ``reconstruct``
@@ -84,6 +104,10 @@ def run(args) -> int:
         photos.append(decoded.rgb)
         focals.append(decoded.exif_focal_35mm)
         names.append(str(p))
+    _same_person(photos, names)
+    import sys
+
+    print(f"tracking {len(names)} photo(s): finding the face and landmarks, fitting one head ...", file=sys.stderr, flush=True)
     try:
         res = track_photos(photos, TrackConfig(size=args.size, fov_deg=args.fov), masks=masks, names=names, focal_35mm=focals)
     except FacesUnavailableError as e:
