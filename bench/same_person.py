@@ -1,4 +1,4 @@
-"""The server's same-person check (``server/identity.py``) on the real photo sets: descriptor distances
+"""The server's same-person check (``fastgha_core/tracking/identity.py``) on the real photo sets: descriptor distances
 within each set and between sets, and what the check adds to the creation time.
 
     PYTHONPATH=$PWD .venv/bin/python bench/same_person.py [--set studio-4] [--reps 4] [--json out/same_person.json]
@@ -115,7 +115,7 @@ def main() -> int:
     if not root.is_dir():
         print(f"no real sets at {root} (set FASTGHA_REALSETS): nothing to measure")
         return 0
-    from server.identity import IdentityChecker
+    from fastgha_core.tracking.identity import IdentityChecker
 
     checker = IdentityChecker(True)
     if not checker.available:

@@ -221,6 +221,10 @@ def test_stream_100_frames_and_expressions_change_the_picture(server, avatar):
         assert ready["type"] == "ready" and ready["avatar_id"] == avatar["avatar_id"]
         assert ready["expression_dim"] == 53 and ready["expression_names"] == names
         assert (ready["width"], ready["height"]) == (64, 64)
+        h = {"Authorization": f"Bearer {avatar['token']}"}
+        meta = httpx.get(f"{server.base}/v1/avatars/{avatar['avatar_id']}", headers=h).json()
+        # what the frames are made with, as GET /v1/avatars/{id} says (server/avatar_info.py)
+        assert ready["view_blend"] == meta["view_blend"] and ready["expression_prior"] == meta["expression_prior"]
         frames = {}
         for i in range(100):
             expr = [0.0] * 53 if i % 2 == 0 else {"jawOpen": 1.0, "mouthSmile_L": 1.0, "eyeBlink_R": 1.0}

@@ -12,23 +12,21 @@ def add_arguments(parser) -> None:
 
 
 def _same_person(photos, names) -> None:
-    """Refuse photos of different people, as the server does (``server/identity.py``: dlib face
+    """Refuse photos of different people, as the server does (``tracking/identity.py``: dlib face
     descriptors, photos without a frontal face not compared; nothing checked without dlib): one head
     is fitted to all photos, so a mixed set gives a head of nobody. ``CLIError`` naming the photos."""
     if len(photos) < 2:
         return
-    from server.errors import ApiError
-    from server.identity import IdentityChecker
-
     from ..cli import CLIError
+    from ..tracking.identity import DifferentPeopleError, IdentityChecker
 
     checker = IdentityChecker()
     if not checker.available:
         return
     try:
         checker.check(list(names), [checker.descriptor(p) for p in photos])
-    except ApiError as e:
-        raise CLIError(f"{e.message} (fastgha track fits one head to all the photos)") from None
+    except DifferentPeopleError as e:
+        raise CLIError(f"{e} (fastgha track fits one head to all the photos)") from None
 
 
 def _earlier_run_files(out, sources) -> list:
