@@ -114,7 +114,8 @@ def test_expression_shading_relights_what_the_expression_moves(fit, basis):
     """A reconstruction bakes the photo's light into its colours; the prior relights what an
     expression moves: at a surface vertex the colour factor of one blendshape at weight 1 is the
     brightness of the moved fitted head over the neutral one (``_brightness``, computed here on the
-    head directly), 1 at the neutral expression, where nothing moves, and with ``shading=False``."""
+    head directly; linear light) taken to the sRGB power 1 / 2.2 (the colours are sRGB), 1 at the
+    neutral expression, where nothing moves, and with ``shading=False``."""
     from fastgha_core.model.prior import SHADE_RANGE, _brightness
 
     hm = HeadModel.load()
@@ -129,7 +130,7 @@ def test_expression_shading_relights_what_the_expression_moves(fit, basis):
         ki = hm.expression_names.index(k)
         z = torch.zeros(53)
         z[ki] = 1.0
-        want = np.clip(_brightness(head + basis.expression_basis[ki], basis.bind_faces)[vids] / b0[vids], *SHADE_RANGE)
+        want = np.clip((_brightness(head + basis.expression_basis[ki], basis.bind_faces)[vids] / b0[vids]) ** (1 / 2.2), *SHADE_RANGE)
         got = rt.shading(z).numpy()
         np.testing.assert_allclose(got, want, atol=1e-4)
         assert abs(got[4] - 1) < 0.02 and abs(got[5] - 1) < 0.02  # the nose hardly moves

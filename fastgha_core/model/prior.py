@@ -120,6 +120,13 @@ _LUMA = np.array([0.299, 0.587, 0.114], np.float32)  # Rec. 601 luma weights
 SHADE_AMBIENT = 0.3
 SHADE_LIGHT = np.array([0.0, 0.5, 1.0], np.float64) / np.sqrt(1.25)
 SHADE_RANGE = (0.5, 1.5)  # the per-Gaussian colour factor is clamped to this
+# The brightness ratio is one of linear light; the Gaussians' colours are sRGB (gamma 2.2), so the
+# colour factor of one blendshape at weight 1 is ratio ** (1 / SHADE_GAMMA). Applied to the sRGB
+# colours unconverted, the ratio relit 2.2x too strongly (in log): a jawOpen brightened the far jaw's
+# underside to the clamp and darkened the chin, and on training subjects the per-vertex error against
+# the synthetic renderer's own colour ratio was above that of no shading at all (docs/model-card.md).
+SHADE_GAMMA = 2.2
+
 # Lips of input photos with an open mouth (``hide_open_lips``): a view whose tracked expression opens
 # the mouth gate (``gates[0] @ z``) above OPEN_VIEW_GATE has its reconstructed Gaussians within
 # LIP_RADIUS of the lips (the fitted head's 20 lip landmarks, ``HeadBasis.lip_landmarks``) fade out as
@@ -981,10 +988,17 @@ def _brightness(v: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return SHADE_AMBIENT + (1.0 - SHADE_AMBIENT) * np.clip(vertex_normals(v, faces).astype(np.float64) @ SHADE_LIGHT, 0.0, None)
 
 
+def _srgb_factor(ratio_minus_one: np.ndarray) -> np.ndarray:
+    """Linear-light brightness ratio - 1 -> sRGB colour factor - 1 (``SHADE_GAMMA``), same shape/dtype."""
+    r = np.asarray(ratio_minus_one)
+    return (np.maximum(1.0 + r, 1e-6) ** (1.0 / SHADE_GAMMA) - 1.0).astype(r.dtype)
+
+
 def shading_basis(identity: np.ndarray, basis: HeadBasis) -> np.ndarray:
-    """``[E, Nv]`` float32: per blendshape ``k`` and vertex, the relative brightness change
-    ``b(head + blendshape_k) / b(head) - 1`` of the head with fitted ``identity [K]`` (model frame,
-    ``_brightness``: ``SHADE_AMBIENT``, ``SHADE_LIGHT``). The colour factor of an expression ``z`` is
+    """``[E, Nv]`` float32: per blendshape ``k`` and vertex, the sRGB colour factor - 1 of the relative
+    brightness change, ``(b(head + blendshape_k) / b(head)) ** (1 / SHADE_GAMMA) - 1``, of the head with
+    fitted ``identity [K]`` (model frame, ``_brightness``: ``SHADE_AMBIENT``, ``SHADE_LIGHT``; the
+    ratio is of linear light, the colours it multiplies are sRGB). The colour factor of an expression ``z`` is
     ``1 + z @ shading_basis`` (linear in ``z``: exact for one blendshape at weight 1, interpolated
     below it, a sum for several), clamped to ``SHADE_RANGE`` per Gaussian. 0 where no
     blendshape moves a vertex. ~0.3 s for the 53 ICT-FaceKit shapes (2 cores), once per avatar on its
@@ -1000,7 +1014,7 @@ def shading_basis(identity: np.ndarray, basis: HeadBasis) -> np.ndarray:
         d = basis.expression_basis[e]
         if not np.abs(d).max() > 1e-4:
             continue
-        out[e] = np.where(moving, _brightness(v + d, f) / b0 - 1.0, 0.0)
+        out[e] = np.where(moving, _srgb_factor(_brightness(v + d, f) / b0 - 1.0), 0.0)
     return out
 
 
@@ -1049,7 +1063,7 @@ def shading_at(identity: np.ndarray, basis: HeadBasis, vertices: np.ndarray) -> 
         shading_rows(np.ascontiguousarray(basis.neutral, dtype=np.float32), ib, identity, eb, rows, faces, vmap, SHADE_LIGHT, float(SHADE_AMBIENT), 0.05, got)
     finally:
         numba.set_num_threads(prev)
-    out[:, sel] = got[:, vmap[vertices[sel]]]
+    out[:, sel] = _srgb_factor(got[:, vmap[vertices[sel]]])
     return out
 
 
