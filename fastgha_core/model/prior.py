@@ -1066,10 +1066,15 @@ def estimate_light(colors: np.ndarray | Tensor, opacities: np.ndarray | Tensor, 
     d = c[1:] / g
     nk, lk = nrm[keep], lin[keep]
 
-    def fit(d):  # p + q max(n . d, 0) by least squares -> (squared error, p, q)
-        B = np.c_[np.ones(len(lk)), np.clip(nk @ d, 0.0, None)]
-        (p, q), res, *_ = np.linalg.lstsq(B, lk, rcond=None)
-        return float(((B @ (p, q) - lk) ** 2).sum()), p, q
+    m_l, m_ll = lk.mean(), float(lk @ lk) / len(lk)
+
+    def fit(d):  # p + q max(n . d, 0) by least squares (normal equations) -> (mean squared error, p, q)
+        x = np.clip(nk @ d, 0.0, None)
+        m_x, m_xx, m_xl = x.mean(), float(x @ x) / len(x), float(x @ lk) / len(x)
+        var = m_xx - m_x * m_x
+        q = (m_xl - m_x * m_l) / var if var > 1e-12 else 0.0
+        p = m_l - q * m_x
+        return m_ll - 2 * (p * m_l + q * m_xl) + p * p + 2 * p * q * m_x + q * q * m_xx, p, q
 
     # the clamped cosine is not linear in n: refine the direction (azimuth, elevation) around the
     # harmonics' estimate, coarse to fine, on the same points
