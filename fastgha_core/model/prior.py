@@ -118,9 +118,11 @@ _LUMA = np.array([0.299, 0.587, 0.114], np.float32)  # Rec. 601 luma weights
 # keeps the shade of its neutral pose (a smile's creases and a dropped lower lip stay as lit as
 # before). The prior relights the change: each vertex's brightness ambient + (1 - ambient) *
 # max(n . light, 0) at the expression over that at neutral, on the fitted head in the head model's
-# own frame. The light is the synthetic rig's mean key light (azimuth +-75 deg, elevation -5..60 deg:
-# frontal, ~27 deg above; photos are mostly lit from above too) and the ambient its share of the
-# light (ambient 0.2-0.45 against a key of 0.7-1.1). Linear in the expression (see ``shading_basis``).
+# own frame. The light is the one baked into the avatar's colours (``estimate_light``); where that
+# cannot be told, the generic one below: the synthetic rig's mean key light (azimuth +-75 deg,
+# elevation -5..60 deg: frontal, ~27 deg above; photos are mostly lit from above too) and the ambient
+# its share of the light (ambient 0.2-0.45 against a key of 0.7-1.1). Linear in the expression (see
+# ``shading_basis``).
 SHADE_AMBIENT = 0.3
 SHADE_LIGHT = np.array([0.0, 0.5, 1.0], np.float64) / np.sqrt(1.25)
 SHADE_RANGE = (0.5, 1.5)  # the per-Gaussian colour factor is clamped to this
