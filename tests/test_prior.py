@@ -114,7 +114,8 @@ def test_expression_shading_relights_what_the_expression_moves(fit, basis):
     """A reconstruction bakes the photo's light into its colours; the prior relights what an
     expression moves: at a surface vertex the colour factor of one blendshape at weight 1 is the
     brightness of the moved fitted head over the neutral one (``_brightness``, computed here on the
-    head directly), 1 at the neutral expression, where nothing moves, and with ``shading=False``."""
+    head directly; linear light) taken to the sRGB power 1 / 2.2 (the colours are sRGB), 1 at the
+    neutral expression, where nothing moves, and with ``shading=False``."""
     from fastgha_core.model.prior import SHADE_RANGE, _brightness
 
     hm = HeadModel.load()
@@ -129,7 +130,7 @@ def test_expression_shading_relights_what_the_expression_moves(fit, basis):
         ki = hm.expression_names.index(k)
         z = torch.zeros(53)
         z[ki] = 1.0
-        want = np.clip(_brightness(head + basis.expression_basis[ki], basis.bind_faces)[vids] / b0[vids], *SHADE_RANGE)
+        want = np.clip((_brightness(head + basis.expression_basis[ki], basis.bind_faces)[vids] / b0[vids]) ** (1 / 2.2), *SHADE_RANGE)
         got = rt.shading(z).numpy()
         np.testing.assert_allclose(got, want, atol=1e-4)
         assert abs(got[4] - 1) < 0.02 and abs(got[5] - 1) < 0.02  # the nose hardly moves
@@ -137,6 +138,62 @@ def test_expression_shading_relights_what_the_expression_moves(fit, basis):
         torch.testing.assert_close(rt.shading(torch.stack([z, 0.5 * z]))[0], rt.shading(z))
     assert moved > 0.05  # the jaw or the smile turns some of these points away from the light
     assert torch.equal(PriorRuntime(b, basis, shading=False).shading(z), torch.ones(len(vids)))
+
+
+def test_expression_shading_takes_the_light_baked_into_the_avatar(fit, basis):
+    """A photo's key light is rarely the generic one: ``estimate_light`` reads it from the avatar's
+    neutral colours against the fitted head's normals. Skin Gaussians coloured under a known side
+    light (linear light, ambient share 0.25, sRGB colours; a tenth of them lip-red outliers) give
+    that light back, the avatar's runtime (``FastGHA._runtime`` with its Gaussians) shades a smile
+    under it (the colour factor at the mouth corners and cheeks is the brightness ratio under the
+    side light, which is not the generic light's), and flat colours fall back to the generic light."""
+    from fastgha_core.config import get_preset
+    from fastgha_core.data.headmodel import vertex_normals
+    from fastgha_core.gaussians import Gaussians
+    from fastgha_core.model.fastgha import FastGHA
+    from fastgha_core.model.prior import SHADE_RANGE, ShadeLight, _brightness, estimate_light
+
+    hm = HeadModel.load()
+    head = basis.neutral.astype(np.float64) + np.tensordot(fit.identity.astype(np.float64), basis.identity_basis, axes=1)
+    vn = vertex_normals(head, basis.bind_faces).astype(np.float64)
+    light = np.array([0.8, 0.35, 0.45]) / np.linalg.norm([0.8, 0.35, 0.45])
+    rng = np.random.default_rng(0)
+    vids = np.unique(basis.fit_vertices)  # the face's skin
+    lin = 0.35 * (0.25 + 0.75 * np.clip(vn[vids] @ light, 0, None)) * rng.uniform(0.9, 1.1, len(vids))
+    col = np.repeat(lin[:, None] ** (1 / 2.2), 3, axis=1)
+    col[rng.random(len(vids)) < 0.1] = (0.7, 0.25, 0.25)  # albedo that is not skin
+    b = bind(fit.vertices[vids], fit, basis)
+    n = len(vids)
+    op = torch.full((n,), 0.9)
+    est = estimate_light(torch.from_numpy(col).float(), op, b, basis)
+    assert est is not None and math.degrees(math.acos(float(est.direction @ light))) < 5.0, est
+    assert abs(est.ambient - 0.25) < 0.05, est
+    assert estimate_light(torch.full((n, 3), 0.6), op, b, basis) is None  # nothing to tell the light from
+
+    model = FastGHA(get_preset("tiny")).eval()
+    g = Gaussians(torch.from_numpy(fit.vertices[vids]).float(), torch.tensor([1.0, 0, 0, 0]).expand(n, 4).clone(), torch.full((n, 3), 0.002), op,
+                  torch.from_numpy(col).float(), torch.zeros(n, 32))
+    rt = model._runtime(b, g, 0)
+    assert rt.light is not None and np.allclose(rt.light.direction, est.direction)
+    z = torch.zeros(53)
+    z[[hm.expression_names.index("mouthSmile_L"), hm.expression_names.index("mouthSmile_R")]] = 1.0
+    got = rt.shading(z).numpy()
+
+    ids, coef = b.vertex_ids.numpy(), (b.bary * b.weight[:, None]).numpy()
+
+    def factor(lt):  # the smile's colour factor of every skin point under light lt, gathered at its bound triangle
+        s = np.zeros(len(head))
+        for k in ("mouthSmile_L", "mouthSmile_R"):
+            ki = hm.expression_names.index(k)
+            r = _brightness(head + basis.expression_basis[ki], basis.bind_faces, lt) / np.maximum(_brightness(head, basis.bind_faces, lt), 0.05)
+            s += np.where(np.abs(basis.expression_basis).max(axis=(0, 2)) > 0, r ** (1 / 2.2) - 1.0, 0.0)
+        return np.clip(1.0 + (coef * s[ids]).sum(1), *SHADE_RANGE)
+
+    np.testing.assert_allclose(got, factor(est), atol=1e-4)
+    side, generic = factor(ShadeLight(light, 0.25)), factor(None)
+    differ = np.argsort(-np.abs(side - generic))[:20]  # where the generic light would shade the smile otherwise
+    assert np.abs(side - generic)[differ].min() > 0.05
+    np.testing.assert_allclose(got[differ], side[differ], atol=0.03)
 
 
 def _behind_the_lips(fit, basis):

@@ -261,7 +261,7 @@ class FastGHA(nn.Module):
                 else:
                     g, binding, n_int = self.build_prior(g)
                 canonical[i] = g
-                rt = self._runtime(binding)
+                rt = self._runtime(binding, g, n_int)
                 gate = self._gate(z, rt)
                 n_rec = len(g) - n_int
                 dxyz, drgb = self.deform(g.features[:n_rec], g.means[:n_rec], z)
@@ -279,10 +279,18 @@ class FastGHA(nn.Module):
 
         return load_basis(self.config.expression_space, self.config.deform.flame_model)
 
-    def _runtime(self, binding):
-        from .prior import PriorRuntime
+    def _runtime(self, binding, g: Gaussians | None = None, n_int: int = 0):
+        """The binding's ``PriorRuntime``; with the avatar's Gaussians ``g`` (the last ``n_int`` not
+        reconstructed) its expression shading takes the light baked into their colours
+        (``prior.estimate_light``), else the generic light."""
+        from .prior import PriorRuntime, estimate_light
 
-        return PriorRuntime(binding, self.head_basis(), device=binding.vertex_ids.device, shading=self.config.deform.prior_shading, rotate=self.config.deform.prior_rotate)
+        basis = self.head_basis()
+        light = None
+        if g is not None and self.config.deform.prior_shading:
+            n = len(g) - n_int
+            light = estimate_light(g.colors[:n], g.opacities[:n], binding, basis)
+        return PriorRuntime(binding, basis, device=binding.vertex_ids.device, shading=self.config.deform.prior_shading, rotate=self.config.deform.prior_rotate, light=light)
 
     @staticmethod
     def _gate(z: Tensor, rt) -> Tensor | None:
@@ -711,10 +719,12 @@ class FastGHA(nn.Module):
                 or rt.basis_u.device != dev
                 or rt.shading_on != bool(self.config.deform.prior_shading)
                 or rt.rotate_on != bool(self.config.deform.prior_rotate)
+                or (rt.shading_on and rt.light_of is not avatar.gaussians.colors)  # recoloured: the light is re-estimated
             ):
                 with torch.inference_mode(False):
-                    rt = avatar.prior_runtime = self._runtime(avatar.prior.to(dev))
+                    rt = avatar.prior_runtime = self._runtime(avatar.prior.to(dev), g, n_int)
                 rt.source = avatar.prior  # what this per-avatar cache was built from
+                rt.light_of = avatar.gaussians.colors
             if prior and z.ndim == 1 and dev.type == "cpu" and g.means.dtype == torch.float32:
                 return self.blend_views(avatar, rt.frame(g, n_int, dxyz, drgb, z), camera)  # one numba pass, the same Gaussians as below
             if prior:

@@ -22,7 +22,8 @@ Pieces (all numpy/torch on CPU, no learning):
   avatar file. ``displacement(z)`` -> ``[N, 3]`` (or ``[B, N, 3]``) per frame through a compact basis
   over the vertices actually used (``PriorRuntime``).
 - ``shading_basis(identity, basis)``: per blendshape and vertex, the relative brightness change of the
-  fitted head under a generic light (``SHADE_AMBIENT``, ``SHADE_LIGHT``); ``PriorRuntime.shading(z)``
+  fitted head under the light baked into the avatar's colours (``estimate_light``; the generic
+  ``SHADE_AMBIENT``, ``SHADE_LIGHT`` when it cannot be told); ``PriorRuntime.shading(z)``
   gathers it like the displacement into a colour factor for the reconstructed Gaussians, whose
   colours carry the photo's light baked in at the neutral pose.
 - ``PriorRuntime.rotation(z)`` (config ``deform.prior_rotate``, off by default): each bound Gaussian's
@@ -46,6 +47,7 @@ from __future__ import annotations
 
 import functools
 import os
+import math
 from dataclasses import dataclass
 from pathlib import Path
 import warnings
@@ -74,6 +76,8 @@ __all__ = [
     "gate_factors",
     "shading_basis",
     "shading_at",
+    "ShadeLight",
+    "estimate_light",
     "FLAME_ENV",
 ]
 
@@ -114,12 +118,29 @@ _LUMA = np.array([0.299, 0.587, 0.114], np.float32)  # Rec. 601 luma weights
 # keeps the shade of its neutral pose (a smile's creases and a dropped lower lip stay as lit as
 # before). The prior relights the change: each vertex's brightness ambient + (1 - ambient) *
 # max(n . light, 0) at the expression over that at neutral, on the fitted head in the head model's
-# own frame. The light is the synthetic rig's mean key light (azimuth +-75 deg, elevation -5..60 deg:
-# frontal, ~27 deg above; photos are mostly lit from above too) and the ambient its share of the
-# light (ambient 0.2-0.45 against a key of 0.7-1.1). Linear in the expression (see ``shading_basis``).
+# own frame. The light is the one baked into the avatar's colours (``estimate_light``); where that
+# cannot be told, the generic one below: the synthetic rig's mean key light (azimuth +-75 deg,
+# elevation -5..60 deg: frontal, ~27 deg above; photos are mostly lit from above too) and the ambient
+# its share of the light (ambient 0.2-0.45 against a key of 0.7-1.1). Linear in the expression (see
+# ``shading_basis``).
 SHADE_AMBIENT = 0.3
 SHADE_LIGHT = np.array([0.0, 0.5, 1.0], np.float64) / np.sqrt(1.25)
 SHADE_RANGE = (0.5, 1.5)  # the per-Gaussian colour factor is clamped to this
+# The brightness ratio is one of linear light; the Gaussians' colours are sRGB (gamma 2.2), so the
+# colour factor of one blendshape at weight 1 is ratio ** (1 / SHADE_GAMMA). Applied to the sRGB
+# colours unconverted, the ratio relit 2.2x too strongly (in log): a jawOpen brightened the far jaw's
+# underside to the clamp and darkened the chin, and on training subjects the per-vertex error against
+# the synthetic renderer's own colour ratio was above that of no shading at all (docs/model-card.md).
+SHADE_GAMMA = 2.2
+# The avatar's own light (``estimate_light``): from at least LIGHT_MIN_POINTS skin Gaussians, the
+# LIGHT_KEEP best-fitting share of them, a directional part of at least LIGHT_MIN_CONTRAST of the
+# constant one (else the generic light above), the ambient share clipped to LIGHT_AMBIENT.
+LIGHT_MIN_POINTS = 300
+LIGHT_KEEP = 0.8
+LIGHT_MIN_CONTRAST = 0.05
+LIGHT_AMBIENT = (0.1, 0.8)
+LIGHT_STEPS_DEG = (8.0, 4.0, 2.0, 1.0)  # the direction's refinement (azimuth, elevation), +-2 steps each
+
 # Lips of input photos with an open mouth (``hide_open_lips``): a view whose tracked expression opens
 # the mouth gate (``gates[0] @ z``) above OPEN_VIEW_GATE has its reconstructed Gaussians within
 # LIP_RADIUS of the lips (the fitted head's 20 lip landmarks, ``HeadBasis.lip_landmarks``) fade out as
@@ -975,16 +996,118 @@ def gate_factors(z: Tensor, gates: Tensor, ranges: Tensor) -> Tensor:
 
 
 # ---------------------------------------------------------------------------- shading
-def _brightness(v: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def _brightness(v: np.ndarray, faces: np.ndarray, light: "ShadeLight | None" = None) -> np.ndarray:
     from ..data.headmodel import vertex_normals
 
-    return SHADE_AMBIENT + (1.0 - SHADE_AMBIENT) * np.clip(vertex_normals(v, faces).astype(np.float64) @ SHADE_LIGHT, 0.0, None)
+    d, a = (SHADE_LIGHT, SHADE_AMBIENT) if light is None else (light.direction, light.ambient)
+    return a + (1.0 - a) * np.clip(vertex_normals(v, faces).astype(np.float64) @ d, 0.0, None)
 
 
-def shading_basis(identity: np.ndarray, basis: HeadBasis) -> np.ndarray:
-    """``[E, Nv]`` float32: per blendshape ``k`` and vertex, the relative brightness change
-    ``b(head + blendshape_k) / b(head) - 1`` of the head with fitted ``identity [K]`` (model frame,
-    ``_brightness``: ``SHADE_AMBIENT``, ``SHADE_LIGHT``). The colour factor of an expression ``z`` is
+@dataclass(frozen=True)
+class ShadeLight:
+    """The light of the expression shading, in the head model's frame: unit ``direction [3]`` (float64,
+    towards the light) and the ``ambient`` share of the brightness (``_brightness``)."""
+
+    direction: np.ndarray
+    ambient: float
+
+
+def estimate_light(colors: np.ndarray | Tensor, opacities: np.ndarray | Tensor, binding: "PriorBinding", basis: HeadBasis) -> ShadeLight | None:
+    """The light baked into an avatar's neutral colours, for its expression shading; None when it
+    cannot be told (the generic ``SHADE_LIGHT`` / ``SHADE_AMBIENT`` then).
+
+    Over the reconstructed Gaussians bound at full weight to the fitted head's face skin
+    (``basis.fit_vertices``: every corner of the bound triangle; opacity > 0.5), the linear-light luma
+    of the colour (sRGB ** 2.2, Rec. 601 weights) is fitted as ``c0 + c . n`` (first-order spherical
+    harmonics; ``n`` the model-frame normal of the fitted neutral head at the bound point), three
+    times keeping the ``LIGHT_KEEP`` best-fitting share (albedo that is not skin: lips, brows,
+    beard); ``c / |c|`` starts the direction, which a coarse-to-fine search in azimuth and elevation
+    (``LIGHT_STEPS_DEG``) refines to the least squares of ``p + q max(n . direction, 0)`` on the same
+    points (the harmonics alone were off by ~15 deg: the clamp is not linear in ``n``), whose
+    ``ambient = p / (p + q)`` is clipped to ``LIGHT_AMBIENT``. A photo's key light is rarely where the
+    generic light sits (the synthetic rig's spans +-75 deg of azimuth; on training subjects the
+    estimate is within ~10-25 deg of the true key light), and a crease that the expression turns
+    away from the light darkens only if the shading knows which side is lit.
+
+    Args:
+        colors ``[N, 3]`` sRGB in [0, 1] and opacities ``[N]`` of the avatar's first N Gaussians
+        (the reconstructed ones), binding: their ``PriorBinding`` (at least N rows), basis: the head
+        model. Returns None for a basis other than ``ict53``, fewer than ``LIGHT_MIN_POINTS`` skin
+        Gaussians, or a fit whose directional part is below ``LIGHT_MIN_CONTRAST`` of its constant one.
+    """
+    from ..data.headmodel import vertex_normals
+
+    if basis.space != "ict53":
+        return None
+    col = colors.detach().cpu().numpy() if isinstance(colors, Tensor) else np.asarray(colors)
+    op = opacities.detach().cpu().numpy() if isinstance(opacities, Tensor) else np.asarray(opacities)
+    n = len(col)
+    if op.shape != (n,) or col.shape != (n, 3) or len(binding) < n:
+        raise ValueError(f"estimate_light: expected colors [N, 3], opacities [N] and a binding of >= N rows, got {list(col.shape)}, {list(op.shape)} and {len(binding)}")
+    ids = binding.vertex_ids[:n].cpu().numpy()
+    skin = np.zeros(len(basis.neutral), bool)
+    skin[basis.fit_vertices] = True
+    sel = (binding.weight[:n].cpu().numpy() > 0.99) & (op > 0.5) & skin[ids].all(1)
+    if sel.sum() < LIGHT_MIN_POINTS:
+        return None
+    ident = binding.identity.double().cpu().numpy()
+    v = basis.neutral.astype(np.float64) + np.tensordot(ident, basis.identity_basis[: len(ident)].astype(np.float64), axes=1)
+    vn = vertex_normals(v, basis.bind_faces).astype(np.float64)
+    nrm = (vn[ids[sel]] * binding.bary[:n].cpu().numpy()[sel, :, None].astype(np.float64)).sum(1)
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    lin = np.clip(col[sel].astype(np.float64), 0.0, 1.0) ** SHADE_GAMMA @ _LUMA.astype(np.float64)
+    A = np.c_[np.ones(len(lin)), nrm]
+    keep = np.ones(len(lin), bool)
+    for _ in range(3):
+        c = np.linalg.lstsq(A[keep], lin[keep], rcond=None)[0]
+        r = np.abs(A @ c - lin)
+        keep = r <= np.quantile(r, LIGHT_KEEP)
+    g = float(np.linalg.norm(c[1:]))
+    if not (c[0] > 0 and g > LIGHT_MIN_CONTRAST * c[0]):
+        return None
+    d = c[1:] / g
+    nk, lk = nrm[keep], lin[keep]
+
+    m_l, m_ll = lk.mean(), float(lk @ lk) / len(lk)
+
+    def fit(d):  # p + q max(n . d, 0) by least squares (normal equations) -> (mean squared error, p, q)
+        x = np.clip(nk @ d, 0.0, None)
+        m_x, m_xx, m_xl = x.mean(), float(x @ x) / len(x), float(x @ lk) / len(x)
+        var = m_xx - m_x * m_x
+        q = (m_xl - m_x * m_l) / var if var > 1e-12 else 0.0
+        p = m_l - q * m_x
+        return m_ll - 2 * (p * m_l + q * m_xl) + p * p + 2 * p * q * m_x + q * q * m_xx, p, q
+
+    # the clamped cosine is not linear in n: refine the direction (azimuth, elevation) around the
+    # harmonics' estimate, coarse to fine, on the same points
+    az, el = math.atan2(d[0], d[2]), math.asin(float(np.clip(d[1], -1.0, 1.0)))
+    best = fit(d)
+    for step in LIGHT_STEPS_DEG:
+        st = math.radians(step)
+        cands = [(az + i * st, el + j * st) for i in (-2, -1, 0, 1, 2) for j in (-2, -1, 0, 1, 2)]
+        for a, e in cands:
+            e = float(np.clip(e, -math.pi / 2, math.pi / 2))
+            dd = np.array([math.cos(e) * math.sin(a), math.sin(e), math.cos(e) * math.cos(a)])
+            r = fit(dd)
+            if r[0] < best[0]:
+                best, az, el, d = r, a, e, dd
+    _, p, q = best
+    amb = float(np.clip(p / (p + q), *LIGHT_AMBIENT)) if p + q > 0 else SHADE_AMBIENT
+    return ShadeLight(d, amb)
+
+
+def _srgb_factor(ratio_minus_one: np.ndarray) -> np.ndarray:
+    """Linear-light brightness ratio - 1 -> sRGB colour factor - 1 (``SHADE_GAMMA``), same shape/dtype."""
+    r = np.asarray(ratio_minus_one)
+    return (np.maximum(1.0 + r, 1e-6) ** (1.0 / SHADE_GAMMA) - 1.0).astype(r.dtype)
+
+
+def shading_basis(identity: np.ndarray, basis: HeadBasis, light: ShadeLight | None = None) -> np.ndarray:
+    """``[E, Nv]`` float32: per blendshape ``k`` and vertex, the sRGB colour factor - 1 of the relative
+    brightness change, ``(b(head + blendshape_k) / b(head)) ** (1 / SHADE_GAMMA) - 1``, of the head with
+    fitted ``identity [K]`` (model frame, ``_brightness`` under ``light``, the avatar's own from
+    ``estimate_light``, or None: the generic ``SHADE_AMBIENT``, ``SHADE_LIGHT``; the ratio is of
+    linear light, the colours it multiplies are sRGB). The colour factor of an expression ``z`` is
     ``1 + z @ shading_basis`` (linear in ``z``: exact for one blendshape at weight 1, interpolated
     below it, a sum for several), clamped to ``SHADE_RANGE`` per Gaussian. 0 where no
     blendshape moves a vertex. ~0.3 s for the 53 ICT-FaceKit shapes (2 cores), once per avatar on its
@@ -993,19 +1116,19 @@ def shading_basis(identity: np.ndarray, basis: HeadBasis) -> np.ndarray:
     k = len(identity)
     v = basis.neutral.astype(np.float64) + np.tensordot(np.asarray(identity, np.float64), basis.identity_basis[:k], axes=1)
     f = basis.bind_faces
-    b0 = np.maximum(_brightness(v, f), 0.05)
+    b0 = np.maximum(_brightness(v, f, light), 0.05)
     moving = _moving_vertices(basis)
     out = np.zeros((basis.num_expression, len(v)), np.float32)
     for e in range(basis.num_expression):
         d = basis.expression_basis[e]
         if not np.abs(d).max() > 1e-4:
             continue
-        out[e] = np.where(moving, _brightness(v + d, f) / b0 - 1.0, 0.0)
+        out[e] = np.where(moving, _srgb_factor(_brightness(v + d, f, light) / b0 - 1.0), 0.0)
     return out
 
 
-def shading_at(identity: np.ndarray, basis: HeadBasis, vertices: np.ndarray) -> np.ndarray:
-    """``shading_basis(identity, basis)[:, vertices]`` (``[E, M]`` float32, to float rounding) computed
+def shading_at(identity: np.ndarray, basis: HeadBasis, vertices: np.ndarray, light: ShadeLight | None = None) -> np.ndarray:
+    """``shading_basis(identity, basis, light)[:, vertices]`` (``[E, M]`` float32, to float rounding) computed
     only at ``vertices [M]`` (head-model vertex ids): each blendshape's normals on just the triangles
     that touch them, all blendshapes in one numba call (``prior_kernels.shading_rows``, compiled on
     first use and cached). 35-50 ms instead of 0.3-0.4 s (2 cores) for the 53 ICT-FaceKit shapes at
@@ -1016,6 +1139,7 @@ def shading_at(identity: np.ndarray, basis: HeadBasis, vertices: np.ndarray) -> 
         identity: ``[K]`` identity coefficients of the fitted head (``HeadFit.identity``).
         basis: the head model (its ``neutral``, ``identity_basis``, ``expression_basis``, ``bind_faces``).
         vertices: ``[M]`` vertex ids (repeats allowed).
+        light: the avatar's light (``estimate_light``), None for the generic one.
     Returns:
         ``[E, M]`` float32; 0 at vertices no blendshape moves.
     """
@@ -1046,10 +1170,11 @@ def shading_at(identity: np.ndarray, basis: HeadBasis, vertices: np.ndarray) -> 
     prev = numba.get_num_threads()
     numba.set_num_threads(num_threads())
     try:
-        shading_rows(np.ascontiguousarray(basis.neutral, dtype=np.float32), ib, identity, eb, rows, faces, vmap, SHADE_LIGHT, float(SHADE_AMBIENT), 0.05, got)
+        ld, la = (SHADE_LIGHT, SHADE_AMBIENT) if light is None else (np.asarray(light.direction, np.float64), light.ambient)
+        shading_rows(np.ascontiguousarray(basis.neutral, dtype=np.float32), ib, identity, eb, rows, faces, vmap, ld, float(la), 0.05, got)
     finally:
         numba.set_num_threads(prev)
-    out[:, sel] = got[:, vmap[vertices[sel]]]
+    out[:, sel] = _srgb_factor(got[:, vmap[vertices[sel]]])
     return out
 
 
@@ -1094,16 +1219,19 @@ class PriorRuntime:
     ``z [B, E]`` -> ``[B, N, 3]``. ``frame`` is the server's per-frame path (one expression, CPU):
     it reads a per-avatar copy of the used slots (``compact``) and writes the deformed Gaussians.
     ``shading(z)`` -> ``[N]`` (``[B, N]``): the colour factor of the expression shading
-    (``shading_basis``, gathered and weighted like the displacement; 1 everywhere with ``shading=False``).
+    (``shading_basis`` under ``light``, the avatar's own from ``estimate_light`` or None for the generic
+    one; gathered and weighted like the displacement; 1 everywhere with ``shading=False``).
     ``rotation(z)`` -> ``[N, 4]`` (``[B, N, 4]``) wxyz: each Gaussian's surface rotation (its bound
     triangle's turn between the neutral fitted head and the displaced one, faded by its weight), which
     ``rotate=True`` makes ``frame`` apply to the Gaussians' own rotations (``fastgha._combine`` on the
     other paths).
     """
 
-    def __init__(self, binding: PriorBinding, basis: HeadBasis, device=None, shading: bool = True, rotate: bool = False):
+    def __init__(self, binding: PriorBinding, basis: HeadBasis, device=None, shading: bool = True, rotate: bool = False, light: ShadeLight | None = None):
         dev = device or binding.vertex_ids.device
         self.shading_on = bool(shading)  # expression shading of the reconstructed Gaussians' colours
+        self.light = light  # the shading's light (``estimate_light``); None: the generic one
+        self.light_of = None  # the colours ``light`` was estimated from (``FastGHA.animate``'s cache key)
         self.rotate_on = bool(rotate)  # bound Gaussians turn with their triangle (``rotation``)
         self._bind_fit = (binding.vertex_ids, binding.transform, binding.identity)  # for ``edges``
         self._edges: Tensor | None = None  # [N, 6], built on first use
@@ -1220,7 +1348,7 @@ class PriorRuntime:
             if self.shading_on and self.basis.space == "ict53":
                 used = np.unique(self.local.cpu().numpy())
                 used = used[used > 0]  # slots the binding reads (slot s is moving vertex s - 1)
-                t[:, used] = shading_at(self.identity, self.basis, np.flatnonzero(moving)[used - 1])
+                t[:, used] = shading_at(self.identity, self.basis, np.flatnonzero(moving)[used - 1], self.light)
             with torch.inference_mode(False):
                 self._shade_u = torch.from_numpy(t).to(self.basis_u.device)
         return self._shade_u

@@ -508,7 +508,7 @@ def _refine_avatar(
                 a, b = model.deform(feats, xyz, expressions[i].to(dev))
                 dxyz[i], drgb[i] = a.float().cpu(), b.float().cpu()
             if avatar.prior is not None:  # the head model's displacement under the MLP's residual
-                rt = model._runtime(avatar.prior)
+                rt = model._runtime(avatar.prior, avatar.gaussians, avatar.num_interior)
                 prior_d = rt.displacement(expressions.to(rt.basis_u.device)).float().cpu()  # [V, N_all, 3]
                 dxyz += prior_d[:, :n]
                 if config.match_animation:
