@@ -170,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def evaluate_renders(subjects: int = 6, yaws: tuple[float, ...] = (0.0, 30.0, 60.0), seed: int = 0, size: int = 512,
-                     fov_deg: float = 25.0, first_seed: int = 1_000_200, config: FitConfig | None = None) -> dict:
+                     fov_deg: float = 25.0, first_seed: int = 1_000_200, config: FitConfig | None = None, align=None) -> dict:
     """Detector + fitter on rendered synthetic heads with known cameras and expression codes.
 
     Subjects ``first_seed ..`` (held-out synthetic seeds, not the yaw-map calibration ones) are
@@ -180,6 +180,12 @@ def evaluate_renders(subjects: int = 6, yaws: tuple[float, ...] = (0.0, 30.0, 60
     poses and codes with the true ``K``. Returns per view: ``yaw`` (truth), ``rot_deg``,
     ``yaw_err_deg`` (signed, estimate - truth), ``expr_abs [53]``, ``expr_geom_mm`` and the
     neutral baseline ``expr_geom_neutral_mm``.
+
+    ``align``: a ``photoalign.PhotoAlignConfig``: the landmark fit's poses are then registered
+    photometrically (``photoalign.register_photos``, as ``track_photos`` does) and the rotation
+    figures are of the registered poses; ``rot_deg_fit`` / ``yaw_err_deg_fit`` keep the landmark
+    fit's, ``rel_rot_deg`` / ``rel_rot_deg_fit`` the error of the rotation between every pair of
+    views of a subject (both always filled), ``align_s`` the registration's seconds per subject.
     """
     import math as _m
 
@@ -195,10 +201,11 @@ def evaluate_renders(subjects: int = 6, yaws: tuple[float, ...] = (0.0, 30.0, 60
     Bf = head.expression_basis[:, FACE_VERTICES[0] : FACE_VERTICES[1]].reshape(53, -1).astype(np.float64).T
     nf = Bf.shape[0] // 3
     rng = np.random.default_rng(seed)
-    out = {k: [] for k in ("yaw", "rot_deg", "yaw_err_deg", "expr_abs", "expr_geom_mm", "expr_geom_neutral_mm")}
+    out = {k: [] for k in ("yaw", "rot_deg", "yaw_err_deg", "expr_abs", "expr_geom_mm", "expr_geom_neutral_mm", "rot_deg_fit",
+                           "yaw_err_deg_fit", "rel_rot_deg", "rel_rot_deg_fit", "align_s")}  # fmt: skip
     for s in range(subjects):
         sub = SyntheticSubject(first_seed + s)
-        lms, Ks, Rt, Et = [], [], [], []
+        lms, Ks, Rt, Et, ims = [], [], [], [], []
         for yaw in yaws:
             e = np.zeros(53)
             k = rng.integers(3, 6)
@@ -210,17 +217,34 @@ def evaluate_renders(subjects: int = 6, yaws: tuple[float, ...] = (0.0, 30.0, 60
             if not faces:
                 continue
             lms.append(faces[0][1][det.index])
+            ims.append(img)
             Ks.append(cam.K[0].double().numpy())
             Rt.append(cam.w2c[0, :3, :3].double().numpy())
             Et.append((yaw, e))
         if not lms:
             continue
         res = fit_landmarks(np.stack(lms), np.stack(Ks), config or FitConfig(), model)
+        Rfit = res.rotations.copy()
+        if align is not None and len(lms) > 1:
+            from .fit import landmark_models
+            from .photoalign import register_photos
+
+            al = register_photos(ims, res.identity, res.expressions, res.rotations, res.translations, res.K, align, landmarks=lms,
+                                 landmark_model=landmark_models(model, res.rotations, config or FitConfig()))  # fmt: skip
+            res.rotations, res.translations = al.rotations, al.translations
+            out["align_s"].append(al.seconds)
+        for a in range(len(Et)):
+            for b in range(a + 1, len(Et)):
+                truth = Rt[b] @ Rt[a].T
+                out["rel_rot_deg"].append(rotation_error_deg(res.rotations[b] @ res.rotations[a].T, truth))
+                out["rel_rot_deg_fit"].append(rotation_error_deg(Rfit[b] @ Rfit[a].T, truth))
         for v, (yaw, e) in enumerate(Et):
             d = res.expressions[v] - e
             out["yaw"].append(yaw)
             out["rot_deg"].append(rotation_error_deg(res.rotations[v], Rt[v]))
             out["yaw_err_deg"].append(head_angles_deg(res.rotations[v])[0] - head_angles_deg(Rt[v])[0])
+            out["rot_deg_fit"].append(rotation_error_deg(Rfit[v], Rt[v]))
+            out["yaw_err_deg_fit"].append(head_angles_deg(Rfit[v])[0] - head_angles_deg(Rt[v])[0])
             out["expr_abs"].append(np.abs(d))
             out["expr_geom_mm"].append(1000.0 * float(np.sqrt(((Bf @ d) ** 2).sum() / nf)))
             out["expr_geom_neutral_mm"].append(1000.0 * float(np.sqrt(((Bf @ e) ** 2).sum() / nf)))
