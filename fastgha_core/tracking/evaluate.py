@@ -144,12 +144,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--through-detector", type=int, default=0, metavar="SUBJECTS",
                    help="instead: render this many synthetic heads at --yaws (default 0,30,60) and track them with MediaPipe")
     p.add_argument("--json", default=None, help="also write the per-render errors here")
+    p.add_argument("--photo-align", action="store_true", help="with --through-detector: also register the poses photometrically (photoalign.py)")
     a = p.parse_args(argv)
     if a.through_detector:
         yaws = tuple(float(x) for x in (a.yaws or "0,30,60").split(","))
-        r = evaluate_renders(a.through_detector, yaws, a.seed)
-        print(f"{a.through_detector} synthetic subjects rendered at yaw {yaws}, MediaPipe landmarks, one joint fit per subject")
+        align = None
+        if a.photo_align:
+            from .photoalign import PhotoAlignConfig
+
+            align = PhotoAlignConfig()
+        r = evaluate_renders(a.through_detector, yaws, a.seed, align=align)
+        print(f"{a.through_detector} synthetic subjects rendered at yaw {yaws}, MediaPipe landmarks, one joint fit per subject"
+              + (", poses registered photometrically" if align else ""))  # fmt: skip
         print(renders_table(r))
+        if align is not None:
+            print(alignment_table(r))
         if a.per_shape:
             print(expression_table(r))
         return 0
@@ -263,6 +272,22 @@ def renders_table(r: dict) -> str:
         worst = ", ".join(f"{ICT53_NAMES[i]} {ea[i]:.2f}" for i in np.argsort(-ea)[:5])
         rows.append(f"| {y:.0f} | {k.sum()} | {np.median(r['rot_deg'][k]):.2f} | {r['yaw_err_deg'][k].mean():+.2f} | "
                     f"{r['expr_geom_mm'][k].mean():.2f} ({r['expr_geom_neutral_mm'][k].mean():.2f}) | {r['expr_abs'][k].mean():.3f} | {worst} |")  # fmt: skip
+    return "\n".join(rows)
+
+
+def alignment_table(r: dict) -> str:
+    """Rotation errors of the landmark fit against the photometrically registered poses (``evaluate_renders(align=...)``)."""
+    rows = ["| yaw (deg) | rotation err median, fit -> registered (deg) | p95 | yaw err mean | ",
+            "|---|---|---|---|"]  # fmt: skip
+    for y in np.unique(r["yaw"]):
+        k = r["yaw"] == y
+        rows.append(f"| {y:.0f} | {np.median(r['rot_deg_fit'][k]):.2f} -> {np.median(r['rot_deg'][k]):.2f} | "
+                    f"{np.percentile(r['rot_deg_fit'][k], 95):.2f} -> {np.percentile(r['rot_deg'][k], 95):.2f} | "
+                    f"{r['yaw_err_deg_fit'][k].mean():+.2f} -> {r['yaw_err_deg'][k].mean():+.2f} |")  # fmt: skip
+    a, b = r["rel_rot_deg_fit"], r["rel_rot_deg"]
+    rows.append(f"| all pairs, relative rotation | {np.median(a):.2f} -> {np.median(b):.2f} | {np.percentile(a, 95):.2f} -> {np.percentile(b, 95):.2f} | |")
+    if len(r["align_s"]):
+        rows.append(f"registration: {np.median(r['align_s']):.1f} s per subject (median)")
     return "\n".join(rows)
 
 

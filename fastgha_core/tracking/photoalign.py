@@ -62,17 +62,17 @@ log = logging.getLogger(__name__)
 class PhotoAlignConfig:
     """Options of :func:`register_photos` (module doc)."""
 
-    points: int = 30000  # surface points sampled on the face triangles
+    points: int = 15000  # surface points sampled on the face triangles
     work_face_px: float = 256.0  # each photo is resampled so its face (68-landmark box diagonal) spans this
     levels: tuple[float, ...] = (6.0, 3.0, 1.5)  # band-pass sigma (working pixels), coarse to fine
-    iterations: int = 25  # L-BFGS iterations per level
+    iterations: int = 15  # L-BFGS iterations per level
     min_cos: float = 0.35  # a point counts in a photo where its normal faces the camera at least this much
     depth_tol_m: float = 0.004  # visible: within this of the rasterized depth
     min_shared: int = 300  # pairs of photos sharing fewer points are not compared
-    max_rot_deg: float = 5.0  # bound of each rotation component
+    max_rot_deg: float = 8.0  # bound of each rotation component
     max_shift_mm: float = 15.0  # bound of the lateral (x, y) shift
     max_depth_mm: float = 10.0  # bound of the depth (z) shift
-    prior_rot_deg: float = 2.0  # Gaussian prior's scale on the rotation
+    prior_rot_deg: float = 4.0  # Gaussian prior's scale on the rotation
     prior_shift_mm: float = 5.0
     prior_depth_mm: float = 3.0
     prior_weight: float = 0.002  # weight of the prior against the mean (1 - NCC)

@@ -30,7 +30,7 @@ class TrackConfig:
     extent_m: float = DEFAULT_EXTENT_M  # crop field at the head's depth (crop.py)
     max_rms: float = 0.06  # refuse a photo whose landmark RMS exceeds this fraction of its face size
     use_silhouette: bool = False  # also fit side views to the person mask's outline (silhouette.py; docs/tracking.md: no gain with Face Mesh landmarks)
-    photo_align: bool = True  # register the photos' poses to each other photometrically after the landmark fit (photoalign.py)
+    photo_align: bool = False  # register the photos' poses to each other photometrically after the landmark fit (photoalign.py; docs/tracking.md: measured, not on by default)
     fit: FitConfig = field(default_factory=FitConfig)
     matting: MattingConfig = field(default_factory=MattingConfig)
     align: PhotoAlignConfig = field(default_factory=PhotoAlignConfig)
