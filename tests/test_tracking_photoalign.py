@@ -118,3 +118,29 @@ def test_landmark_guard_holds_the_fit(scene):
     np.testing.assert_allclose(al.rms_before, 0.0, atol=1e-6)
     assert all(al.rms_after[v] <= 0.002 * face[v] + 1e-9 for v in range(3)), al.rms_after
     assert set(al.shrunk) == {1, 2}  # the unguarded registration moves both (previous test)
+
+
+def test_track_photos_applies_it_only_when_asked(scene):
+    """``TrackConfig.photo_align`` (off by default) replaces the landmark fit's poses by the
+    registered ones, and the crops' cameras and the reported landmark RMS follow them."""
+    try:
+        from fastgha_core.tracking.faces import MeshDetector
+
+        det = MeshDetector(min_face_px=1.0)
+    except Exception as e:  # pragma: no cover - without the extra
+        pytest.skip(f"needs the 'faces' extra with mediapipe (make install-test): {e}")
+    from fastgha_core.tracking.pipeline import TrackConfig, track_photos
+
+    sub, ims, R, t, K = scene
+    assert TrackConfig().photo_align is False
+    off = track_photos(ims, TrackConfig(size=64), detector=det)
+    on = track_photos(ims, TrackConfig(size=64, photo_align=True), detector=det)
+    assert off.alignment is None and on.alignment is not None
+    # the same landmark fit before it (the fit measures with the yaw map of its last round, the registration at the final yaw)
+    np.testing.assert_allclose(on.alignment.rms_before, off.fit.rms_px, rtol=0.02)
+    np.testing.assert_allclose(on.fit.rotations, on.alignment.rotations)
+    np.testing.assert_allclose(on.fit.rms_px, on.alignment.rms_after)
+    v = int(np.argmax(on.alignment.rotation_deg))
+    assert on.alignment.rotation_deg[v] > 0.05
+    assert not np.allclose(on.cameras.w2c[v].numpy(), off.cameras.w2c[v].numpy(), atol=1e-6)
+    np.testing.assert_allclose(on.cameras.w2c[on.alignment.reference].numpy(), off.cameras.w2c[on.alignment.reference].numpy(), atol=1e-6)
