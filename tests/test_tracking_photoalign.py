@@ -144,3 +144,15 @@ def test_track_photos_applies_it_only_when_asked(scene):
     assert on.alignment.rotation_deg[v] > 0.05
     assert not np.allclose(on.cameras.w2c[v].numpy(), off.cameras.w2c[v].numpy(), atol=1e-6)
     np.testing.assert_allclose(on.cameras.w2c[on.alignment.reference].numpy(), off.cameras.w2c[on.alignment.reference].numpy(), atol=1e-6)
+
+
+def test_identity_modes_move_only_the_first_modes(scene):
+    sub, ims, R, t, K = scene
+    start = np.zeros(100)
+    start[:50] = 0.5 * sub.identity[:50]
+    poses_only = register_photos(ims, start, np.zeros((3, 53)), R, t, K, FAST)
+    np.testing.assert_array_equal(poses_only.identity, start)
+    shaped = register_photos(ims, start, np.zeros((3, 53)), R, t, K, PhotoAlignConfig(identity_modes=5))
+    np.testing.assert_array_equal(shaped.identity[5:], start[5:])
+    assert np.abs(shaped.identity[:5] - start[:5]).max() > 1e-3
+    assert shaped.ncc_after > shaped.ncc_before

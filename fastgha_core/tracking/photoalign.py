@@ -80,6 +80,8 @@ class PhotoAlignConfig:
     max_rms_growth: float = 1.25  # a photo's landmark RMS may grow to this x its own ...
     rms_slack_frac: float = 0.004  # ... + this fraction of its face size
     seed: int = 0  # surface sampling
+    identity_modes: int = 0  # also move the shared head shape along its first this many ICT identity modes (0: poses only)
+    prior_identity: float = 0.5  # Gaussian prior's scale on each identity mode's change (the modes are unit-variance)
 
 
 @dataclass
@@ -98,6 +100,7 @@ class PhotoAlignResult:
     shared: np.ndarray  # [V, V] points seen by both photos
     shrunk: list[int] = field(default_factory=list)  # photos whose correction the landmark guard reduced
     seconds: float = 0.0
+    identity: np.ndarray | None = None  # [100] the shared identity after registration (moved with identity_modes > 0)
 
 
 @dataclass
@@ -189,6 +192,8 @@ class _View:
     lm_uv: torch.Tensor | None  # [L, 2] detected landmarks (photo pixels) or None
     K_photo: torch.Tensor  # [3, 3] of the photo
     face_px: float  # face size in the photo
+    X_basis: torch.Tensor | None = None  # [k, N, 3] the surface points' identity modes (identity_modes > 0)
+    lm_basis: torch.Tensor | None = None  # [k, L, 3] the landmark points' identity modes
 
 
 def _working_view(img, R, t, K, X, normals, mesh_v, mesh_f, lm68_X, cfg, mask=None):
@@ -301,18 +306,22 @@ class _Objective:
         shift = torch.cat([c.max_shift_mm * torch.tanh(p[:, 3:5] / c.max_shift_mm), c.max_depth_mm * torch.tanh(p[:, 5:6] / c.max_depth_mm)], 1) * keep
         return rot, shift
 
-    def photometric(self, R, t, level: int) -> torch.Tensor:
-        """Mean over pairs (weighted by shared points) of 1 - NCC."""
-        feats = [_sample(v.bands[level], _project(v.X, R[i], t[i], v.K), v.size) for i, v in enumerate(self.views)]
+    @staticmethod
+    def _shape(X: torch.Tensor, basis: torch.Tensor | None, q: torch.Tensor | None) -> torch.Tensor:
+        return X if q is None or basis is None else X + torch.einsum("k,knd->nd", q, basis)
+
+    def photometric(self, R, t, level: int, q: torch.Tensor | None = None) -> torch.Tensor:
+        """Mean over pairs (weighted by shared points) of 1 - NCC; ``q [k]``: the identity's change."""
+        feats = [_sample(v.bands[level], _project(self._shape(v.X, v.X_basis, q), R[i], t[i], v.K), v.size) for i, v in enumerate(self.views)]
         if not self.pairs:
             return torch.zeros((), dtype=torch.float64)
         return sum(float(s.sum()) * (1 - _pair_ncc(feats[a], feats[b], s)) for a, b, s in self.pairs) / self.total
 
-    def landmarks(self, R, t) -> torch.Tensor:
+    def landmarks(self, R, t, q: torch.Tensor | None = None) -> torch.Tensor:
         """Mean over photos of the landmarks' mean squared displacement from the landmark fit, in (1 % of the face)^2."""
         terms = []
         for i, v in enumerate(self.views):
-            r = (_project(v.lm_X, R[i], t[i], v.K_photo) - v.lm_uv0) / (0.01 * v.face_px)
+            r = (_project(self._shape(v.lm_X, v.lm_basis, q), R[i], t[i], v.K_photo) - v.lm_uv0) / (0.01 * v.face_px)
             terms.append((r * r).sum(1).mean())
         return torch.stack(terms).mean()
 
@@ -321,16 +330,19 @@ class _Objective:
         rot, shift = self.corrections(p)
         return ((rot / c.prior_rot_deg) ** 2).sum() + ((shift[:, :2] / c.prior_shift_mm) ** 2).sum() + ((shift[:, 2] / c.prior_depth_mm) ** 2).sum()
 
-    def __call__(self, p: torch.Tensor, level: int) -> torch.Tensor:
+    def __call__(self, p: torch.Tensor, level: int, q: torch.Tensor | None = None) -> torch.Tensor:
         R, t = self.pose(p)
         c = self.cfg
-        return self.photometric(R, t, level) + c.landmark_weight * self.landmarks(R, t) + c.prior_weight * self.prior(p)
+        out = self.photometric(R, t, level, q) + c.landmark_weight * self.landmarks(R, t, q) + c.prior_weight * self.prior(p)
+        if q is not None:
+            out = out + c.prior_weight * ((q / c.prior_identity) ** 2).sum()
+        return out
 
 
-def _rms(view: _View, R: torch.Tensor, t: torch.Tensor) -> float:
+def _rms(view: _View, R: torch.Tensor, t: torch.Tensor, q: torch.Tensor | None = None) -> float:
     if view.lm_uv is None:
         return float("nan")
-    r = _project(view.lm_X, R, t, view.K_photo) - view.lm_uv
+    r = _project(_Objective._shape(view.lm_X, view.lm_basis, q), R, t, view.K_photo) - view.lm_uv
     return float(torch.sqrt((r * r).sum(1).mean()))
 
 
@@ -404,16 +416,25 @@ def register_photos(
         bands, Kw, size, vis, face_px = _working_view(images[v], rotations[v], translations[v], K[v], X, nrm, mv, mesh_f,
                                                       mv[head.landmarks68], cfg, masks[v])  # fmt: skip
         lm_uv = None
+        nk = max(0, int(cfg.identity_modes))
+        Xb = lmb = None
+        if nk:
+            Xb = torch.from_numpy(np.einsum("nj,knjd->knd", samples.bary, head.identity_basis[:nk][:, samples.tri].astype(np.float64)))
         if landmarks[v] is not None:
             lmod = landmark_model[v] if isinstance(landmark_model, (list, tuple)) else landmark_model
             lm_X = torch.from_numpy(lmod.points(beta[: lmod.num_identity], expressions[v]))
             lm_uv = torch.from_numpy(np.asarray(landmarks[v], np.float64))
             if lm_X.shape[0] != lm_uv.shape[0] or lm_uv.shape[-1] != 2:
                 raise ValueError(f"register_photos: photo {v} has {list(lm_uv.shape)} landmarks, its model {lm_X.shape[0]} points")
+            if nk:
+                lmb = torch.from_numpy(np.asarray(lmod.identity[:nk], np.float64))
+                if lmb.shape[0] < nk:
+                    raise ValueError(f"register_photos: identity_modes {nk} > the landmark model's {lmb.shape[0]} modes")
         else:
             lm_X = torch.from_numpy(mv[head.landmarks68])
+            lmb = torch.from_numpy(head.identity_basis[:nk, head.landmarks68].astype(np.float64)) if nk else None
         lm_uv0 = _project(lm_X, torch.from_numpy(rotations[v]), torch.from_numpy(translations[v]), torch.from_numpy(K[v]))
-        views.append(_View(bands, Kw, size, torch.from_numpy(X), vis, lm_X, lm_uv0, lm_uv, torch.from_numpy(K[v]), face_px))
+        views.append(_View(bands, Kw, size, torch.from_numpy(X), vis, lm_X, lm_uv0, lm_uv, torch.from_numpy(K[v]), face_px, Xb, lmb))
     R0, t0 = torch.from_numpy(rotations), torch.from_numpy(translations)
     obj = _Objective(views, R0, t0, ref, cfg)
     shared = obj.shared.numpy()
@@ -432,17 +453,20 @@ def register_photos(
         ncc0 = 1.0 - float(obj.photometric(R0, t0, last))
         rms0 = np.array([_rms(v, R0[i], t0[i]) for i, v in enumerate(views)])
     p = torch.zeros(V, 6, dtype=torch.float64, requires_grad=True)
+    q = torch.zeros(max(0, int(cfg.identity_modes)), dtype=torch.float64, requires_grad=True) if cfg.identity_modes > 0 else None
     for level in range(len(cfg.levels)):
-        opt = torch.optim.LBFGS([p], lr=1.0, max_iter=cfg.iterations, line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12)
+        opt = torch.optim.LBFGS([p] + ([q] if q is not None else []), lr=1.0, max_iter=cfg.iterations, line_search_fn="strong_wolfe",
+                                tolerance_grad=1e-9, tolerance_change=1e-12)  # fmt: skip
 
         def closure():
             opt.zero_grad()
-            loss = obj(p, level)
+            loss = obj(p, level, q)
             loss.backward()
             return loss
 
         opt.step(closure)
     p = p.detach()
+    q = None if q is None else q.detach()
     unlinked = [v for v in range(V) if v not in linked]
     p[unlinked] = 0.0  # photos without a chain of shared points to the reference: nothing registers them
     # the landmark guard: halve a photo's correction until its landmark RMS is acceptable
@@ -452,19 +476,22 @@ def register_photos(
             continue
         for k in range(6):
             R, t = obj.pose(p)
-            if _rms(view, R[v], t[v]) <= cfg.max_rms_growth * rms0[v] + cfg.rms_slack_frac * view.face_px:
+            if _rms(view, R[v], t[v], q) <= cfg.max_rms_growth * rms0[v] + cfg.rms_slack_frac * view.face_px:
                 break
             p[v] *= 0.5 if k < 5 else 0.0
             if v not in shrunk:
                 shrunk.append(v)
     with torch.no_grad():
         R, t = obj.pose(p)
-        ncc1 = 1.0 - float(obj.photometric(R, t, last))
-        rms1 = np.array([_rms(v, R[i], t[i]) for i, v in enumerate(views)])
+        ncc1 = 1.0 - float(obj.photometric(R, t, last, q))
+        rms1 = np.array([_rms(v, R[i], t[i], q) for i, v in enumerate(views)])
         rot, shift = obj.corrections(p)
     ang = np.degrees(np.linalg.norm(np.radians(rot.numpy()), axis=1))
     res = PhotoAlignResult(R.numpy().copy(), t.numpy().copy(), ang, shift.numpy().copy(), rms0, rms1, ncc0, ncc1, ref, shared, shrunk,
                            time.perf_counter() - t_start)  # fmt: skip
+    res.identity = beta.copy()
+    if q is not None:
+        res.identity[: len(q)] += q.numpy()
     log.info("photo registration: NCC %.3f -> %.3f, corrections %s deg, %.1f s", ncc0, ncc1, np.round(ang, 2), res.seconds)
     return res
 

@@ -143,6 +143,8 @@ def track_photos(
         alignment = register_photos(photos, fit.identity, fit.expressions, fit.rotations, fit.translations, fit.K, cfg.align,
                                     landmarks=lms, landmark_model=landmark_models(model, fit.rotations, cfg.fit), masks=given)  # fmt: skip
         fit.rotations, fit.translations = alignment.rotations, alignment.translations
+        if cfg.align.identity_modes > 0:
+            fit.identity = alignment.identity
         fit.rms_px = np.where(np.isfinite(alignment.rms_after), alignment.rms_after, fit.rms_px)
 
     head = HeadModel.load()
