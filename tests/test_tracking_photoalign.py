@@ -91,6 +91,7 @@ def test_no_op_paths_and_refusals(scene):
     apart = register_photos(ims, sub.identity, np.zeros((3, 53)), R, t, K, PhotoAlignConfig(points=2000, min_shared=10**6))
     np.testing.assert_array_equal(apart.rotations, R)
     assert (apart.rotation_deg == 0).all() and apart.shared[0, 1] > 0
+    np.testing.assert_array_equal(apart.identity, sub.identity)  # the identity comes back too (the pipeline may take it)
     with pytest.raises(ValueError, match=r"expected 3 photos' rotations"):
         register_photos(ims, sub.identity, np.zeros((2, 53)), R, t, K, FAST)
     with pytest.raises(ValueError, match="landmark_model"):

@@ -35,10 +35,13 @@ correction so that the colours the photos project onto shared surface points agr
   size has its correction halved until it fits, or dropped.
 
 The correction of photo ``v`` is a rotation ``exp([w_v]x)`` about the head's origin in the
-camera and a shift ``d_v`` (camera axes): ``R_v <- exp([w_v]x) R_v``, ``t_v <- t_v + d_v``.
+camera and a shift ``d_v`` (camera axes): ``R_v <- exp([w_v]x) R_v``, ``t_v <- t_v + d_v``. With
+``identity_modes > 0`` the shared identity's first modes move too (one change for all photos).
 
-Measured on the real sets and on synthetic renders with known cameras in ``docs/tracking.md``
-(``python -m fastgha_core.tracking.photoalign``).
+Not on by default (``TrackConfig.photo_align``): on the real sets the avatars gain a little
+identity and lose a little PSNR, and on synthetic renders with known cameras the poses turn away
+from the truth (figures in ``docs/tracking.md``; per-photo read-out: ``python -m
+fastgha_core.tracking.photoalign``).
 """
 
 from __future__ import annotations
@@ -76,7 +79,7 @@ class PhotoAlignConfig:
     prior_shift_mm: float = 5.0
     prior_depth_mm: float = 3.0
     prior_weight: float = 0.002  # weight of the prior against the mean (1 - NCC)
-    landmark_weight: float = 0.002  # weight of the landmark term (mean squared error / (1 % of the face)^2)
+    landmark_weight: float = 0.002  # weight of the landmark term (mean squared displacement / (1 % of the face)^2)
     max_rms_growth: float = 1.25  # a photo's landmark RMS may grow to this x its own ...
     rms_slack_frac: float = 0.004  # ... + this fraction of its face size
     seed: int = 0  # surface sampling
@@ -402,7 +405,7 @@ def register_photos(
     def unchanged(shared=None) -> PhotoAlignResult:
         return PhotoAlignResult(rotations.copy(), translations.copy(), np.zeros(V), np.zeros((V, 3)), np.full(V, np.nan), np.full(V, np.nan),
                                 float("nan"), float("nan"), ref, np.zeros((V, V), np.int64) if shared is None else shared,
-                                seconds=time.perf_counter() - t_start)  # fmt: skip
+                                seconds=time.perf_counter() - t_start, identity=beta.copy())  # fmt: skip
 
     if V < 2:
         return unchanged()
