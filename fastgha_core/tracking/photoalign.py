@@ -38,10 +38,10 @@ The correction of photo ``v`` is a rotation ``exp([w_v]x)`` about the head's ori
 camera and a shift ``d_v`` (camera axes): ``R_v <- exp([w_v]x) R_v``, ``t_v <- t_v + d_v``. With
 ``identity_modes > 0`` the shared identity's first modes move too (one change for all photos).
 
-Not on by default (``TrackConfig.photo_align``): on the real sets the avatars gain a little
-identity and lose a little PSNR, and on synthetic renders with known cameras the poses turn away
-from the truth (figures in ``docs/tracking.md``; per-photo read-out: ``python -m
-fastgha_core.tracking.photoalign``).
+Not on by default (``TrackConfig.photo_align``): on the real sets the avatars built from the
+registered photos gain a little identity (and PSNR on two of three sets), but on synthetic renders
+with known cameras the poses turn away from the truth, and tracking takes 4-5x as long (figures
+in ``docs/tracking.md``; per-photo read-out: ``python -m fastgha_core.tracking.photoalign``).
 """
 
 from __future__ import annotations
