@@ -134,10 +134,12 @@ def _identity(faces, img: np.ndarray, box=None):
     return np.asarray(faces.face_rec.compute_face_descriptor(img, shape), dtype=np.float64), n, box
 
 
-def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, faces=None, refine_cameras: bool = True, surface: bool = True) -> dict:
+def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, faces=None, refine_cameras: bool = True, surface: bool = True,
+                 photo_align: bool = False) -> dict:
     """Leave-one-out over the photos of ``folder`` (see the module docstring); one row per (photo, steps).
 
-    ``surface``: reconstruct on the tracked head surface (``model/surface.py``), as the server does."""
+    ``surface``: reconstruct on the tracked head surface (``model/surface.py``), as the server does.
+    ``photo_align``: register the photos' poses photometrically in tracking (``TrackConfig.photo_align``)."""
     from ..model.surface import HeadSurface
     from ..refine import RefineConfig, refine_avatar
     from ..render import render
@@ -151,7 +153,7 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
     dropped = []
     while True:  # a photo the tracker cannot handle (e.g. no face found) is dropped and reported
         try:
-            tr = track_photos(photos, TrackConfig(size=size), names=names)
+            tr = track_photos(photos, TrackConfig(size=size, photo_align=photo_align), names=names)
             break
         except ValueError as e:
             bad = [i for i, n in enumerate(names) if n in str(e)]
@@ -266,6 +268,7 @@ def main(argv=None) -> int:
     ap.add_argument("--refine-steps", default="0,60", help="comma-separated refinement step counts to compare (default 0,60)")
     ap.add_argument("--no-refine-cameras", action="store_true", help="refine without per-view camera corrections")
     ap.add_argument("--no-surface", action="store_true", help="use the network's depth instead of the tracked head surface")
+    ap.add_argument("--photo-align", action="store_true", help="track with the photometric registration of the photos (TrackConfig.photo_align, off by default)")
     ap.add_argument("--no-cnn-faces", action="store_true", help="skip dlib's CNN face detector column (slower than HOG)")
     ap.add_argument("--size", type=int, default=256, help="crop side of the tracked photos and of the renders")
     ap.add_argument("--json", default=None, help="write all rows here")
@@ -291,7 +294,8 @@ def main(argv=None) -> int:
     all_rows, grid = [], []
     for folder in sets:
         try:
-            out = evaluate_set(model, folder, steps_list, args.size, faces, refine_cameras=not args.no_refine_cameras, surface=not args.no_surface)
+            out = evaluate_set(model, folder, steps_list, args.size, faces, refine_cameras=not args.no_refine_cameras, surface=not args.no_surface,
+                               photo_align=args.photo_align)
         except (ValueError, ImportError) as e:
             print(f"{folder.name}: skipped ({e})")
             continue

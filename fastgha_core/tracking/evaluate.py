@@ -144,12 +144,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--through-detector", type=int, default=0, metavar="SUBJECTS",
                    help="instead: render this many synthetic heads at --yaws (default 0,30,60) and track them with MediaPipe")
     p.add_argument("--json", default=None, help="also write the per-render errors here")
+    p.add_argument("--photo-align", action="store_true", help="with --through-detector: also register the poses photometrically (photoalign.py)")
     a = p.parse_args(argv)
     if a.through_detector:
         yaws = tuple(float(x) for x in (a.yaws or "0,30,60").split(","))
-        r = evaluate_renders(a.through_detector, yaws, a.seed)
-        print(f"{a.through_detector} synthetic subjects rendered at yaw {yaws}, MediaPipe landmarks, one joint fit per subject")
+        align = None
+        if a.photo_align:
+            from .photoalign import PhotoAlignConfig
+
+            align = PhotoAlignConfig()
+        r = evaluate_renders(a.through_detector, yaws, a.seed, align=align)
+        print(f"{a.through_detector} synthetic subjects rendered at yaw {yaws}, MediaPipe landmarks, one joint fit per subject"
+              + (", poses registered photometrically" if align else ""))  # fmt: skip
         print(renders_table(r))
+        if align is not None:
+            print(alignment_table(r))
         if a.per_shape:
             print(expression_table(r))
         return 0
@@ -170,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def evaluate_renders(subjects: int = 6, yaws: tuple[float, ...] = (0.0, 30.0, 60.0), seed: int = 0, size: int = 512,
-                     fov_deg: float = 25.0, first_seed: int = 1_000_200, config: FitConfig | None = None) -> dict:
+                     fov_deg: float = 25.0, first_seed: int = 1_000_200, config: FitConfig | None = None, align=None) -> dict:
     """Detector + fitter on rendered synthetic heads with known cameras and expression codes.
 
     Subjects ``first_seed ..`` (held-out synthetic seeds, not the yaw-map calibration ones) are
@@ -180,6 +189,12 @@ def evaluate_renders(subjects: int = 6, yaws: tuple[float, ...] = (0.0, 30.0, 60
     poses and codes with the true ``K``. Returns per view: ``yaw`` (truth), ``rot_deg``,
     ``yaw_err_deg`` (signed, estimate - truth), ``expr_abs [53]``, ``expr_geom_mm`` and the
     neutral baseline ``expr_geom_neutral_mm``.
+
+    ``align``: a ``photoalign.PhotoAlignConfig``: the landmark fit's poses are then registered
+    photometrically (``photoalign.register_photos``, as ``track_photos`` does) and the rotation
+    figures are of the registered poses; ``rot_deg_fit`` / ``yaw_err_deg_fit`` keep the landmark
+    fit's, ``rel_rot_deg`` / ``rel_rot_deg_fit`` the error of the rotation between every pair of
+    views of a subject (both always filled), ``align_s`` the registration's seconds per subject.
     """
     import math as _m
 
@@ -195,10 +210,11 @@ def evaluate_renders(subjects: int = 6, yaws: tuple[float, ...] = (0.0, 30.0, 60
     Bf = head.expression_basis[:, FACE_VERTICES[0] : FACE_VERTICES[1]].reshape(53, -1).astype(np.float64).T
     nf = Bf.shape[0] // 3
     rng = np.random.default_rng(seed)
-    out = {k: [] for k in ("yaw", "rot_deg", "yaw_err_deg", "expr_abs", "expr_geom_mm", "expr_geom_neutral_mm")}
+    out = {k: [] for k in ("yaw", "rot_deg", "yaw_err_deg", "expr_abs", "expr_geom_mm", "expr_geom_neutral_mm", "rot_deg_fit",
+                           "yaw_err_deg_fit", "rel_rot_deg", "rel_rot_deg_fit", "align_s")}  # fmt: skip
     for s in range(subjects):
         sub = SyntheticSubject(first_seed + s)
-        lms, Ks, Rt, Et = [], [], [], []
+        lms, Ks, Rt, Et, ims = [], [], [], [], []
         for yaw in yaws:
             e = np.zeros(53)
             k = rng.integers(3, 6)
@@ -210,17 +226,34 @@ def evaluate_renders(subjects: int = 6, yaws: tuple[float, ...] = (0.0, 30.0, 60
             if not faces:
                 continue
             lms.append(faces[0][1][det.index])
+            ims.append(img)
             Ks.append(cam.K[0].double().numpy())
             Rt.append(cam.w2c[0, :3, :3].double().numpy())
             Et.append((yaw, e))
         if not lms:
             continue
         res = fit_landmarks(np.stack(lms), np.stack(Ks), config or FitConfig(), model)
+        Rfit = res.rotations.copy()
+        if align is not None and len(lms) > 1:
+            from .fit import landmark_models
+            from .photoalign import register_photos
+
+            al = register_photos(ims, res.identity, res.expressions, res.rotations, res.translations, res.K, align, landmarks=lms,
+                                 landmark_model=landmark_models(model, res.rotations, config or FitConfig()))  # fmt: skip
+            res.rotations, res.translations = al.rotations, al.translations
+            out["align_s"].append(al.seconds)
+        for a in range(len(Et)):
+            for b in range(a + 1, len(Et)):
+                truth = Rt[b] @ Rt[a].T
+                out["rel_rot_deg"].append(rotation_error_deg(res.rotations[b] @ res.rotations[a].T, truth))
+                out["rel_rot_deg_fit"].append(rotation_error_deg(Rfit[b] @ Rfit[a].T, truth))
         for v, (yaw, e) in enumerate(Et):
             d = res.expressions[v] - e
             out["yaw"].append(yaw)
             out["rot_deg"].append(rotation_error_deg(res.rotations[v], Rt[v]))
             out["yaw_err_deg"].append(head_angles_deg(res.rotations[v])[0] - head_angles_deg(Rt[v])[0])
+            out["rot_deg_fit"].append(rotation_error_deg(Rfit[v], Rt[v]))
+            out["yaw_err_deg_fit"].append(head_angles_deg(Rfit[v])[0] - head_angles_deg(Rt[v])[0])
             out["expr_abs"].append(np.abs(d))
             out["expr_geom_mm"].append(1000.0 * float(np.sqrt(((Bf @ d) ** 2).sum() / nf)))
             out["expr_geom_neutral_mm"].append(1000.0 * float(np.sqrt(((Bf @ e) ** 2).sum() / nf)))
@@ -239,6 +272,22 @@ def renders_table(r: dict) -> str:
         worst = ", ".join(f"{ICT53_NAMES[i]} {ea[i]:.2f}" for i in np.argsort(-ea)[:5])
         rows.append(f"| {y:.0f} | {k.sum()} | {np.median(r['rot_deg'][k]):.2f} | {r['yaw_err_deg'][k].mean():+.2f} | "
                     f"{r['expr_geom_mm'][k].mean():.2f} ({r['expr_geom_neutral_mm'][k].mean():.2f}) | {r['expr_abs'][k].mean():.3f} | {worst} |")  # fmt: skip
+    return "\n".join(rows)
+
+
+def alignment_table(r: dict) -> str:
+    """Rotation errors of the landmark fit against the photometrically registered poses (``evaluate_renders(align=...)``)."""
+    rows = ["| yaw (deg) | rotation err median, fit -> registered (deg) | p95 | yaw err mean | ",
+            "|---|---|---|---|"]  # fmt: skip
+    for y in np.unique(r["yaw"]):
+        k = r["yaw"] == y
+        rows.append(f"| {y:.0f} | {np.median(r['rot_deg_fit'][k]):.2f} -> {np.median(r['rot_deg'][k]):.2f} | "
+                    f"{np.percentile(r['rot_deg_fit'][k], 95):.2f} -> {np.percentile(r['rot_deg'][k], 95):.2f} | "
+                    f"{r['yaw_err_deg_fit'][k].mean():+.2f} -> {r['yaw_err_deg'][k].mean():+.2f} |")  # fmt: skip
+    a, b = r["rel_rot_deg_fit"], r["rel_rot_deg"]
+    rows.append(f"| all pairs, relative rotation | {np.median(a):.2f} -> {np.median(b):.2f} | {np.percentile(a, 95):.2f} -> {np.percentile(b, 95):.2f} | |")
+    if len(r["align_s"]):
+        rows.append(f"registration: {np.median(r['align_s']):.1f} s per subject (median)")
     return "\n".join(rows)
 
 

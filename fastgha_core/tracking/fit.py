@@ -569,6 +569,14 @@ def _use_yaw_map(prob: "_Problem", table, Rs: np.ndarray, ts: np.ndarray, base: 
     prob.set_weights(wv)
 
 
+def landmark_models(model: "LandmarkModel", rotations: np.ndarray, cfg: "FitConfig") -> list["LandmarkModel"]:
+    """The landmark model of each photo at its yaw (``rotations [V, 3, 3]``): the yaw map's blend
+    (``_model_at_yaw``) for the Face Mesh layout when ``cfg.yaw_map`` and the table is shipped, else
+    ``model`` itself; the models ``fit_landmarks`` measures its ``rms_px`` with."""
+    table = _yaw_models(model) if cfg.yaw_map and model.layout == "mediapipe" else None
+    return [model if table is None else _model_at_yaw(table, _yaw_deg(R))[0] for R in rotations]
+
+
 def _yaw_deg(R: np.ndarray) -> float:
     """Yaw of a head -> camera rotation (realsets.head_angles_deg): + = nose towards the image's right."""
     return math.degrees(math.atan2(R[0, 2], -R[2, 2]))

@@ -11,8 +11,9 @@ import torch
 from ..cameras import Cameras
 from .camera import pose_to_cameras
 from .crop import DEFAULT_EXTENT_M, background_uint8, crop_array, crop_cameras, head_crop_box
-from .fit import FitConfig, FitResult, LandmarkModel, default_intrinsics, fit_known_cameras, fit_landmarks, intrinsics_from_35mm
+from .fit import FitConfig, FitResult, LandmarkModel, default_intrinsics, fit_known_cameras, fit_landmarks, intrinsics_from_35mm, landmark_models
 from .matting import MattingConfig, head_silhouette, matte_from_head
+from .photoalign import PhotoAlignConfig, PhotoAlignResult, register_photos
 from .silhouette import SilhouetteTarget, person_mask
 
 __all__ = ["TrackConfig", "TrackedPhotos", "track_photos", "track_request", "track_known_cameras", "known_camera_fit_config"]
@@ -29,8 +30,10 @@ class TrackConfig:
     extent_m: float = DEFAULT_EXTENT_M  # crop field at the head's depth (crop.py)
     max_rms: float = 0.06  # refuse a photo whose landmark RMS exceeds this fraction of its face size
     use_silhouette: bool = False  # also fit side views to the person mask's outline (silhouette.py; docs/tracking.md: no gain with Face Mesh landmarks)
+    photo_align: bool = False  # register the photos' poses to each other photometrically after the landmark fit (photoalign.py; docs/tracking.md: measured, not on by default)
     fit: FitConfig = field(default_factory=FitConfig)
     matting: MattingConfig = field(default_factory=MattingConfig)
+    align: PhotoAlignConfig = field(default_factory=PhotoAlignConfig)
 
 
 @dataclass
@@ -47,6 +50,7 @@ class TrackedPhotos:
     mask_given: list[bool]
     layout: str = "mediapipe"  # landmark layout: "mediapipe" (Face Mesh points) or "dlib68"
     residuals: list[np.ndarray] = field(default_factory=list)  # V x [N, 2] fitted minus detected, pixels
+    alignment: PhotoAlignResult | None = None  # the photometric registration (None when off or a single photo)
 
 
 def _as_photo(img, i: int, name: str) -> np.ndarray:
@@ -133,6 +137,15 @@ def track_photos(
                 f"({100 * fit.rms_px[v] / face:.0f}% of the face size, at most {100 * cfg.max_rms:.0f}% accepted); "
                 "is it a photo of the same person as the others, with the face unobstructed?"
             )
+    alignment = None
+    if cfg.photo_align and len(photos) > 1:
+        given = [None if m is None else _as_mask(m, img.shape[:2], n) for m, img, n in zip(masks, photos, names)]
+        alignment = register_photos(photos, fit.identity, fit.expressions, fit.rotations, fit.translations, fit.K, cfg.align,
+                                    landmarks=lms, landmark_model=landmark_models(model, fit.rotations, cfg.fit), masks=given)  # fmt: skip
+        fit.rotations, fit.translations = alignment.rotations, alignment.translations
+        if cfg.align.identity_modes > 0:
+            fit.identity = alignment.identity
+        fit.rms_px = np.where(np.isfinite(alignment.rms_after), alignment.rms_after, fit.rms_px)
 
     head = HeadModel.load()
     faces = head.visible_faces(eyelashes=False)
@@ -171,6 +184,7 @@ def track_photos(
         mask_given=[m is not None for m in masks],
         layout=model.layout,
         residuals=[fit.project(model, v) - lms[v] for v in range(len(lms))],
+        alignment=alignment,
     )
 
 

@@ -102,6 +102,9 @@ def evaluate_realsets(root: Path | None = None, detector=None, config=None) -> l
                 "roll": round(roll, 1), "yaw_error": None if ann is None else round(abs(yaw - ann), 1),
                 "rms_px": round(float(res.fit.rms_px[v]), 2), "max_expression": round(float(res.expressions[v, top]), 2),
                 "max_expression_name": ICT53_NAMES[top], "set_seconds": round(seconds, 2),
+                "align_deg": None if res.alignment is None else round(float(res.alignment.rotation_deg[v]), 2),
+                "align_mm": None if res.alignment is None else [round(float(x), 1) for x in res.alignment.shift_mm[v]],
+                "rms_px_before_align": None if res.alignment is None else round(float(res.alignment.rms_before[v]), 2),
             })  # fmt: skip
     return rows
 
@@ -110,13 +113,17 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m fastgha_core.tracking.realsets", description=__doc__.split("\n")[0])
     p.add_argument("--root", default=None, help="folder of photo sets (default: ../shared/realsets or $FASTGHA_REALSETS)")
     p.add_argument("--json", default=None, help="also write the rows here")
+    p.add_argument("--photo-align", action="store_true", help="with the photometric registration of the photos (TrackConfig.photo_align, off by default)")
     a = p.parse_args(argv)
-    rows = evaluate_realsets(Path(a.root) if a.root else None)
-    print("| set | photo | yaw annotated | yaw | error | pitch | roll | RMS px | largest expression |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    from .pipeline import TrackConfig
+
+    rows = evaluate_realsets(Path(a.root) if a.root else None, config=TrackConfig(photo_align=a.photo_align))
+    print("| set | photo | yaw annotated | yaw | error | pitch | roll | RMS px | largest expression | registration (deg; mm) | RMS px before it |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
+        reg = "-" if r["align_deg"] is None else f"{r['align_deg']}; {', '.join(f'{x:+.1f}' for x in r['align_mm'])}"
         print(f"| {r['set']} | {r['photo']} | {r['yaw_annotated']} | {r['yaw']} | {r['yaw_error']} | {r['pitch']} | {r['roll']} | "
-              f"{r['rms_px']} | {r['max_expression_name']} {r['max_expression']} |")  # fmt: skip
+              f"{r['rms_px']} | {r['max_expression_name']} {r['max_expression']} | {reg} | {r['rms_px_before_align'] or '-'} |")  # fmt: skip
     secs = {r["set"]: r["set_seconds"] for r in rows}
     print("tracking time per set (s, detection + fit + crops + masks): " + ", ".join(f"{k} {v:.1f}" for k, v in secs.items()))
     errs = [r["yaw_error"] for r in rows if r["yaw_error"] is not None]
