@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -188,7 +189,10 @@ def test_json_round_trip_and_errors(tmp_path):
     with pytest.raises(ValueError, match=r"nowhere does not exist"):
         load_request_folder(tmp_path / "nowhere")
     (tmp_path / "cameras.json").unlink()  # photos alone: the message says how to get cameras
-    with pytest.raises(ValueError, match=r"has no cameras\.json; .*`fastgha track --images PHOTO\.\.\. --out "):
+    # the suggested command takes the folder's own photo globs and a NEW folder (track refuses to write
+    # into a folder of other photos), which --input then names
+    tracked = re.escape(f"{tmp_path}-tracked")
+    with pytest.raises(ValueError, match=rf"has no cameras\.json; .*`fastgha track --images {re.escape(str(tmp_path))}/\*\.png --out {tracked}`.* --input {tracked}$"):
         load_request_folder(tmp_path)
 
 
