@@ -949,3 +949,43 @@ def test_a_smile_shows_no_mouth_interior_and_leaves_the_mouth_gate_shut(basis):
     assert px_jaw - px0 > 300 and g_jaw == 1.0 and g0 == 0.0
     assert abs(px_smile - px0) < 0.02 * (px_jaw - px0), (px0, px_jaw, px_smile)
     assert g_smile == 0.0
+
+
+def test_the_lip_seam_is_always_on_under_the_upper_lip_in_the_avatars_lip_colour_darkened(fit, basis):
+    """The ground truth draws a dark seam between the closed lips (the upper lip's down-facing
+    underside) that a smile stretches to the corners; the reconstruction has none, and dlib read the
+    smile short (issue 16). ``mouth_interior`` adds Gaussians there: no gate (seen at neutral and in
+    a smile alike), facing down on the fitted head, just above the inner-lip line, coloured like the
+    avatar's lips nearby times a brightness factor < 1."""
+    from fastgha_core.data.headmodel import vertex_normals
+    from fastgha_core.gaussians import Gaussians
+    from fastgha_core.model.prior import opacity_factors
+
+    assert basis.seam is not None and basis.seam.sum() > 100
+    seam = torch.from_numpy(basis.seam)
+    v = fit.vertices
+    ids = basis.interior_vertices[basis.seam]
+    n = vertex_normals(v, basis.bind_faces)[ids]
+    up = fit.transform[:3, 1] / np.linalg.norm(fit.transform[:3, 1])
+    assert np.median(n @ up) < -0.4  # facing down
+    inner = v[np.asarray(HeadModel.load().landmarks68[60:68])]
+    h = (v[ids] - inner.mean(0)) @ up
+    assert h.min() > -0.002 and h.max() < 0.003  # at the inner-lip line, on the upper lip's side
+    red = np.array([0.7, 0.3, 0.3], np.float32)
+    avatar = Gaussians(
+        means=torch.from_numpy(v[::3].astype(np.float32)), quats=torch.tensor([1.0, 0, 0, 0]).expand(len(v[::3]), 4).contiguous(),
+        scales=torch.full((len(v[::3]), 3), 0.002), opacities=torch.full((len(v[::3]),), 0.9),
+        colors=torch.from_numpy(np.tile(red, (len(v[::3]), 1))), features=torch.zeros(len(v[::3]), 0),
+    )
+    g, b = mouth_interior(fit, basis, num_features=0, avatar=avatar)
+    c = g.colors[seam]
+    ratio = c / torch.from_numpy(red)
+    assert torch.allclose(ratio[:, 0], ratio[:, 1], atol=1e-5) and torch.allclose(ratio[:, 0], ratio[:, 2], atol=1e-5)  # the lip's hue
+    assert 0.4 < float(ratio[:, 0].min()) and float(ratio[:, 0].max()) < 0.95  # darkened
+    hm = HeadModel.load()
+    smile = torch.zeros(53)
+    smile[hm.expression_names.index("mouthSmile_L")] = smile[hm.expression_names.index("mouthSmile_R")] = 1.0
+    idx = b.groups() + 1
+    for z in (torch.zeros(53), smile):
+        assert torch.all(opacity_factors(z, basis, idx)[seam] == 1.0)
+    assert torch.all(b.groups()[seam] == -1)
