@@ -336,9 +336,11 @@ def test_animate_with_the_prior(model_and_avatar):
         model.deform.out.weight.zero_()
         model.deform.out.bias.zero_()
     grp = avatar.prior.groups()
-    n_shell = int((grp[n_rec:] == -1).sum())  # the back-of-head shell: ungated, first after the reconstruction
-    assert model.config.deform.back_shell and n_shell > 0 and torch.all(grp[n_rec : n_rec + n_shell] == -1)
-    n_vis = n_rec + n_shell
+    n_seam = int(model.head_basis().seam.sum())
+    n_ungated = int((grp[n_rec:] == -1).sum())  # the back-of-head shell, then the lip seam: ungated, first after the reconstruction
+    n_shell = n_ungated - n_seam
+    assert model.config.deform.back_shell and n_shell > 0 and torch.all(grp[n_rec : n_rec + n_ungated] == -1)
+    n_vis = n_rec + n_ungated
     neutral = model.animate(avatar, torch.zeros(53))
     assert len(neutral) == n_vis  # closed lips and open eyes: every gated Gaussian is hidden, and left out
     torch.testing.assert_close(neutral.means, avatar.gaussians.means[:n_vis])  # identity at zero expression
@@ -353,7 +355,7 @@ def test_animate_with_the_prior(model_and_avatar):
     assert mouth.any() and lid_l.any()
     n_mouth = int(mouth.sum())
     assert len(opened) == n_vis + n_mouth and torch.all(opened.opacities[n_rec:] > 0)  # jaw open: mouth, not lids
-    shell = slice(n_rec, n_vis)  # on the skull: the expression does not move it
+    shell = slice(n_rec, n_rec + n_shell)  # on the skull: the expression does not move it
     torch.testing.assert_close(opened.means[shell], avatar.gaussians.means[shell])
     blink = torch.zeros(53)
     blink[hm.expression_names.index("eyeBlink_L")] = 1.0

@@ -316,17 +316,17 @@ def _ict_basis() -> HeadBasis:
     lash_flag = np.zeros(len(ids), bool)
     lash_flag[n_mouth:] = np.concatenate([np.r_[np.zeros(len(a), bool), np.ones(len(b), bool)] for a, b in zip(lid_ids, lash_ids)])
     cols = np.concatenate([cols, np.zeros((len(ids) - n_mouth, 3), np.float32)])
-    # the lip seam (LIP_SEAM_NY): always on (group -1), its colour factor in interior_colors
+    # the lip seam (LIP_SEAM_NY): always on (group -1), its colour factor in interior_colors; first, so
+    # that the gated groups stay last and a frame drops those whose gate is 0 (``_combine``'s trim)
     seam_ids, seam_f = _lip_seam(m, faces, reg)
-    n_before = len(ids)
-    ids = np.concatenate([ids, seam_ids]).astype(np.int64)
-    lash_flag = np.concatenate([lash_flag, np.zeros(len(seam_ids), bool)])
-    cols = np.concatenate([cols, np.repeat(seam_f[:, None], 3, 1).astype(np.float32)])
-    groups.append(np.full(len(seam_ids), -1))
-    scales.append(np.full(len(seam_ids), LIP_SEAM_SCALE))
-    sample.append(np.zeros(len(seam_ids), bool))
+    ids = np.concatenate([seam_ids, ids]).astype(np.int64)
+    lash_flag = np.concatenate([np.zeros(len(seam_ids), bool), lash_flag])
+    cols = np.concatenate([np.repeat(seam_f[:, None], 3, 1).astype(np.float32), cols])
+    groups.insert(0, np.full(len(seam_ids), -1))
+    scales.insert(0, np.full(len(seam_ids), LIP_SEAM_SCALE))
+    sample.insert(0, np.zeros(len(seam_ids), bool))
     seam_flag = np.zeros(len(ids), bool)
-    seam_flag[n_before:] = True
+    seam_flag[: len(seam_ids)] = True
     return HeadBasis(
         space="ict53",
         neutral=m.neutral,
