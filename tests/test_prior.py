@@ -14,7 +14,7 @@ from pathlib import Path
 from prior_frames import fast_and_plain
 
 from fastgha_core.data.headmodel import HeadModel
-from fastgha_core.model.prior import PriorBinding, PriorRuntime, back_shell_vertices, bind, fit_head, load_basis, mouth_gate, mouth_interior
+from fastgha_core.model.prior import PriorBinding, PriorRuntime, back_shell_vertices, bind, fit_head, lip_hide_group, load_basis, mouth_gate, mouth_interior
 
 
 REPO_SAMPLES = Path(__file__).resolve().parents[1] / "fastgha_core" / "assets" / "samples"
@@ -336,11 +336,11 @@ def test_animate_with_the_prior(model_and_avatar):
         model.deform.out.weight.zero_()
         model.deform.out.bias.zero_()
     grp = avatar.prior.groups()
-    n_seam = int(model.head_basis().seam.sum())
-    n_ungated = int((grp[n_rec:] == -1).sum())  # the back-of-head shell, then the lip seam: ungated, first after the reconstruction
-    n_shell = n_ungated - n_seam
-    assert model.config.deform.back_shell and n_shell > 0 and torch.all(grp[n_rec : n_rec + n_ungated] == -1)
-    n_vis = n_rec + n_ungated
+    n_seam = int(model.head_basis().seam.sum())  # the lip seam: after the shell, shown while the lips are closed
+    n_shell = int((grp[n_rec:] == -1).sum())  # the back-of-head shell: ungated, first after the reconstruction
+    assert model.config.deform.back_shell and n_shell > 0 and torch.all(grp[n_rec : n_rec + n_shell] == -1)
+    assert n_seam > 0 and torch.all(grp[n_rec + n_shell : n_rec + n_shell + n_seam] == lip_hide_group(model.head_basis()))
+    n_vis = n_rec + n_shell + n_seam
     neutral = model.animate(avatar, torch.zeros(53))
     assert len(neutral) == n_vis  # closed lips and open eyes: every gated Gaussian is hidden, and left out
     torch.testing.assert_close(neutral.means, avatar.gaussians.means[:n_vis])  # identity at zero expression
@@ -354,7 +354,8 @@ def test_animate_with_the_prior(model_and_avatar):
     mouth, lid_l = grp == 0, grp == 1
     assert mouth.any() and lid_l.any()
     n_mouth = int(mouth.sum())
-    assert len(opened) == n_vis + n_mouth and torch.all(opened.opacities[n_rec:] > 0)  # jaw open: mouth, not lids
+    assert len(opened) == n_vis + n_mouth and torch.all(opened.opacities[n_rec : n_rec + n_shell] > 0)  # jaw open: mouth, not lids
+    assert torch.all(opened.opacities[n_vis:] > 0) and torch.all(opened.opacities[n_rec + n_shell : n_vis] == 0)  # the seam parts
     shell = slice(n_rec, n_rec + n_shell)  # on the skull: the expression does not move it
     torch.testing.assert_close(opened.means[shell], avatar.gaussians.means[shell])
     blink = torch.zeros(53)
@@ -362,7 +363,7 @@ def test_animate_with_the_prior(model_and_avatar):
     closed = model.animate(avatar, blink)
     assert len(closed) == n_vis + n_mouth + int(lid_l.sum())
     assert torch.all(closed.opacities[lid_l[: len(closed)]] > 0) and torch.all(closed.opacities[mouth[: len(closed)]] == 0)
-    hides = grp == int(avatar.prior.groups().max())  # reconstructed Gaussians on an eyeball fade as its lid closes
+    hides = grp == lip_hide_group(model.head_basis()) - 1  # reconstructed Gaussians on an eyeball fade as its lid closes
     assert hides.any() and torch.all(neutral.opacities[:n_rec][hides[:n_rec]] > 0)
     both_eyes = torch.zeros(53)
     both_eyes[[hm.expression_names.index("eyeBlink_L"), hm.expression_names.index("eyeBlink_R")]] = 1.0
@@ -953,12 +954,12 @@ def test_a_smile_shows_no_mouth_interior_and_leaves_the_mouth_gate_shut(basis):
     assert g_smile == 0.0
 
 
-def test_the_lip_seam_is_always_on_under_the_upper_lip_in_the_avatars_lip_colour_darkened(fit, basis):
+def test_the_lip_seam_shows_under_the_closed_upper_lip_in_the_avatars_lip_colour_darkened(fit, basis):
     """The ground truth draws a dark seam between the closed lips (the upper lip's down-facing
     underside) that a smile stretches to the corners; the reconstruction has none, and dlib read the
-    smile short (issue 16). ``mouth_interior`` adds Gaussians there: no gate (seen at neutral and in
-    a smile alike), facing down on the fitted head, just above the inner-lip line, coloured like the
-    avatar's lips nearby times a brightness factor < 1."""
+    smile short (issue 16). ``mouth_interior`` adds Gaussians there: shown at neutral and in a smile,
+    gone as the jaw opens (``lip_hide_group``), facing down on the fitted head, just above the
+    inner-lip line, coloured like the avatar's lips nearby times a brightness factor < 1."""
     from fastgha_core.data.headmodel import vertex_normals
     from fastgha_core.gaussians import Gaussians
     from fastgha_core.model.prior import opacity_factors
@@ -990,4 +991,7 @@ def test_the_lip_seam_is_always_on_under_the_upper_lip_in_the_avatars_lip_colour
     idx = b.groups() + 1
     for z in (torch.zeros(53), smile):
         assert torch.all(opacity_factors(z, basis, idx)[seam] == 1.0)
-    assert torch.all(b.groups()[seam] == -1)
+    jaw = torch.zeros(53)
+    jaw[hm.expression_names.index("jawOpen")] = 1.0
+    assert torch.all(opacity_factors(jaw, basis, idx)[seam] == 0.0)
+    assert torch.all(b.groups()[seam] == lip_hide_group(basis))

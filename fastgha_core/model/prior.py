@@ -34,8 +34,9 @@ Pieces (all numpy/torch on CPU, no learning):
   the avatar's own lips (``interior_inset``), bound to their own vertex (so they follow the jaw), with
   an opacity gate that is 0 while the lips are closed; and Gaussians on the upper eyelids, coloured
   like the avatar's skin, and on the upper lashes, dark (the avatar's darkest colours at the open
-  eye's upper lid), that appear as a blink closes the lids (``gate_factors``); and, always on, thin
-  dark Gaussians on the upper lip's underside, the seam between the lips (``LIP_SEAM_NY``).
+  eye's upper lid), that appear as a blink closes the lids (``gate_factors``); and thin dark
+  Gaussians on the upper lip's underside, the seam between closed lips (``LIP_SEAM_NY``), that fade
+  as the mouth opens.
 - ``hide_open_lips(binding, ...)``: the reconstructed Gaussians near the lips from input photos whose
   (tracked) expression opens the mouth fade out as the avatar's mouth opens: undone onto the closed
   lips, those photos' teeth and mouth gap lined the opening (``open_mouth_views``).
@@ -150,7 +151,7 @@ OPEN_VIEW_GATE = 0.1
 LIP_RADIUS = 0.008  # metres
 
 # The lip seam (issue 16, the smile): the ground-truth renderer draws a sharp dark line between the
-# closed lips, the upper lip's underside (normals facing down, away from any light from above); a
+# closed lips (gone as they part: ``lip_hide_group``), the upper lip's underside (normals facing down, away from any light from above); a
 # smile stretches it out to the corners. A few-view reconstruction has no such line (0 dark pixels
 # where the truth has 1-650, 512²), and dlib then reads the smile's corners short. Always-on
 # Gaussians on that underside: ICT-FaceKit lip vertices with a neutral normal's y below LIP_SEAM_NY,
@@ -202,7 +203,7 @@ class HeadBasis:
     mouth_faces: np.ndarray | None = None
     # [L] vertex ids of the lip landmarks (``hide_open_lips``); None: no lip hiding
     lip_landmarks: np.ndarray | None = None
-    # [I] bool: always-on lip-seam points (group -1, ``LIP_SEAM_NY``); their ``interior_colors`` hold
+    # [I] bool: lip-seam points (``lip_hide_group``, ``LIP_SEAM_NY``); their ``interior_colors`` hold
     # the brightness factor that multiplies the avatar's lip colour; None: none
     seam: np.ndarray | None = None
 
@@ -316,13 +317,14 @@ def _ict_basis() -> HeadBasis:
     lash_flag = np.zeros(len(ids), bool)
     lash_flag[n_mouth:] = np.concatenate([np.r_[np.zeros(len(a), bool), np.ones(len(b), bool)] for a, b in zip(lid_ids, lash_ids)])
     cols = np.concatenate([cols, np.zeros((len(ids) - n_mouth, 3), np.float32)])
-    # the lip seam (LIP_SEAM_NY): always on (group -1), its colour factor in interior_colors; first, so
-    # that the gated groups stay last and a frame drops those whose gate is 0 (``_combine``'s trim)
+    # the lip seam (LIP_SEAM_NY): on while the lips are closed (``lip_hide_group``: 1 - the mouth gate;
+    # with the seam on at an open jaw, B 512²'s jaw read 0.68), its colour factor in interior_colors;
+    # first, so that the mouth and lid groups stay last and a frame drops those whose gate is 0
     seam_ids, seam_f = _lip_seam(m, faces, reg)
     ids = np.concatenate([seam_ids, ids]).astype(np.int64)
     lash_flag = np.concatenate([np.zeros(len(seam_ids), bool), lash_flag])
     cols = np.concatenate([np.repeat(seam_f[:, None], 3, 1).astype(np.float32), cols])
-    groups.insert(0, np.full(len(seam_ids), -1))
+    groups.insert(0, np.full(len(seam_ids), 2 * len(gates) - 1))  # lip_hide_group: fades as the lips part
     scales.insert(0, np.full(len(seam_ids), LIP_SEAM_SCALE))
     sample.insert(0, np.zeros(len(seam_ids), bool))
     seam_flag = np.zeros(len(ids), bool)
@@ -774,8 +776,8 @@ def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "G
     ``INTERIOR_SHADE``; moved ``inset`` metres back along the fitted head's forward axis, see
     ``interior_inset``), the closed upper eyelids (coloured like the avatar's skin around the eye,
     ``_lid_skin_colors``; skin grey without ``avatar``) and their lashes (``_lash_color``;
-    ``LASH_DEFAULT`` without ``avatar``), and the always-on lip seam (``LIP_SEAM_NY``; group -1: no
-    gate), coloured like the avatar's lips nearby times its brightness factor (``LIP_SEAM_DEFAULT``
+    ``LASH_DEFAULT`` without ``avatar``), and the lip seam (``LIP_SEAM_NY``; ``lip_hide_group``: it
+    fades as the mouth opens), coloured like the avatar's lips nearby times its brightness factor (``LIP_SEAM_DEFAULT``
     without ``avatar``). ``features`` are zeros ``[I, num_features]``; the binding's ``group`` says
     which gate (``gate_factors``) hides each one."""
     from scipy.spatial import cKDTree
