@@ -94,7 +94,7 @@ def test_show_closed_lids_leaves_other_groups_and_checks_shapes(basis):
     one = _one(names)
     fit = generic_fit(basis)
     blink = one(eyeBlink_L=1.0, eyeBlink_R=1.0).numpy()
-    lid = basis.interior_vertices[(basis.interior_group >= 1) & ~basis.lash]
+    lid = basis.interior_vertices[(basis.interior_group >= 1) & (basis.interior_group < basis.gates.shape[0]) & ~basis.lash]
     closed = fit.vertices[lid] + np.tensordot(blink, basis.expression_basis[:, lid], axes=1)  # [L, 3]: the closed lids
     pts = np.concatenate([closed, closed]).astype(np.float32)
     b = bind(pts, fit, basis)

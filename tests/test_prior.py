@@ -14,7 +14,7 @@ from pathlib import Path
 from prior_frames import fast_and_plain
 
 from fastgha_core.data.headmodel import HeadModel
-from fastgha_core.model.prior import PriorBinding, PriorRuntime, back_shell_vertices, bind, fit_head, load_basis, mouth_gate, mouth_interior
+from fastgha_core.model.prior import PriorBinding, PriorRuntime, back_shell_vertices, bind, fit_head, lip_hide_group, load_basis, mouth_gate, mouth_interior
 
 
 REPO_SAMPLES = Path(__file__).resolve().parents[1] / "fastgha_core" / "assets" / "samples"
@@ -336,9 +336,11 @@ def test_animate_with_the_prior(model_and_avatar):
         model.deform.out.weight.zero_()
         model.deform.out.bias.zero_()
     grp = avatar.prior.groups()
+    n_seam = int(model.head_basis().seam.sum())  # the lip seam: after the shell, shown while the lips are closed
     n_shell = int((grp[n_rec:] == -1).sum())  # the back-of-head shell: ungated, first after the reconstruction
     assert model.config.deform.back_shell and n_shell > 0 and torch.all(grp[n_rec : n_rec + n_shell] == -1)
-    n_vis = n_rec + n_shell
+    assert n_seam > 0 and torch.all(grp[n_rec + n_shell : n_rec + n_shell + n_seam] == lip_hide_group(model.head_basis()))
+    n_vis = n_rec + n_shell + n_seam
     neutral = model.animate(avatar, torch.zeros(53))
     assert len(neutral) == n_vis  # closed lips and open eyes: every gated Gaussian is hidden, and left out
     torch.testing.assert_close(neutral.means, avatar.gaussians.means[:n_vis])  # identity at zero expression
@@ -352,15 +354,16 @@ def test_animate_with_the_prior(model_and_avatar):
     mouth, lid_l = grp == 0, grp == 1
     assert mouth.any() and lid_l.any()
     n_mouth = int(mouth.sum())
-    assert len(opened) == n_vis + n_mouth and torch.all(opened.opacities[n_rec:] > 0)  # jaw open: mouth, not lids
-    shell = slice(n_rec, n_vis)  # on the skull: the expression does not move it
+    assert len(opened) == n_vis + n_mouth and torch.all(opened.opacities[n_rec : n_rec + n_shell] > 0)  # jaw open: mouth, not lids
+    assert torch.all(opened.opacities[n_vis:] > 0) and torch.all(opened.opacities[n_rec + n_shell : n_vis] == 0)  # the seam parts
+    shell = slice(n_rec, n_rec + n_shell)  # on the skull: the expression does not move it
     torch.testing.assert_close(opened.means[shell], avatar.gaussians.means[shell])
     blink = torch.zeros(53)
     blink[hm.expression_names.index("eyeBlink_L")] = 1.0
     closed = model.animate(avatar, blink)
     assert len(closed) == n_vis + n_mouth + int(lid_l.sum())
     assert torch.all(closed.opacities[lid_l[: len(closed)]] > 0) and torch.all(closed.opacities[mouth[: len(closed)]] == 0)
-    hides = grp == int(avatar.prior.groups().max())  # reconstructed Gaussians on an eyeball fade as its lid closes
+    hides = grp == lip_hide_group(model.head_basis()) - 1  # reconstructed Gaussians on an eyeball fade as its lid closes
     assert hides.any() and torch.all(neutral.opacities[:n_rec][hides[:n_rec]] > 0)
     both_eyes = torch.zeros(53)
     both_eyes[[hm.expression_names.index("eyeBlink_L"), hm.expression_names.index("eyeBlink_R")]] = 1.0
@@ -680,7 +683,7 @@ def test_the_whole_closed_lid_is_skin_coloured_not_the_open_lids_dark_line():
     fit = generic_fit(basis)
     v = fit.vertices
     ids, grp, lash = basis.interior_vertices, basis.interior_group, basis.lash
-    lid = (grp > 0) & ~lash
+    lid = (grp > 0) & (grp < basis.gates.shape[0]) & ~lash  # the lid groups (not the lip seam's lip_hide_group)
     blink = np.flatnonzero(basis.gates[1:].sum(0) > 0)
     travel = np.linalg.norm(basis.expression_basis[blink][:, ids], axis=-1).max(0)
     near_crease = lid & (travel <= 0.006)
@@ -914,3 +917,81 @@ def test_open_mouthed_views_lose_their_lips_as_the_avatar_opens_its_mouth():
             op = out.opacities[: 2 * n]
             assert torch.allclose(op[n:][lips], torch.full((int(lips.sum()),), 0.9 * open_factor))
             assert torch.allclose(op[:n][lips], torch.full((int(lips.sum()),), 0.9)) and torch.allclose(op[n:][far], torch.full((int(far.sum()),), 0.9))
+
+
+def test_a_smile_shows_no_mouth_interior_and_leaves_the_mouth_gate_shut(basis):
+    """The mouth gate opens for what opens the lips on the head model, and a smile does not: rendered
+    frontally by the ground-truth rasterizer, ICT-FaceKit's ``mouthSmile_L + _R`` shows < 2% of the
+    teeth/gums/socket pixels that ``jawOpen`` shows (measured 0.2-0.3% at 512², four subjects; the
+    truth's dark smile seam is the upper lip's down-facing underside, not the interior), so the
+    interior must stay hidden through a smile: gating it on shows teeth through the lower lip
+    (issue 16, the smile's response)."""
+    from fastgha_core.cameras import Cameras
+    from fastgha_core.data.appearance import head_regions
+    from fastgha_core.data.meshraster import render_mesh
+    from fastgha_core.data.synthetic import FOV_DEG
+
+    hm = HeadModel.load()
+    reg = head_regions(hm)
+    inside = ((reg.teeth > 0) | (reg.gums > 0) | (reg.mouth_interior > 0)).astype(np.float64)[:, None]
+    cam = Cameras.look_at(torch.tensor([[0.0, 0.0, 1.0]]), torch.zeros(1, 3), fov_deg=FOV_DEG, width=256, height=256)
+    w2c, K = cam.w2c[0].double().numpy(), cam.K[0].double().numpy()
+    names = hm.expression_names
+
+    def shown(weights: dict[str, float]) -> tuple[int, float]:
+        z = np.zeros(hm.num_expression, np.float32)
+        for n, w in weights.items():
+            z[names.index(n)] = w
+        v = (hm.neutral + np.tensordot(z, hm.expression_basis, 1)).astype(np.float64)
+        r = render_mesh(v @ w2c[:3, :3].T + w2c[:3, 3], hm.visible_faces(), inside, K, 256, 256, 1, None)
+        return int((r.color[..., 0] > 0.5).sum()), float(mouth_gate(torch.from_numpy(z), torch.from_numpy(basis.gate)))
+
+    px0, g0 = shown({})
+    px_jaw, g_jaw = shown({"jawOpen": 1.0})
+    px_smile, g_smile = shown({"mouthSmile_L": 1.0, "mouthSmile_R": 1.0})
+    assert px_jaw - px0 > 300 and g_jaw == 1.0 and g0 == 0.0
+    assert abs(px_smile - px0) < 0.02 * (px_jaw - px0), (px0, px_jaw, px_smile)
+    assert g_smile == 0.0
+
+
+def test_the_lip_seam_shows_under_the_closed_upper_lip_in_the_avatars_lip_colour_darkened(fit, basis):
+    """The ground truth draws a dark seam between the closed lips (the upper lip's down-facing
+    underside) that a smile stretches to the corners; the reconstruction has none, and dlib read the
+    smile short (issue 16). ``mouth_interior`` adds Gaussians there: shown at neutral and in a smile,
+    gone as the jaw opens (``lip_hide_group``), facing down on the fitted head, just above the
+    inner-lip line, coloured like the avatar's lips nearby times a brightness factor < 1."""
+    from fastgha_core.data.headmodel import vertex_normals
+    from fastgha_core.gaussians import Gaussians
+    from fastgha_core.model.prior import opacity_factors
+
+    assert basis.seam is not None and basis.seam.sum() > 100
+    seam = torch.from_numpy(basis.seam)
+    v = fit.vertices
+    ids = basis.interior_vertices[basis.seam]
+    n = vertex_normals(v, basis.bind_faces)[ids]
+    up = fit.transform[:3, 1] / np.linalg.norm(fit.transform[:3, 1])
+    assert np.median(n @ up) < -0.4  # facing down
+    inner = v[np.asarray(HeadModel.load().landmarks68[60:68])]
+    h = (v[ids] - inner.mean(0)) @ up
+    assert h.min() > -0.002 and h.max() < 0.003  # at the inner-lip line, on the upper lip's side
+    red = np.array([0.7, 0.3, 0.3], np.float32)
+    avatar = Gaussians(
+        means=torch.from_numpy(v[::3].astype(np.float32)), quats=torch.tensor([1.0, 0, 0, 0]).expand(len(v[::3]), 4).contiguous(),
+        scales=torch.full((len(v[::3]), 3), 0.002), opacities=torch.full((len(v[::3]),), 0.9),
+        colors=torch.from_numpy(np.tile(red, (len(v[::3]), 1))), features=torch.zeros(len(v[::3]), 0),
+    )
+    g, b = mouth_interior(fit, basis, num_features=0, avatar=avatar)
+    c = g.colors[seam]
+    ratio = c / torch.from_numpy(red)
+    assert torch.allclose(ratio[:, 0], ratio[:, 1], atol=1e-5) and torch.allclose(ratio[:, 0], ratio[:, 2], atol=1e-5)  # the lip's hue
+    assert 0.4 < float(ratio[:, 0].min()) and float(ratio[:, 0].max()) < 0.95  # darkened
+    hm = HeadModel.load()
+    smile = torch.zeros(53)
+    smile[hm.expression_names.index("mouthSmile_L")] = smile[hm.expression_names.index("mouthSmile_R")] = 1.0
+    idx = b.groups() + 1
+    for z in (torch.zeros(53), smile):
+        assert torch.all(opacity_factors(z, basis, idx)[seam] == 1.0)
+    jaw = torch.zeros(53)
+    jaw[hm.expression_names.index("jawOpen")] = 1.0
+    assert torch.all(opacity_factors(jaw, basis, idx)[seam] == 0.0)
+    assert torch.all(b.groups()[seam] == lip_hide_group(basis))

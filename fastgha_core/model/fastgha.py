@@ -75,8 +75,8 @@ def _combine(g: Gaussians, dxyz: Tensor, drgb: Tensor, prior_d: Tensor | None, n
     the prior's expression shading ``shade [N]`` (or None): the reconstructed Gaussians' colour factor.
 
     ``trim``: drop the trailing interior Gaussians whose gate is 0 (the interior is ordered back-of-head
-    shell (ungated), mouth, left lid, right lid, so a neutral frame renders no more Gaussians than an
-    avatar without the gated ones). ``rot [N, 4]`` (or None): the prior's surface rotation
+    shell (ungated), lip seam (shown while the lips are closed), mouth, left lid, right lid, so a neutral
+    frame renders no mouth or lid Gaussians). ``rot [N, 4]`` (or None): the prior's surface rotation
     (``PriorRuntime.rotation``), applied after each Gaussian's own rotation."""
     if prior_d is None and n_int == 0 and gate is None:
         return _apply_deformation(g, dxyz, drgb)

@@ -34,7 +34,9 @@ Pieces (all numpy/torch on CPU, no learning):
   the avatar's own lips (``interior_inset``), bound to their own vertex (so they follow the jaw), with
   an opacity gate that is 0 while the lips are closed; and Gaussians on the upper eyelids, coloured
   like the avatar's skin, and on the upper lashes, dark (the avatar's darkest colours at the open
-  eye's upper lid), that appear as a blink closes the lids (``gate_factors``).
+  eye's upper lid), that appear as a blink closes the lids (``gate_factors``); and thin dark
+  Gaussians on the upper lip's underside, the seam between closed lips (``LIP_SEAM_NY``), that fade
+  as the mouth opens.
 - ``hide_open_lips(binding, ...)``: the reconstructed Gaussians near the lips from input photos whose
   (tracked) expression opens the mouth fade out as the avatar's mouth opens: undone onto the closed
   lips, those photos' teeth and mouth gap lined the opening (``open_mouth_views``).
@@ -148,6 +150,22 @@ LIGHT_STEPS_DEG = (8.0, 4.0, 2.0, 1.0)  # the direction's refinement (azimuth, e
 OPEN_VIEW_GATE = 0.1
 LIP_RADIUS = 0.008  # metres
 
+# The lip seam (issue 16, the smile): the ground-truth renderer draws a sharp dark line between the
+# closed lips (gone as they part: ``lip_hide_group``), the upper lip's underside (normals facing down, away from any light from above); a
+# smile stretches it out to the corners. A few-view reconstruction has no such line (0 dark pixels
+# where the truth has 1-650, 512²), and dlib then reads the smile's corners short. Always-on
+# Gaussians on that underside: ICT-FaceKit lip vertices with a neutral normal's y below LIP_SEAM_NY,
+# between LIP_SEAM_BAND (metres, below / above the inner-lip landmarks' mean height), within
+# LIP_SEAM_REACH of an inner-lip landmark and inside the mouth corners (196 points), LIP_SEAM_SCALE
+# wide; coloured like the avatar's own lips there (median of the LIP_SEAM_K nearest solid Gaussians)
+# times their brightness against the lips' front under the generic light, ** (1/2.2) (sRGB).
+LIP_SEAM_NY = -0.5
+LIP_SEAM_BAND = (-0.001, 0.0015)
+LIP_SEAM_REACH = 0.012
+LIP_SEAM_SCALE = 0.0008
+LIP_SEAM_K = 8
+LIP_SEAM_DEFAULT = (0.45, 0.2, 0.18)  # lip red, without an avatar to take it from
+
 
 @dataclass(frozen=True, eq=False)
 class HeadBasis:
@@ -185,6 +203,9 @@ class HeadBasis:
     mouth_faces: np.ndarray | None = None
     # [L] vertex ids of the lip landmarks (``hide_open_lips``); None: no lip hiding
     lip_landmarks: np.ndarray | None = None
+    # [I] bool: lip-seam points (``lip_hide_group``, ``LIP_SEAM_NY``); their ``interior_colors`` hold
+    # the brightness factor that multiplies the avatar's lip colour; None: none
+    seam: np.ndarray | None = None
 
     @property
     def gate(self) -> np.ndarray:
@@ -296,6 +317,18 @@ def _ict_basis() -> HeadBasis:
     lash_flag = np.zeros(len(ids), bool)
     lash_flag[n_mouth:] = np.concatenate([np.r_[np.zeros(len(a), bool), np.ones(len(b), bool)] for a, b in zip(lid_ids, lash_ids)])
     cols = np.concatenate([cols, np.zeros((len(ids) - n_mouth, 3), np.float32)])
+    # the lip seam (LIP_SEAM_NY): on while the lips are closed (``lip_hide_group``: 1 - the mouth gate;
+    # with the seam on at an open jaw, B 512²'s jaw read 0.68), its colour factor in interior_colors;
+    # first, so that the mouth and lid groups stay last and a frame drops those whose gate is 0
+    seam_ids, seam_f = _lip_seam(m, faces, reg)
+    ids = np.concatenate([seam_ids, ids]).astype(np.int64)
+    lash_flag = np.concatenate([np.zeros(len(seam_ids), bool), lash_flag])
+    cols = np.concatenate([np.repeat(seam_f[:, None], 3, 1).astype(np.float32), cols])
+    groups.insert(0, np.full(len(seam_ids), 2 * len(gates) - 1))  # lip_hide_group: fades as the lips part
+    scales.insert(0, np.full(len(seam_ids), LIP_SEAM_SCALE))
+    sample.insert(0, np.zeros(len(seam_ids), bool))
+    seam_flag = np.zeros(len(ids), bool)
+    seam_flag[: len(seam_ids)] = True
     return HeadBasis(
         space="ict53",
         neutral=m.neutral,
@@ -315,7 +348,32 @@ def _ict_basis() -> HeadBasis:
         lash=lash_flag,
         mouth_faces=inside[faces].any(1),
         lip_landmarks=np.asarray(m.landmarks68[48:68], np.int64),
+        seam=seam_flag,
     )
+
+
+def _lip_seam(m, faces: np.ndarray, reg) -> tuple[np.ndarray, np.ndarray]:
+    """The lip seam's vertex ids ``[S]`` on ICT-FaceKit and their brightness factor ``[S]`` against the
+    lips' front (generic light, ** (1/2.2)); see ``LIP_SEAM_NY``."""
+    from scipy.spatial import cKDTree
+
+    from ..data.headmodel import vertex_normals
+
+    v = m.neutral.astype(np.float64)
+    n = vertex_normals(v, faces).astype(np.float64)
+    inner = v[m.landmarks68[60:68]]
+    yc = inner[:, 1].mean()
+    xl, xr = sorted((v[m.landmarks68[48], 0], v[m.landmarks68[54], 0]))
+    reach = cKDTree(inner).query(v)[0]
+    lips = (reg.lips > 0.5) & (np.arange(len(v)) < 9409)
+    sel = lips & (n[:, 1] < LIP_SEAM_NY) & (v[:, 1] > yc + LIP_SEAM_BAND[0]) & (v[:, 1] < yc + LIP_SEAM_BAND[1])
+    sel &= (reach < LIP_SEAM_REACH) & (v[:, 0] > xl + 0.002) & (v[:, 0] < xr - 0.002)
+    ids = np.flatnonzero(sel)
+    d, a = SHADE_LIGHT, SHADE_AMBIENT
+    br = a + (1.0 - a) * np.clip(n @ np.asarray(d, np.float64), 0.0, None)
+    front = lips & (n[:, 2] > 0.8)
+    f = np.minimum((br[ids] / np.median(br[front])) ** (1.0 / SHADE_GAMMA), 1.0)
+    return ids, f.astype(np.float32)
 
 
 @functools.lru_cache(maxsize=2)
@@ -718,8 +776,10 @@ def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "G
     ``INTERIOR_SHADE``; moved ``inset`` metres back along the fitted head's forward axis, see
     ``interior_inset``), the closed upper eyelids (coloured like the avatar's skin around the eye,
     ``_lid_skin_colors``; skin grey without ``avatar``) and their lashes (``_lash_color``;
-    ``LASH_DEFAULT`` without ``avatar``). ``features`` are zeros ``[I, num_features]``; the binding's
-    ``group`` says which gate (``gate_factors``) hides each one."""
+    ``LASH_DEFAULT`` without ``avatar``), and the lip seam (``LIP_SEAM_NY``; ``lip_hide_group``: it
+    fades as the mouth opens), coloured like the avatar's lips nearby times its brightness factor (``LIP_SEAM_DEFAULT``
+    without ``avatar``). ``features`` are zeros ``[I, num_features]``; the binding's ``group`` says
+    which gate (``gate_factors``) hides each one."""
     from scipy.spatial import cKDTree
 
     from ..gaussians import Gaussians
@@ -733,6 +793,15 @@ def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "G
         fwd = M[:, 2] / max(np.linalg.norm(M[:, 2]), 1e-9)
         pos[basis.interior_group == 0] -= (float(inset) * fwd).astype(np.float32)
     cols = basis.interior_colors.astype(np.float32).copy()
+    seam = np.zeros(n, bool) if basis.seam is None else basis.seam
+    if seam.any():
+        lip = np.array(LIP_SEAM_DEFAULT, np.float32)[None].repeat(int(seam.sum()), 0)
+        if avatar is not None and len(avatar) > 0:
+            op = avatar.opacities.detach().cpu().numpy() > 0.3
+            if op.sum() >= LIP_SEAM_K:
+                _, nn = cKDTree(avatar.means.detach().float().cpu().numpy()[op]).query(pos[seam], k=LIP_SEAM_K)
+                lip = np.median(avatar.colors.detach().float().cpu().numpy()[op][nn], axis=1)
+        cols[seam] = lip * cols[seam]
     lash = np.zeros(n, bool) if basis.lash is None else basis.lash
     smp = basis.sample_color & ~lash
     cols[lash] = np.array(LASH_DEFAULT, np.float32)
