@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import math
 
@@ -995,3 +996,39 @@ def test_the_lip_seam_shows_under_the_closed_upper_lip_in_the_avatars_lip_colour
     jaw[hm.expression_names.index("jawOpen")] = 1.0
     assert torch.all(opacity_factors(jaw, basis, idx)[seam] == 0.0)
     assert torch.all(b.groups()[seam] == lip_hide_group(basis))
+
+
+def test_the_lip_seam_is_a_thin_line_flat_across_the_seam_in_the_fitted_heads_frame(head_points, basis):
+    """Isotropic 0.8 mm seam dots drew a beaded line at 512² (issue 16): each seam Gaussian is
+    stretched along the head's x (the seam's run) and flat along its y (across the seam), turned
+    with the fit: its widest axis in the world is the fitted head's x, its thinnest the head's y."""
+    from scipy.spatial.transform import Rotation
+
+    from fastgha_core.model.prior import LIP_SEAM_AXES
+
+    turn = Rotation.from_euler("yx", [25.0, 10.0], degrees=True).as_matrix()
+    fit0 = fit_head(head_points[0], basis)
+    T = np.eye(4)
+    T[:3, :3] = turn
+    fit = dataclasses.replace(  # the same fit, the head turned 25° and pitched 10°
+        fit0, transform=(T @ fit0.transform).astype(fit0.transform.dtype), vertices=(fit0.vertices.astype(np.float64) @ turn.T).astype(fit0.vertices.dtype)
+    )
+    g, _ = mouth_interior(fit, basis, num_features=0)
+    seam = torch.from_numpy(basis.seam)
+    q = g.quats[seam].double()
+    sc = g.scales[seam].double()
+    M = fit.transform[:3, :3]
+    s = float(np.cbrt(abs(np.linalg.det(M))))
+    assert torch.allclose(sc, torch.tensor(LIP_SEAM_AXES, dtype=torch.float64) * s, rtol=1e-5)
+    assert LIP_SEAM_AXES[1] < LIP_SEAM_AXES[2] < LIP_SEAM_AXES[0]
+    w, x, y, z = q.unbind(-1)
+    rot = torch.stack([  # wxyz -> rotation matrices [S, 3, 3]
+        torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], -2).numpy()
+    for k, axis in ((0, M[:, 0]), (1, M[:, 1])):  # the Gaussian's local x / y in the world
+        a = axis / np.linalg.norm(axis)
+        assert np.all(np.abs(rot[:, :, k] @ a) > 0.99)
+    others = ~seam
+    assert torch.allclose(g.scales[others][:, 0], g.scales[others][:, 1])  # the rest stay isotropic

@@ -157,12 +157,17 @@ LIP_RADIUS = 0.008  # metres
 # Gaussians on that underside: ICT-FaceKit lip vertices with a neutral normal's y below LIP_SEAM_NY,
 # between LIP_SEAM_BAND (metres, below / above the inner-lip landmarks' mean height), within
 # LIP_SEAM_REACH of an inner-lip landmark and inside the mouth corners (196 points), LIP_SEAM_SCALE
-# wide; coloured like the avatar's own lips there (median of the LIP_SEAM_K nearest solid Gaussians)
+# in the basis and drawn LIP_SEAM_AXES wide; coloured like the avatar's own lips there (median of the LIP_SEAM_K nearest solid Gaussians)
 # times their brightness against the lips' front under the generic light, ** (1/2.2) (sRGB).
 LIP_SEAM_NY = -0.5
 LIP_SEAM_BAND = (-0.001, 0.0015)
 LIP_SEAM_REACH = 0.012
 LIP_SEAM_SCALE = 0.0008
+# each seam Gaussian's scales (metres, before the fit's scale) along the head's x (the seam's run),
+# y (across it) and z: flat across the seam and stretched along it, so the points join into a thin
+# continuous line (isotropic LIP_SEAM_SCALE drew a beaded line of dots at 512², darker and wider than
+# the truth's 1-px line); rotated with the fit
+LIP_SEAM_AXES = (0.0015, 0.0001, 0.0003)
 LIP_SEAM_K = 8
 LIP_SEAM_DEFAULT = (0.45, 0.2, 0.18)  # lip red, without an avatar to take it from
 
@@ -777,7 +782,8 @@ def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "G
     ``interior_inset``), the closed upper eyelids (coloured like the avatar's skin around the eye,
     ``_lid_skin_colors``; skin grey without ``avatar``) and their lashes (``_lash_color``;
     ``LASH_DEFAULT`` without ``avatar``), and the lip seam (``LIP_SEAM_NY``; ``lip_hide_group``: it
-    fades as the mouth opens), coloured like the avatar's lips nearby times its brightness factor (``LIP_SEAM_DEFAULT``
+    fades as the mouth opens; flat across the seam and stretched along it, ``LIP_SEAM_AXES`` turned with the
+    fit), coloured like the avatar's lips nearby times its brightness factor (``LIP_SEAM_DEFAULT``
     without ``avatar``). ``features`` are zeros ``[I, num_features]``; the binding's ``group`` says
     which gate (``gate_factors``) hides each one."""
     from scipy.spatial import cKDTree
@@ -828,10 +834,22 @@ def mouth_interior(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "G
                     sel = np.flatnonzero(smp)[over_eye & (grp[smp] == gi)]
                     if len(sel):
                         cols[lash & (grp == gi)] = _lash_color(pos[sel], tree, ac, np.median(cols[sel], axis=0))
+    quats = np.tile(np.array([1.0, 0.0, 0.0, 0.0], np.float32), (n, 1))
+    scales = np.repeat((basis.interior_scale * s).astype(np.float32)[:, None], 3, 1)
+    if seam.any():  # flat across the seam, along it in the head's x (LIP_SEAM_AXES), turned with the fit
+        from scipy.spatial.transform import Rotation
+
+        u, _, vt = np.linalg.svd(M)
+        rot = u @ vt
+        if np.linalg.det(rot) < 0:
+            rot = u @ np.diag([1.0, 1.0, -1.0]) @ vt
+        x, y, z, w = Rotation.from_matrix(rot).as_quat()
+        quats[seam] = np.array([w, x, y, z], np.float32)
+        scales[seam] = (np.asarray(LIP_SEAM_AXES, np.float64) * s).astype(np.float32)
     g = Gaussians(
         means=torch.from_numpy(pos),
-        quats=torch.tensor([1.0, 0.0, 0.0, 0.0]).expand(n, 4).contiguous(),
-        scales=torch.from_numpy((basis.interior_scale * s).astype(np.float32))[:, None].expand(n, 3).contiguous(),
+        quats=torch.from_numpy(quats),
+        scales=torch.from_numpy(scales),
         opacities=torch.full((n,), 0.9),
         colors=torch.from_numpy(np.clip(cols, 0, 1)),
         features=torch.zeros(n, num_features),
