@@ -46,6 +46,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from fastgha_core import images as _shared  # the one decoder of every ingest path
+
 from . import auth
 from .errors import ApiError
 
@@ -94,9 +96,6 @@ class Photo:
     name: str
     data: bytes
     size: tuple[int, int] = (0, 0)  # (width, height) of the stored pixels, from the header
-
-
-from fastgha_core import images as _shared  # the one decoder of every ingest path
 
 
 def _upright_size(im) -> tuple[int, int]:
