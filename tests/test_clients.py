@@ -209,6 +209,21 @@ def test_client_command_writes_frames_and_mp4(server, request_dir, tmp_path, cap
     assert "view blending off" in text and "expression prior on" in text and "same person:" in text  # what the avatar runs with
 
 
+def test_client_command_keep_prints_what_reaches_the_kept_avatar(server, request_dir, tmp_path, capsys):
+    """``--keep`` leaves the avatar on the server; its token is shown by the server only once, so the
+    command prints it (else the kept avatar could never be streamed, exported or deleted)."""
+    rc = cli_main(["client", "--url", server.base, "--input", str(request_dir), "--api-key", API_KEY, "--keep",
+                   "--out", str(tmp_path / "k.mp4"), "--size", "32", "--frames", "2"])  # fmt: skip
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    line = next(x for x in text.splitlines() if x.startswith("kept avatar "))
+    aid, token = line.split()[2], line.rsplit("token ", 1)[1].split()[0]
+    auth = {"Authorization": f"Bearer {token}"}
+    r = httpx.get(f"{server.base}/v1/avatars/{aid}", headers=auth, timeout=30)
+    assert r.status_code == 200 and r.json()["avatar_id"] == aid
+    assert httpx.delete(f"{server.base}/v1/avatars/{aid}", headers=auth, timeout=30).status_code == 204
+
+
 def test_load_request_dir_says_a_file_is_not_a_folder(request_dir):
     photo = next(request_dir.glob("*.jpg"))
     with pytest.raises(ValueError, match=r"is a file; expected a folder of photos"):
