@@ -95,18 +95,30 @@ class Photo:
 
     name: str
     data: bytes
-    size: tuple[int, int] = (0, 0)  # (width, height) of the stored pixels, from the header
+    size: tuple[int, int] = (0, 0)  # (width, height) of the image shown upright (EXIF applied), from the header
+    orientation: int = 1  # its EXIF orientation (1 = none), from the header
+
+    def described(self) -> str:
+        """``"512x600"``, and for a photo stored sideways how it is stored, for size messages."""
+        w, h = self.size
+        if self.orientation not in (5, 6, 7, 8):
+            return f"{w}x{h}"
+        return f"{w}x{h} upright (stored as {h}x{w} with EXIF orientation {self.orientation}, which the server applies)"
+
+
+def _orientation(im) -> int:
+    """The EXIF orientation tag of a Pillow image (1 when absent or unreadable: the decoder ignores it too)."""
+    try:
+        return int(im.getexif().get(0x0112, 1))
+    except Exception:
+        return 1
 
 
 def _upright_size(im) -> tuple[int, int]:
     """``(width, height)`` of the image as decoded: the shared decoder applies EXIF orientation,
     so cameras describe the upright image (orientations 5-8 swap the sides); read from the header."""
     w, h = im.size
-    try:
-        orientation = int(im.getexif().get(0x0112, 1))
-    except Exception:  # unreadable EXIF: the decoder ignores it too
-        orientation = 1
-    return (h, w) if orientation in (5, 6, 7, 8) else (w, h)
+    return (h, w) if _orientation(im) in (5, 6, 7, 8) else (w, h)
 
 
 def _open_checked(data: bytes, name: str, max_pixels: int):
@@ -151,7 +163,7 @@ def probe_request(
     total = 0
     for p in images + (masks or []):
         im = _open_checked(p.data, p.name, max_pixels)
-        p.size = _upright_size(im)
+        p.size, p.orientation = _upright_size(im), _orientation(im)
         im.close()
         total += p.size[0] * p.size[1]
     if total > max_request_pixels:
@@ -163,10 +175,9 @@ def probe_request(
         if cameras is not None:
             cam = cameras[i]
             if (cam.width, cam.height) != (w, h):
-                raise ApiError(400, "camera_size_mismatch", f"camera {i} describes a {cam.width}x{cam.height} image but {p.name} is {w}x{h}")
+                raise ApiError(400, "camera_size_mismatch", f"camera {i} describes a {cam.width}x{cam.height} image but {p.name} is {p.described()}")
         if masks is not None and masks[i].size != (w, h):
-            mw, mh = masks[i].size
-            raise ApiError(400, "mask_size_mismatch", f"mask {masks[i].name} is {mw}x{mh} but its photo {p.name} is {w}x{h}")
+            raise ApiError(400, "mask_size_mismatch", f"mask {masks[i].name} is {masks[i].described()} but its photo {p.name} is {p.described()}")
 
 
 def decode_photo(photo: Photo, *, max_pixels: int, max_side: int, mask: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
