@@ -4,13 +4,13 @@ them), and ``--json`` writes into a folder that does not exist yet."""
 
 from __future__ import annotations
 
-import argparse
-import importlib.util
 import json
 import sys
 from pathlib import Path
 
 import pytest
+
+from test_docs_commands import _bench_parser
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,29 +24,9 @@ EXPECTED = {
 }
 
 
-class _Parsed(Exception):
-    pass
-
-
-def _parser(name, monkeypatch) -> argparse.ArgumentParser:
-    seen = {}
-
-    def grab(self, *a, **k):
-        seen["parser"] = self
-        raise _Parsed
-
-    spec = importlib.util.spec_from_file_location(f"_cli_bench_{name}", ROOT / "bench" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)  # by path, as the docs test does: bench/ is not on sys.path before
-    monkeypatch.setattr(argparse.ArgumentParser, "parse_args", grab)
-    with pytest.raises(_Parsed):
-        mod.main([])
-    return seen["parser"]
-
-
 @pytest.mark.parametrize("name", sorted(EXPECTED))
-def test_shared_parser_keeps_each_command_line(name, monkeypatch):
-    p = _parser(name, monkeypatch)
+def test_shared_parser_keeps_each_command_line(name):
+    p = _bench_parser(name)  # the script loaded by file path, as the docs test loads it
     got = {a.option_strings[-1]: a.default for a in p._actions if a.option_strings and a.option_strings[-1] != "--help"}
     assert got == EXPECTED[name]
     assert list(got) == list(EXPECTED[name])  # same order in --help
