@@ -288,3 +288,34 @@ def test_loadtest_two_clients_report(server, request_dir, tmp_path, capsys):
     for c in rep["clients"]:
         r = httpx.get(f"{server.base}/v1/avatars/{c['avatar_id']}", headers={"Authorization": "Bearer x"})
         assert r.status_code == 404
+
+
+def _protocol_example() -> str:
+    text = (Path(__file__).resolve().parents[1] / "docs" / "protocol.md").read_text(encoding="utf-8")
+    return text.split("## Example (Python)", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+
+
+def test_protocol_docs_python_example_runs_as_written(server, request_dir, tmp_path, monkeypatch):
+    """docs/protocol.md's hand-written example, run as a user would (its URLs pointed at the test
+    server, its ``req/`` folder made from the sample): it creates an avatar and gets a frame. Its
+    synchronous creation waits for the job, so it must not keep httpx's 5 s default timeout: behind
+    three queued creations of tracked photos that example failed with ``httpx.ReadTimeout``."""
+    import ast
+
+    code = _protocol_example()
+    posts = [n for n in ast.walk(ast.parse(code)) if isinstance(n, ast.Call) and ast.unparse(n.func) == "httpx.post"]
+    assert posts
+    for call in posts:
+        timeout = next((k.value for k in call.keywords if k.arg == "timeout"), None)
+        assert isinstance(timeout, ast.Constant) and timeout.value >= 60, ast.unparse(call)
+    req = tmp_path / "req"
+    req.mkdir()
+    for i, p in enumerate(sorted(request_dir.glob("[0-9][0-9].jpg"))):
+        (req / f"{i}.jpg").write_bytes(p.read_bytes())
+    (req / "cameras.json").write_text((request_dir / "cameras.json").read_text())
+    monkeypatch.chdir(tmp_path)
+    scope = {"KEY": API_KEY}
+    host = server.base.split("://", 1)[1]
+    exec(compile(code.replace("127.0.0.1:8000", host), "protocol.md example", "exec"), scope)
+    assert scope["r"].status_code == 201
+    assert scope["header"]["seq"] == 0 and scope["jpeg"][:2] == b"\xff\xd8"
