@@ -117,6 +117,10 @@ def run(args) -> int:
 
     if args.size <= 0 or args.fps <= 0:
         raise ValueError(f"--size and --fps must be positive, got {args.size} and {args.fps}")
+    if not args.radius > 0:
+        raise ValueError(f"--radius must be > 0 metres, got {args.radius}")
+    if not 0 < args.fov < 180:
+        raise ValueError(f"--fov must be in (0, 180) degrees, got {args.fov}")
     from . import view_blend_tau_problem
 
     if args.view_blend_tau_deg is not None and view_blend_tau_problem(args.view_blend_tau_deg):

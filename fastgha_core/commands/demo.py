@@ -10,7 +10,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--sample", default=None, help="shipped sample subject (default: the first; see --list)")
     parser.add_argument("--list", action="store_true", help="list the shipped sample subjects and exit")
     parser.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
-    parser.add_argument("--frames", type=int, default=0, help="animate only the first N frames (default: all)")
+    parser.add_argument("--frames", type=int, default=None, help="animate only the first N frames, N >= 1 (default: all)")
     parser.add_argument("--json", default=None, metavar="PATH", help="also write the figures as JSON (keys reconstruction_s, fps, psnr)")
     parser.add_argument("--backend", default="auto", help="render backend (default: auto)")
 
@@ -80,6 +80,8 @@ def run(args) -> int:
     from ..render import render
     from ..train.metrics import psnr
 
+    if args.frames is not None and args.frames < 1:
+        raise ValueError(f"--frames must be >= 1, got {args.frames} (leave it out for all frames)")
     names = list_samples()
     if args.list:
         print("\n".join(names))
@@ -112,7 +114,7 @@ def run(args) -> int:
     expr = sample.expressions
     orbit = sample.orbit_cameras
     n = min(len(expr), orbit.K.shape[0])
-    if args.frames > 0:
+    if args.frames is not None:
         n = min(n, args.frames)
     gt = sample.gt_frames
     bg = torch.tensor(BACKGROUND_RGB)
