@@ -170,19 +170,25 @@ def test_device_flags_are_checked_with_a_one_line_answer(capsys, tmp_path):
         (["eval", "--expressions", "-1"], "--expressions must be >= 1, got -1"),
         (["eval", "--refine-steps", "-5"], "--refine-steps must be >= 0, got -5"),
         (["track", "--images", "missing.jpg", "--out", "o", "--fov", "0"], "--fov must be in [1, 150] degrees, got 0.0"),
+        (["train", "--data", "synthetic", "--out", "run", "--lr", "-1"], "--lr must be > 0 and --lr-deform >= 0"),
+        (["train", "--data", "synthetic", "--out", "run", "--workers", "-1"], "--workers must be >= 0, got -1"),
+        (["train", "--data", "synthetic", "--out", "run", "--warmup-steps", "-10"], "--warmup-steps must be >= 0, got -10"),
     ],
 )
 def test_out_of_range_numbers_are_refused_before_any_work(argv, said, capsys, monkeypatch, tmp_path):
     """A number no run can use is a one-line error naming the flag, before a model, avatar or photo is
     read: ``demo --frames 0`` used to animate all frames, ``animate --fov 0`` ended in a
     ZeroDivisionError traceback, ``animate --radius -1`` rendered from behind the head, ``eval
-    --subjects 0`` evaluated the default 4, and ``track --fov 0`` failed after finding the faces."""
+    --subjects 0`` evaluated the default 4, ``track --fov 0`` failed after finding the faces, and
+    ``train --lr -1`` trained (uphill)."""
     import fastgha_core.model.fastgha as fastgha
+    import fastgha_core.train.builders as builders
 
     def no_model(*a, **k):
         raise AssertionError("the model was loaded before the arguments were checked")
 
     monkeypatch.setattr(fastgha, "load_model", no_model)
+    monkeypatch.setattr(builders, "build_model", no_model)
     monkeypatch.chdir(tmp_path)
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
