@@ -319,3 +319,17 @@ def test_protocol_docs_python_example_runs_as_written(server, request_dir, tmp_p
     exec(compile(code.replace("127.0.0.1:8000", host), "protocol.md example", "exec"), scope)
     assert scope["r"].status_code == 201
     assert scope["header"]["seq"] == 0 and scope["jpeg"][:2] == b"\xff\xd8"
+
+
+def test_loadtest_says_once_why_the_server_closed_a_stream(server, request_dir, tmp_path, capsys):
+    """Five clients on one avatar, over the server's four streams per avatar: the fifth is closed with
+    4503, and the report says so in one readable line (it used to repeat the close three times)."""
+    js = tmp_path / "report.json"
+    rc = cli_main(["loadtest", "--url", server.base, "--clients", "5", "--shared-avatar", "--duration", "2", "--rate", "4",
+                   "--size", "32", "--input", str(request_dir), "--api-key", API_KEY, "--json", str(js)])  # fmt: skip
+    out = capsys.readouterr().out
+    assert rc == 1, out  # a run with errors exits 1
+    msgs = json.loads(js.read_text())["aggregate"]["error_messages"]
+    assert len(msgs) == 1 and msgs[0].startswith("closed by the server: 4503 at_capacity: this avatar already has 4 open streams"), msgs
+    assert msgs[0].count("4503") == 1 and "FASTGHA_MAX_STREAMS_PER_AVATAR" in msgs[0]
+    assert f"error: {msgs[0]}" in out
