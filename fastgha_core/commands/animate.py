@@ -137,6 +137,12 @@ def run(args) -> int:
     check_device(args.device)
     loading(args.model or avatar.model_name)
     model = load_model(args.model or avatar.model_name, device=args.device)
+    if (model.config.name, model.config.expression_space) != (avatar.model_name, avatar.expression_space):
+        raise ValueError(  # as the server's avatar_model_mismatch: the MLP reads the reconstructing model's features
+            f"--model {args.model!r} is model {model.config.name!r} ({model.config.expression_space}), but {args.avatar} was "
+            f"reconstructed by model {avatar.model_name!r} ({avatar.expression_space}), whose deformation it needs: "
+            "animate it with that model (without --model for a shipped one)"
+        )
     if args.view_blend_tau_deg is not None:  # as the server's FASTGHA_VIEW_BLEND_TAU_DEG
         model.config.gaussians.view_blend_tau_deg = float(args.view_blend_tau_deg)
     codes = load_expressions(args.expressions, model.expression_space)  # [T, E]
