@@ -193,3 +193,28 @@ def test_out_of_range_numbers_are_refused_before_any_work(argv, said, capsys, mo
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and said in err[0], err
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["reconstruct", "--input", "req", "--out", "a.safetensors", "--model", "paper"],
+        ["eval", "--model", "paper", "--subjects", "1"],
+        ["demo", "--model", "paper"],
+    ],
+)
+def test_a_preset_without_shipped_weights_is_refused_before_it_is_built(argv, capsys, monkeypatch, tmp_path):
+    """``--model paper`` has no shipped weights: reconstruct and eval used to build a random
+    419M-parameter network (minutes, gigabytes) and reconstruct noise with a warning; like the demo,
+    they refuse it at once, naming the presets that ship."""
+    import fastgha_core.model.fastgha as fastgha
+
+    def no_model(*a, **k):
+        raise AssertionError("the model must not be built")
+
+    monkeypatch.setattr(fastgha, "load_model", no_model)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "req").mkdir()
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--model 'paper': no shipped weights" in err[0] and "shipped: tiny" in err[0], err

@@ -112,7 +112,7 @@ def run(args) -> int:
     from ..constants import BACKGROUND_RGB
     from ..model.avatar import CanonicalAvatar
     from ..model.fastgha import load_model
-    from . import loading
+    from . import check_model_has_weights, loading
     from ..render import render
 
     if args.size <= 0 or args.fps <= 0:
@@ -135,6 +135,7 @@ def run(args) -> int:
     from ..cli import check_device
 
     check_device(args.device)
+    check_model_has_weights(args.model or avatar.model_name)
     loading(args.model or avatar.model_name)
     model = load_model(args.model or avatar.model_name, device=args.device)
     if (model.config.name, model.config.expression_space) != (avatar.model_name, avatar.expression_space):

@@ -47,20 +47,6 @@ def _label(img, text):  # draw a caption on an [H, W, 3] uint8 image
     return np.asarray(im)
 
 
-def _check_model_has_weights(spec: str) -> None:
-    """The demo shows a trained model: a preset without shipped weights (``paper``) would build a
-    randomly initialised network (minutes and gigabytes for ``paper``) only to render noise."""
-    from ..config import PRESETS
-    from ..model.fastgha import ASSET_MODELS_DIR, CONFIG_NAME, WEIGHTS_NAME
-
-    shipped = sorted(n for n in PRESETS if (ASSET_MODELS_DIR / n / CONFIG_NAME).is_file() and (ASSET_MODELS_DIR / n / WEIGHTS_NAME).is_file())
-    if spec in PRESETS and spec not in shipped:
-        raise ValueError(
-            f"--model {spec!r}: no shipped weights for this preset (shipped: {', '.join(shipped) or 'none'}); "
-            "give a trained model folder instead (`fastgha train ... --out RUN` writes RUN/model)"
-        )
-
-
 def run(args) -> int:
     import json
     import statistics
@@ -76,7 +62,7 @@ def run(args) -> int:
     from ..constants import BACKGROUND_RGB
     from ..data.samples import list_samples, load_sample
     from ..model.fastgha import load_model
-    from . import loading
+    from . import check_model_has_weights, loading
     from ..render import render
     from ..train.metrics import psnr
 
@@ -91,7 +77,7 @@ def run(args) -> int:
     name = args.sample or names[0]
     if name not in names:
         raise ValueError(f"unknown sample {name!r}; shipped samples: {', '.join(names)}")
-    _check_model_has_weights(args.model)
+    check_model_has_weights(args.model)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 

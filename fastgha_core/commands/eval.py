@@ -46,6 +46,9 @@ def run(args) -> int:
     from ..cli import check_device
 
     check_device(args.device)
+    from . import check_model_has_weights
+
+    check_model_has_weights(args.model)
     model = load_model(args.model, device=args.device)
     if args.responses:
         return _run_responses(args, model)
