@@ -631,8 +631,8 @@ class JobQueue:
                 if marr.shape[:2] != (h, w):  # same stored size (probed), so the same target size
                     raise ApiError(400, "mask_size_mismatch", f"mask {req.masks[i].name} does not match {p.name} after decoding")
                 m = _to_float(marr)
-            elif alpha is not None:
-                m = _to_float(alpha)  # an RGBA photo carries its own matte
+            elif alpha is not None and int(alpha.min()) < 255:
+                m = _to_float(alpha)  # an RGBA photo carries its own matte; opaque everywhere it carries none
             masks.append(m)
             if req.cameras is not None:
                 cam = req.cameras[i]

@@ -75,3 +75,33 @@ def test_exif6_portrait_without_cameras_is_tracked_by_a_creation_job(model_dir, 
     job = _run_job(_ctx(model_dir, tmp_path), CreationRequest(photos, None, None), tracker=PhotoTracker())
     assert job.status == "ready", job.error and f"{job.error.code}: {job.error.message}"
     assert job.stages[:3] == ["queued", "decoding", "tracking"] and job.result["tracking_ms"] > 0
+
+
+@needs_faces
+def test_opaque_rgba_png_is_matted_like_the_same_photo_without_alpha(model_dir, tmp_path):
+    """A PNG saved with an alpha channel that is opaque everywhere (editors, screenshots, conversions)
+    carries no matte: posted without cameras it is matted by the tracked head like the same pixels
+    without alpha. It used to be taken as an all-foreground mask, so the whole background (the flag
+    behind the portrait) stayed in the avatar as a flat card, with ~60% more Gaussians."""
+    import io
+
+    from server.tracking import PhotoTracker
+
+    rgb = Image.open(FIX / "grace_hopper_upright.jpg").convert("RGB")
+    results = {}
+    for mode in ("RGB", "RGBA"):
+        buf = io.BytesIO()
+        rgb.convert(mode).save(buf, format="PNG")
+        job = _run_job(_ctx(model_dir, tmp_path / mode), CreationRequest([Photo(f"grace_{mode}.png", buf.getvalue())], None, None), tracker=PhotoTracker())
+        assert job.status == "ready", job.error and f"{job.error.code}: {job.error.message}"
+        results[mode] = job.result["num_gaussians"]
+    assert results["RGBA"] == results["RGB"], results
+    # a real matte (transparent background) still wins over the tracked silhouette
+    cut = rgb.convert("RGBA")
+    alpha = np.zeros((cut.height, cut.width), np.uint8)
+    alpha[cut.height // 8 :, cut.width // 4 : 3 * cut.width // 4] = 255
+    cut.putalpha(Image.fromarray(alpha))
+    buf = io.BytesIO()
+    cut.save(buf, format="PNG")
+    job = _run_job(_ctx(model_dir, tmp_path / "cut"), CreationRequest([Photo("grace_cut.png", buf.getvalue())], None, None), tracker=PhotoTracker())
+    assert job.status == "ready" and job.result["num_gaussians"] != results["RGB"], job.result
