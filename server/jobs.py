@@ -646,7 +646,8 @@ class JobQueue:
             same_person = {"checked": False, "reason": "one photo"}
         else:  # raises 422 different_people when the photos split into several people
             same_person = identity.check(names, descriptors, id_ms).as_dict()
-        mlist = None if all(m is None for m in masks) else [m if m is not None else torch.ones(1, *im.shape[-2:]) for m, im in zip(masks, images)]
+        given = None if all(m is None for m in masks) else masks  # per photo; None where it brings no matte (the tracker makes one)
+        mlist = None if given is None else [m if m is not None else torch.ones(1, *im.shape[-2:]) for m, im in zip(masks, images)]
         t1 = time.perf_counter()
         timings = {"decoding_ms": 1e3 * (t1 - t0)}
         log.debug("decoded %d file(s) for %s in %.0f ms", n_files, job.id, timings["decoding_ms"])
@@ -656,7 +657,7 @@ class JobQueue:
         surface = None  # the tracked head: every pixel's Gaussian goes on it (fastgha_core/model/surface.py)
         if req.cameras is None:
             progress("tracking", 0.0)
-            crops, cam_batch, crop_masks, expressions, surface = self.tracker.track(images, mlist, size, names=names)
+            crops, cam_batch, crop_masks, expressions, surface = self.tracker.track(images, given, size, names=names)
             tracking_ms = 1e3 * (time.perf_counter() - t1)
             images, mlist = crops, crop_masks
             cams = cam_batch
@@ -673,7 +674,7 @@ class JobQueue:
             surface, expressions = req.head, head_expressions(req.head, model)
         elif req.cameras is not None and s.surface_depth_cameras != "off":
             # photos with cameras: the head fitted through them (None without the faces extra or a face)
-            surface = self.tracker.fit_known_cameras(images, cams, names=names, masks=mlist)
+            surface = self.tracker.fit_known_cameras(images, cams, names=names, masks=given)
             known_surface = surface is not None
             if known_surface and model.config.expression_dim == 53:
                 expressions = torch.from_numpy(surface.expressions)  # the photos' fitted expressions: undone, and refined with

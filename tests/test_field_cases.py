@@ -105,3 +105,35 @@ def test_opaque_rgba_png_is_matted_like_the_same_photo_without_alpha(model_dir, 
     cut.save(buf, format="PNG")
     job = _run_job(_ctx(model_dir, tmp_path / "cut"), CreationRequest([Photo("grace_cut.png", buf.getvalue())], None, None), tracker=PhotoTracker())
     assert job.status == "ready" and job.result["num_gaussians"] != results["RGB"], job.result
+
+
+@needs_faces
+def test_a_photo_without_matte_beside_one_with_is_matted_by_the_tracked_head(model_dir, tmp_path):
+    """Photos of one person, one a PNG cut out with transparency and one a JPEG: the JPEG has no
+    matte of its own, so the tracker makes one from the fitted head. It used to be handed an
+    all-foreground mask (the request had "masks"), keeping that photo's whole background."""
+    import io
+
+    from server.tracking import PhotoTracker
+
+    rgb = Image.open(FIX / "grace_hopper_upright.jpg").convert("RGB")
+    cut = rgb.convert("RGBA")
+    alpha = np.zeros((cut.height, cut.width), np.uint8)
+    alpha[cut.height // 8 :, cut.width // 6 : 5 * cut.width // 6] = 255
+    cut.putalpha(Image.fromarray(alpha))
+    buf = io.BytesIO()
+    cut.save(buf, format="PNG")
+    photos = [Photo("cut.png", buf.getvalue()), Photo("plain.jpg", (FIX / "grace_hopper_upright.jpg").read_bytes())]
+    seen = {}
+
+    class Spy(PhotoTracker):
+        def track(self, images, masks, size, names=None):
+            out = super().track(images, masks, size, names=names)
+            seen["given"], seen["crop_masks"] = masks, out[2]
+            return out
+
+    job = _run_job(_ctx(model_dir, tmp_path), CreationRequest(photos, None, None), tracker=Spy())
+    assert job.status == "ready", job.error and f"{job.error.code}: {job.error.message}"
+    assert seen["given"][0] is not None and seen["given"][1] is None
+    plain = seen["crop_masks"][1, 0]
+    assert 0.05 < float(plain.mean()) < 0.9, float(plain.mean())  # the head's silhouette, not the whole crop
