@@ -377,3 +377,16 @@ def test_server_imports_set_openmp_defaults_before_torch(stmt):
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "10000"
     assert "ran after torch was imported" not in r.stderr, r.stderr
+
+
+def test_multipart_boundary_is_read_without_a_deprecation_warning():
+    """Every upload's boundary is read through python-multipart's own module name; the old
+    ``multipart`` alias warned (PendingDeprecationWarning) into the server log and every test run."""
+    import warnings
+
+    from server.app import _boundary
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _boundary('multipart/form-data; boundary="ab-12"') == b"ab-12"
+        assert _boundary("multipart/form-data") is None
