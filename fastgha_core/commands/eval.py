@@ -97,7 +97,9 @@ def _run_responses(args, model) -> int:
     out.mkdir(parents=True, exist_ok=True)
     report = evaluate_responses(model, sources, cfg, out_dir=out)
     report["model"], report["data"], report["ablation"] = str(args.model), str(args.data), args.ablation
-    (Path(args.json) if args.json else out / "responses.json").write_text(json.dumps(report, indent=2))
+    report_path = Path(args.json) if args.json else out / "responses.json"
+    report_path.parent.mkdir(parents=True, exist_ok=True)
+    report_path.write_text(json.dumps(report, indent=2))
     md = responses_markdown(report)
     (out / "responses.md").write_text(md)
     print(md)

@@ -155,6 +155,7 @@ def run(args) -> int:
                 for i in range(len(names))
             ],
         }
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(report, indent=1))
     log.info("tracked %d photo(s)", len(names))
     print(f"wrote {out}: {len(names)} crop(s) {args.size}x{args.size} + masks, cameras.json, expressions.json, head.json")
