@@ -77,6 +77,20 @@ def test_exif6_portrait_without_cameras_is_tracked_by_a_creation_job(model_dir, 
     assert job.stages[:3] == ["queued", "decoding", "tracking"] and job.result["tracking_ms"] > 0
 
 
+def _cut_out_png(rgb: Image.Image, margin: float) -> bytes:
+    """``rgb`` as an RGBA PNG cut out by its alpha: opaque below the top eighth and between
+    ``margin`` of the width from either side, transparent elsewhere."""
+    import io
+
+    cut = rgb.convert("RGBA")
+    alpha = np.zeros((cut.height, cut.width), np.uint8)
+    alpha[cut.height // 8 :, int(cut.width * margin) : int(cut.width * (1 - margin))] = 255
+    cut.putalpha(Image.fromarray(alpha))
+    buf = io.BytesIO()
+    cut.save(buf, format="PNG")
+    return buf.getvalue()
+
+
 @needs_faces
 def test_opaque_rgba_png_is_matted_like_the_same_photo_without_alpha(model_dir, tmp_path):
     """A PNG saved with an alpha channel that is opaque everywhere (editors, screenshots, conversions)
@@ -97,13 +111,8 @@ def test_opaque_rgba_png_is_matted_like_the_same_photo_without_alpha(model_dir, 
         results[mode] = job.result["num_gaussians"]
     assert results["RGBA"] == results["RGB"], results
     # a real matte (transparent background) still wins over the tracked silhouette
-    cut = rgb.convert("RGBA")
-    alpha = np.zeros((cut.height, cut.width), np.uint8)
-    alpha[cut.height // 8 :, cut.width // 4 : 3 * cut.width // 4] = 255
-    cut.putalpha(Image.fromarray(alpha))
-    buf = io.BytesIO()
-    cut.save(buf, format="PNG")
-    job = _run_job(_ctx(model_dir, tmp_path / "cut"), CreationRequest([Photo("grace_cut.png", buf.getvalue())], None, None), tracker=PhotoTracker())
+    cut = _cut_out_png(rgb, 1 / 4)
+    job = _run_job(_ctx(model_dir, tmp_path / "cut"), CreationRequest([Photo("grace_cut.png", cut)], None, None), tracker=PhotoTracker())
     assert job.status == "ready" and job.result["num_gaussians"] != results["RGB"], job.result
 
 
@@ -112,18 +121,10 @@ def test_a_photo_without_matte_beside_one_with_is_matted_by_the_tracked_head(mod
     """Photos of one person, one a PNG cut out with transparency and one a JPEG: the JPEG has no
     matte of its own, so the tracker makes one from the fitted head. It used to be handed an
     all-foreground mask (the request had "masks"), keeping that photo's whole background."""
-    import io
-
     from server.tracking import PhotoTracker
 
     rgb = Image.open(FIX / "grace_hopper_upright.jpg").convert("RGB")
-    cut = rgb.convert("RGBA")
-    alpha = np.zeros((cut.height, cut.width), np.uint8)
-    alpha[cut.height // 8 :, cut.width // 6 : 5 * cut.width // 6] = 255
-    cut.putalpha(Image.fromarray(alpha))
-    buf = io.BytesIO()
-    cut.save(buf, format="PNG")
-    photos = [Photo("cut.png", buf.getvalue()), Photo("plain.jpg", (FIX / "grace_hopper_upright.jpg").read_bytes())]
+    photos = [Photo("cut.png", _cut_out_png(rgb, 1 / 6)), Photo("plain.jpg", (FIX / "grace_hopper_upright.jpg").read_bytes())]
     seen = {}
 
     class Spy(PhotoTracker):
