@@ -5,7 +5,6 @@ of the shipped sample ``synth_1000001`` (its first 4 request photos)."""
 from __future__ import annotations
 
 import copy
-import json
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -29,13 +28,6 @@ def prior_on_off(model_name: str):
     imgs = [torch.from_numpy(np.array(Image.open(p).convert("RGB"))).permute(2, 0, 1) for p in paths[:4]]
     x, c = model_a.prepare(imgs, cams[:4])
     return model_a, model_b, model_a.reconstruct(x, c), model_b.reconstruct(x, c)
-
-
-def write_json(path: str | None, report: dict) -> None:
-    """Write ``report`` to ``path`` (its folder created) when a path was given (``--json``)."""
-    if path:
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        Path(path).write_text(json.dumps(report, indent=2))
 
 
 def rev_package(rev: str, tmp: str) -> str:

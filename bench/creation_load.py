@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures as cf
-import io
 import json
 import os
 import signal
@@ -40,7 +39,6 @@ from pathlib import Path
 
 import httpx
 import numpy as np
-from PIL import Image
 
 HERE = Path(__file__).resolve().parent.parent
 KEY = "bench-key"

@@ -12,14 +12,15 @@ what ``INTERIOR_SHADE`` is set from.
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/, for _bench_cli
+
+from _bench_cli import training_subjects_args, write_json
 
 
 def interior_luma(seeds) -> dict[str, dict[str, float]]:
@@ -56,16 +57,12 @@ def interior_luma(seeds) -> dict[str, dict[str, float]]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--subjects", type=int, default=30, help="training subjects (seeds 0..N-1)")
-    ap.add_argument("--json", default=None, help="also write the figures here")
-    a = ap.parse_args(argv)
+    a = training_subjects_args(__doc__, argv)
     res = interior_luma(range(a.subjects))
     print("| class | truth luma | ours | truth / ours | truth / bare colours |\n|---|---:|---:|---:|---:|")
     for k, r in res.items():
         print(f"| {k} | {r['truth']:.3f} | {r['ours']:.3f} | {r['truth'] / r['ours']:.2f} | {r['truth'] / r['bare']:.2f} |")
-    if a.json:
-        Path(a.json).write_text(json.dumps(res, indent=2))
+    write_json(a.json, res)
     return 0
 
 

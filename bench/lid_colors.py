@@ -16,14 +16,15 @@ lifted 1.5 mm) was tried and not kept: docs/model-card.md, "The closed lid's sha
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/, for _bench_cli
+
+from _bench_cli import training_subjects_args, write_json
 
 
 # Bands of how far the blink moves a lid point (metres): the crease (<= 6 mm, where the lid sits
@@ -84,15 +85,11 @@ def lid_ratios(seeds) -> dict[str, float]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--subjects", type=int, default=30, help="training subjects (seeds 0..N-1)")
-    ap.add_argument("--json", default=None, help="also write the figures here")
-    a = ap.parse_args(argv)
+    a = training_subjects_args(__doc__, argv)
     res = lid_ratios(range(a.subjects))
     for k, v in res.items():
         print(f"{k}: {v:.3f}" if isinstance(v, float) else f"{k}: {np.round(v, 3).tolist()}")
-    if a.json:
-        Path(a.json).write_text(json.dumps(res, indent=2))
+    write_json(a.json, res)
     return 0
 
 

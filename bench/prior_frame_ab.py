@@ -27,19 +27,20 @@ reported as ``rev`` (ms, fps), its ratio to the old path, and ``rev / prior`` (>
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/: _bench_cli, _prior_ab (tests load this file by path)
+
+from _bench_cli import frame_parser, write_json
+
 REPO = Path(__file__).resolve().parents[1]
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--model", default="tiny")
-    ap.add_argument("--rounds", type=int, default=40)
+    ap = frame_parser(__doc__, rounds=40)
     ap.add_argument("--sizes", default="256,512")
     ap.add_argument("--json", default=None)
     ap.add_argument("--rev", default=None, help="also time the prior path of this git revision (before/after in one process)")
@@ -50,7 +51,7 @@ def main(argv=None) -> int:
 
     import tempfile
 
-    from _prior_ab import prior_on_off, rev_frame, rev_package, write_json
+    from _prior_ab import prior_on_off, rev_frame, rev_package
     from server.frames import FrameRenderer
 
     try:

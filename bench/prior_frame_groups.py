@@ -28,42 +28,36 @@ frame as drawn, and the median count left out. ``--threads 1 --clock cpu`` as in
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/: _bench_cli, _prior_ab (tests load this file by path)
+
+from _bench_cli import add_threads_and_clock, frame_parser, set_threads, write_json
+
 REPO = Path(__file__).resolve().parents[1]
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--model", default="tiny")
-    ap.add_argument("--rounds", type=int, default=20)
+    ap = frame_parser(__doc__, rounds=20)
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--mode", choices=("random", "blink"), default="random")
-    ap.add_argument("--threads", type=int, default=0, help="torch and rasterizer threads (0: leave the defaults)")
-    ap.add_argument("--clock", choices=("wall", "cpu"), default="wall")
+    add_threads_and_clock(ap)
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     sys.path.insert(0, str(REPO))
     import fastgha_core  # noqa: F401  (the OpenMP defaults before torch, as the server does)
-    import numba
     import torch
 
-    from _prior_ab import prior_on_off, write_json
+    from _prior_ab import prior_on_off
     from fastgha_core.constants import BACKGROUND_RGB
     from fastgha_core.render import render
     from fastgha_core.render.projection import ALPHA_MIN
     from server.frames import FrameRenderer
 
-    if args.threads:
-        import os
-
-        os.environ["FASTGHA_NUMBA_THREADS"] = str(args.threads)
-        numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     try:
         model, _, av, _ = prior_on_off(args.model)
     except ValueError as e:
@@ -98,10 +92,8 @@ def main(argv=None) -> int:
             for k in order:
                 gg = g if sets[k] is None else g[sets[k]]
                 t0 = clock()
-                out = render(gg, cam, background=BACKGROUND_RGB)
+                render(gg, cam, background=BACKGROUND_RGB)
                 dt = clock() - t0
-                if k == "as drawn":
-                    ref = out.rgb
                 if r >= 2:  # warm-up rounds not counted
                     ms[k].append(1e3 * dt)
                     left[k].append(n - len(gg))

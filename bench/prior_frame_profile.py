@@ -19,23 +19,22 @@ rasterizer, the splats it composited and the (tile, splat) pairs (medians).
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/: _bench_cli, _prior_ab (tests load this file by path)
+
+from _bench_cli import add_threads_and_clock, frame_parser, set_threads, write_json
+
 REPO = Path(__file__).resolve().parents[1]
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--model", default="tiny")
-    ap.add_argument("--rounds", type=int, default=40)
+    ap = frame_parser(__doc__, rounds=40)
     ap.add_argument("--size", type=int, default=256)
-    ap.add_argument("--threads", type=int, default=0, help="torch and rasterizer threads (0: leave the defaults)")
-    ap.add_argument("--clock", choices=("wall", "cpu"), default="wall",
-                    help="cpu: this thread's CPU time (with --threads 1 every stage runs on it; steadier on a loaded machine)")
+    add_threads_and_clock(ap)
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     sys.path.insert(0, str(REPO))
@@ -43,19 +42,14 @@ def main(argv=None) -> int:
     import numba
     import torch
 
-    from _prior_ab import prior_on_off, write_json
+    from _prior_ab import prior_on_off
     from fastgha_core.constants import BACKGROUND_RGB
     from fastgha_core.render import _background, _finish
     from fastgha_core.render.cpu_backend import num_threads, project_cpu, rasterize_fast
     from server.frames import FrameRenderer
     from server.imaging import encode_jpeg, frame_to_uint8
 
-    if args.threads:
-        import os
-
-        os.environ["FASTGHA_NUMBA_THREADS"] = str(args.threads)
-        numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))  # restored after each render
-        torch.set_num_threads(args.threads)  # after numba: starting numba's OpenMP pool resets torch's count
+    set_threads(args.threads)
     model_a, model_b, av_a, av_b = prior_on_off(args.model)
     cam = FrameRenderer(model_a, "cpu").default_camera.resize(args.size, args.size).flatten()
     w, h = cam.width, cam.height

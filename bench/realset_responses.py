@@ -41,6 +41,10 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/: _bench_cli (tests load this file by path)
+
+from _bench_cli import write_json
+
 REPO = Path(__file__).resolve().parents[1]
 EXPRESSIONS = {
     "neutral": {},
@@ -230,9 +234,7 @@ def main(argv=None) -> int:
         print(s.name, json.dumps(r.get("responses", r.get("error"))), json.dumps(r.get("targets_met", {})), "dropped:", r.get("dropped"))
         if "by_size" in r:
             print("  by size:", json.dumps({k: {q: round(x, 3) for q, x in v.items()} for k, v in r["by_size"].items()}))
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(report, indent=2))
+    write_json(args.json, report)
     return 0
 
 

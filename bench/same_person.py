@@ -24,6 +24,10 @@ import tempfile
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench/: _bench_cli (tests load this file by path)
+
+from _bench_cli import write_json
+
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
@@ -125,9 +129,7 @@ def main() -> int:
     print("distances:", json.dumps(out["distances"]))
     out["creation"] = creation_times(root / args.set, args.reps)
     print("creation:", json.dumps(out["creation"]))
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(out, indent=1))
+    write_json(args.json, out, indent=1)
     return 0
 
 

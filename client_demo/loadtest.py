@@ -299,7 +299,11 @@ async def _run_client(
     except Exception as e:  # connection refused, closed by the server (e.g. 4503), protocol errors
         code = getattr(getattr(e, "rcvd", None), "code", None)
         reason = getattr(getattr(e, "rcvd", None), "reason", "")
-        res.error(f"{type(e).__name__}: {e}" + (f" (close {code} {reason})" if code else ""))
+        if code:  # the server's close code and reason say it all (docs/protocol.md, Close codes)
+            hint = " (retry later; with --shared-avatar, at most the server's FASTGHA_MAX_STREAMS_PER_AVATAR clients)" if code == 4503 else ""
+            res.error(f"closed by the server: {code} {reason}{hint}")
+        else:
+            res.error(f"{type(e).__name__}: {e}")
     res.unanswered = max(0, res.sent - res.received - res.dropped)
 
 

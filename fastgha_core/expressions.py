@@ -202,11 +202,23 @@ class ExpressionSpace:
                     f"; {poses[:3]}: head/eye rotations of Live Link Face, not expressions: "
                     "leave them out and turn the head with the camera"
                 )
+            sided = {k: s for k in unknown[:8] if (s := self._sided(str(k)))}
+            if sided:  # "eyeBlink", "mouthSmile": the shapes come per side
+                hint += "; " + ", ".join(f"{k!r} comes per side: {' and '.join(map(repr, s))}" for k, s in sided.items())
             raise ValueError(
                 f"expression space {self.name!r}: unknown name(s) {unknown[:8]}{'...' if len(unknown) > 8 else ''}; "
                 f"expected names like {list(index)[:3]}{hint}"
             )
         return torch.tensor(out, dtype=torch.float32)
+
+    def _sided(self, key: str) -> tuple[str, str] | None:
+        """The left and right names a side-less name stands for (``eyeBlink`` -> ``eyeBlinkLeft``,
+        ``eyeBlinkRight`` where those ARKit names are accepted, else ``eyeBlink_L``, ``eyeBlink_R``)."""
+        for left, right in (("Left", "Right"), ("_L", "_R")):
+            pair = (key + left, key + right)
+            if all(self._lookup(n) for n in pair):
+                return pair
+        return None
 
     def _parse_vector(self, value: Any) -> Tensor:
         try:

@@ -252,7 +252,7 @@ async def _read_body(request: Request, limit: int) -> bytes:
 
 
 def _boundary(ctype: str) -> bytes | None:
-    from multipart.multipart import parse_options_header
+    from python_multipart.multipart import parse_options_header
 
     _, params = parse_options_header(ctype)
     b = params.get(b"boundary")

@@ -46,6 +46,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from fastgha_core import images as _shared  # the one decoder of every ingest path
+
 from . import auth
 from .errors import ApiError
 
@@ -93,21 +95,30 @@ class Photo:
 
     name: str
     data: bytes
-    size: tuple[int, int] = (0, 0)  # (width, height) of the stored pixels, from the header
+    size: tuple[int, int] = (0, 0)  # (width, height) of the image shown upright (EXIF applied), from the header
+    orientation: int = 1  # its EXIF orientation (1 = none), from the header
+
+    def described(self) -> str:
+        """``"512x600"``, and for a photo stored sideways how it is stored, for size messages."""
+        w, h = self.size
+        if self.orientation not in (5, 6, 7, 8):
+            return f"{w}x{h}"
+        return f"{w}x{h} upright (stored as {h}x{w} with EXIF orientation {self.orientation}, which the server applies)"
 
 
-from fastgha_core import images as _shared  # the one decoder of every ingest path
+def _orientation(im) -> int:
+    """The EXIF orientation tag of a Pillow image (1 when absent or unreadable: the decoder ignores it too)."""
+    try:
+        return int(im.getexif().get(0x0112, 1))
+    except Exception:
+        return 1
 
 
 def _upright_size(im) -> tuple[int, int]:
     """``(width, height)`` of the image as decoded: the shared decoder applies EXIF orientation,
     so cameras describe the upright image (orientations 5-8 swap the sides); read from the header."""
     w, h = im.size
-    try:
-        orientation = int(im.getexif().get(0x0112, 1))
-    except Exception:  # unreadable EXIF: the decoder ignores it too
-        orientation = 1
-    return (h, w) if orientation in (5, 6, 7, 8) else (w, h)
+    return (h, w) if _orientation(im) in (5, 6, 7, 8) else (w, h)
 
 
 def _open_checked(data: bytes, name: str, max_pixels: int):
@@ -152,7 +163,7 @@ def probe_request(
     total = 0
     for p in images + (masks or []):
         im = _open_checked(p.data, p.name, max_pixels)
-        p.size = _upright_size(im)
+        p.size, p.orientation = _upright_size(im), _orientation(im)
         im.close()
         total += p.size[0] * p.size[1]
     if total > max_request_pixels:
@@ -164,10 +175,9 @@ def probe_request(
         if cameras is not None:
             cam = cameras[i]
             if (cam.width, cam.height) != (w, h):
-                raise ApiError(400, "camera_size_mismatch", f"camera {i} describes a {cam.width}x{cam.height} image but {p.name} is {w}x{h}")
+                raise ApiError(400, "camera_size_mismatch", f"camera {i} describes a {cam.width}x{cam.height} image but {p.name} is {p.described()}")
         if masks is not None and masks[i].size != (w, h):
-            mw, mh = masks[i].size
-            raise ApiError(400, "mask_size_mismatch", f"mask {masks[i].name} is {mw}x{mh} but its photo {p.name} is {w}x{h}")
+            raise ApiError(400, "mask_size_mismatch", f"mask {masks[i].name} is {masks[i].described()} but its photo {p.name} is {p.described()}")
 
 
 def decode_photo(photo: Photo, *, max_pixels: int, max_side: int, mask: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
@@ -621,8 +631,8 @@ class JobQueue:
                 if marr.shape[:2] != (h, w):  # same stored size (probed), so the same target size
                     raise ApiError(400, "mask_size_mismatch", f"mask {req.masks[i].name} does not match {p.name} after decoding")
                 m = _to_float(marr)
-            elif alpha is not None:
-                m = _to_float(alpha)  # an RGBA photo carries its own matte
+            elif alpha is not None and int(alpha.min()) < 255:
+                m = _to_float(alpha)  # an RGBA photo carries its own matte; opaque everywhere it carries none
             masks.append(m)
             if req.cameras is not None:
                 cam = req.cameras[i]
@@ -636,7 +646,8 @@ class JobQueue:
             same_person = {"checked": False, "reason": "one photo"}
         else:  # raises 422 different_people when the photos split into several people
             same_person = identity.check(names, descriptors, id_ms).as_dict()
-        mlist = None if all(m is None for m in masks) else [m if m is not None else torch.ones(1, *im.shape[-2:]) for m, im in zip(masks, images)]
+        given = None if all(m is None for m in masks) else masks  # per photo; None where it brings no matte (the tracker makes one)
+        mlist = None if given is None else [m if m is not None else torch.ones(1, *im.shape[-2:]) for m, im in zip(masks, images)]
         t1 = time.perf_counter()
         timings = {"decoding_ms": 1e3 * (t1 - t0)}
         log.debug("decoded %d file(s) for %s in %.0f ms", n_files, job.id, timings["decoding_ms"])
@@ -646,7 +657,7 @@ class JobQueue:
         surface = None  # the tracked head: every pixel's Gaussian goes on it (fastgha_core/model/surface.py)
         if req.cameras is None:
             progress("tracking", 0.0)
-            crops, cam_batch, crop_masks, expressions, surface = self.tracker.track(images, mlist, size, names=names)
+            crops, cam_batch, crop_masks, expressions, surface = self.tracker.track(images, given, size, names=names)
             tracking_ms = 1e3 * (time.perf_counter() - t1)
             images, mlist = crops, crop_masks
             cams = cam_batch
@@ -663,7 +674,7 @@ class JobQueue:
             surface, expressions = req.head, head_expressions(req.head, model)
         elif req.cameras is not None and s.surface_depth_cameras != "off":
             # photos with cameras: the head fitted through them (None without the faces extra or a face)
-            surface = self.tracker.fit_known_cameras(images, cams, names=names, masks=mlist)
+            surface = self.tracker.fit_known_cameras(images, cams, names=names, masks=given)
             known_surface = surface is not None
             if known_surface and model.config.expression_dim == 53:
                 expressions = torch.from_numpy(surface.expressions)  # the photos' fitted expressions: undone, and refined with

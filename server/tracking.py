@@ -82,7 +82,7 @@ class PhotoTracker:
     def track(
         self,
         images: list[Tensor],  # V x [3, H_i, W_i] float in [0, 1]
-        masks: list[Tensor] | None,  # V x [1, H_i, W_i] alpha in [0, 1], or None
+        masks: list[Tensor | None] | None,  # V x [1, H_i, W_i] alpha in [0, 1] (None: made from the fitted head), or None
         size: int,  # the model's input side S
         names: list[str] | None = None,  # the photos' filenames, for error messages
     ):
@@ -97,7 +97,7 @@ class PhotoTracker:
 
         side = max(int(size), TRACK_MIN_SIZE)
         photos = [(img.clamp(0, 1) * 255.0).round().to(torch.uint8).permute(1, 2, 0).numpy() for img in images]  # V x [H, W, 3]
-        mlist = [m[0].numpy() for m in masks] if masks is not None else None  # V x [H, W]
+        mlist = [None if m is None else m[0].numpy() for m in masks] if masks is not None else None  # V x [H, W] or None
         names = list(names) if names is not None else [f"image {i}" for i in range(len(images))]
         t0 = time.perf_counter()
         with self._lock:
@@ -127,7 +127,7 @@ class PhotoTracker:
 
         Args:
             images: V x ``[3, H_i, W_i]`` float in [0, 1]; cameras: V single ``Cameras`` of those sizes.
-            masks: V x ``[1, H_i, W_i]`` alpha in [0, 1], or None: turned photos' face outlines join the fit.
+            masks: V x ``[1, H_i, W_i]`` alpha in [0, 1] (or None entries), or None: turned photos' face outlines join the fit.
         """
         from fastgha_core.tracking.faces import FacesUnavailableError
         from fastgha_core.tracking.pipeline import track_known_cameras
@@ -141,7 +141,7 @@ class PhotoTracker:
                 return None
             try:
                 photos = [(img.clamp(0, 1) * 255.0).round().to(torch.uint8).permute(1, 2, 0).numpy() for img in images]
-                ms = None if masks is None else [m[0].numpy() for m in masks]
+                ms = None if masks is None else [None if m is None else m[0].numpy() for m in masks]
                 surface, fit = track_known_cameras(photos, list(cameras), detector=det, names=names, masks=ms)
             except (FacesUnavailableError, ValueError) as e:
                 log.info("no head fitted through the given cameras (%s); using the network's depth", e)

@@ -154,3 +154,67 @@ def test_device_flags_are_checked_with_a_one_line_answer(capsys, tmp_path):
     assert main(["serve", "--port", port, "--data-dir", str(tmp_path / "data"), "--device", "gpu"]) == 2  # before the model loads
     err = capsys.readouterr().err
     assert err.strip() == "fastgha serve: error: --device 'gpu' is not a torch device; expected cpu, cuda or cuda:N", err
+
+
+@pytest.mark.parametrize(
+    "argv, said",
+    [
+        (["demo", "--frames", "0"], "--frames must be >= 1, got 0"),
+        (["demo", "--frames", "-3"], "--frames must be >= 1, got -3"),
+        (["animate", "--avatar", "missing.safetensors", "--expressions", "e.json", "--out", "o", "--radius", "-1"], "--radius must be > 0 metres, got -1.0"),
+        (["animate", "--avatar", "missing.safetensors", "--expressions", "e.json", "--out", "o", "--fov", "0"], "--fov must be in (0, 180) degrees, got 0.0"),
+        (["animate", "--avatar", "missing.safetensors", "--expressions", "e.json", "--out", "o", "--fov", "180"], "--fov must be in (0, 180) degrees, got 180.0"),
+        (["eval", "--subjects", "0"], "--subjects must be >= 1, got 0"),
+        (["eval", "--views", "0"], "--views must be >= 1, got 0"),
+        (["eval", "--num-inputs", "0"], "--num-inputs must be >= 1, got 0"),
+        (["eval", "--expressions", "-1"], "--expressions must be >= 1, got -1"),
+        (["eval", "--refine-steps", "-5"], "--refine-steps must be >= 0, got -5"),
+        (["track", "--images", "missing.jpg", "--out", "o", "--fov", "0"], "--fov must be in [1, 150] degrees, got 0.0"),
+        (["train", "--data", "synthetic", "--out", "run", "--lr", "-1"], "--lr must be > 0 and --lr-deform >= 0"),
+        (["train", "--data", "synthetic", "--out", "run", "--workers", "-1"], "--workers must be >= 0, got -1"),
+        (["train", "--data", "synthetic", "--out", "run", "--warmup-steps", "-10"], "--warmup-steps must be >= 0, got -10"),
+    ],
+)
+def test_out_of_range_numbers_are_refused_before_any_work(argv, said, capsys, monkeypatch, tmp_path):
+    """A number no run can use is a one-line error naming the flag, before a model, avatar or photo is
+    read: ``demo --frames 0`` used to animate all frames, ``animate --fov 0`` ended in a
+    ZeroDivisionError traceback, ``animate --radius -1`` rendered from behind the head, ``eval
+    --subjects 0`` evaluated the default 4, ``track --fov 0`` failed after finding the faces, and
+    ``train --lr -1`` trained (uphill)."""
+    import fastgha_core.model.fastgha as fastgha
+    import fastgha_core.train.builders as builders
+
+    def no_model(*a, **k):
+        raise AssertionError("the model was loaded before the arguments were checked")
+
+    monkeypatch.setattr(fastgha, "load_model", no_model)
+    monkeypatch.setattr(builders, "build_model", no_model)
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and said in err[0], err
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["reconstruct", "--input", "req", "--out", "a.safetensors", "--model", "paper"],
+        ["eval", "--model", "paper", "--subjects", "1"],
+        ["demo", "--model", "paper"],
+    ],
+)
+def test_a_preset_without_shipped_weights_is_refused_before_it_is_built(argv, capsys, monkeypatch, tmp_path):
+    """``--model paper`` has no shipped weights: reconstruct and eval used to build a random
+    419M-parameter network (minutes, gigabytes) and reconstruct noise with a warning; like the demo,
+    they refuse it at once, naming the presets that ship."""
+    import fastgha_core.model.fastgha as fastgha
+
+    def no_model(*a, **k):
+        raise AssertionError("the model must not be built")
+
+    monkeypatch.setattr(fastgha, "load_model", no_model)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "req").mkdir()
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--model 'paper': no shipped weights" in err[0] and "shipped: tiny" in err[0], err

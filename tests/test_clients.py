@@ -209,6 +209,21 @@ def test_client_command_writes_frames_and_mp4(server, request_dir, tmp_path, cap
     assert "view blending off" in text and "expression prior on" in text and "same person:" in text  # what the avatar runs with
 
 
+def test_client_command_keep_prints_what_reaches_the_kept_avatar(server, request_dir, tmp_path, capsys):
+    """``--keep`` leaves the avatar on the server; its token is shown by the server only once, so the
+    command prints it (else the kept avatar could never be streamed, exported or deleted)."""
+    rc = cli_main(["client", "--url", server.base, "--input", str(request_dir), "--api-key", API_KEY, "--keep",
+                   "--out", str(tmp_path / "k.mp4"), "--size", "32", "--frames", "2"])  # fmt: skip
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    line = next(x for x in text.splitlines() if x.startswith("kept avatar "))
+    aid, token = line.split()[2], line.rsplit("token ", 1)[1].split()[0]
+    auth = {"Authorization": f"Bearer {token}"}
+    r = httpx.get(f"{server.base}/v1/avatars/{aid}", headers=auth, timeout=30)
+    assert r.status_code == 200 and r.json()["avatar_id"] == aid
+    assert httpx.delete(f"{server.base}/v1/avatars/{aid}", headers=auth, timeout=30).status_code == 204
+
+
 def test_load_request_dir_says_a_file_is_not_a_folder(request_dir):
     photo = next(request_dir.glob("*.jpg"))
     with pytest.raises(ValueError, match=r"is a file; expected a folder of photos"):
@@ -273,3 +288,48 @@ def test_loadtest_two_clients_report(server, request_dir, tmp_path, capsys):
     for c in rep["clients"]:
         r = httpx.get(f"{server.base}/v1/avatars/{c['avatar_id']}", headers={"Authorization": "Bearer x"})
         assert r.status_code == 404
+
+
+def _protocol_example() -> str:
+    text = (Path(__file__).resolve().parents[1] / "docs" / "protocol.md").read_text(encoding="utf-8")
+    return text.split("## Example (Python)", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+
+
+def test_protocol_docs_python_example_runs_as_written(server, request_dir, tmp_path, monkeypatch):
+    """docs/protocol.md's hand-written example, run as a user would (its URLs pointed at the test
+    server, its ``req/`` folder made from the sample): it creates an avatar and gets a frame. Its
+    synchronous creation waits for the job, so it must not keep httpx's 5 s default timeout: behind
+    three queued creations of tracked photos that example failed with ``httpx.ReadTimeout``."""
+    import ast
+
+    code = _protocol_example()
+    posts = [n for n in ast.walk(ast.parse(code)) if isinstance(n, ast.Call) and ast.unparse(n.func) == "httpx.post"]
+    assert posts
+    for call in posts:
+        timeout = next((k.value for k in call.keywords if k.arg == "timeout"), None)
+        assert isinstance(timeout, ast.Constant) and timeout.value >= 60, ast.unparse(call)
+    req = tmp_path / "req"
+    req.mkdir()
+    for i, p in enumerate(sorted(request_dir.glob("[0-9][0-9].jpg"))):
+        (req / f"{i}.jpg").write_bytes(p.read_bytes())
+    (req / "cameras.json").write_text((request_dir / "cameras.json").read_text())
+    monkeypatch.chdir(tmp_path)
+    scope = {"KEY": API_KEY}
+    host = server.base.split("://", 1)[1]
+    exec(compile(code.replace("127.0.0.1:8000", host), "protocol.md example", "exec"), scope)
+    assert scope["r"].status_code == 201
+    assert scope["header"]["seq"] == 0 and scope["jpeg"][:2] == b"\xff\xd8"
+
+
+def test_loadtest_says_once_why_the_server_closed_a_stream(server, request_dir, tmp_path, capsys):
+    """Five clients on one avatar, over the server's four streams per avatar: the fifth is closed with
+    4503, and the report says so in one readable line (it used to repeat the close three times)."""
+    js = tmp_path / "report.json"
+    rc = cli_main(["loadtest", "--url", server.base, "--clients", "5", "--shared-avatar", "--duration", "2", "--rate", "4",
+                   "--size", "32", "--input", str(request_dir), "--api-key", API_KEY, "--json", str(js)])  # fmt: skip
+    out = capsys.readouterr().out
+    assert rc == 1, out  # a run with errors exits 1
+    msgs = json.loads(js.read_text())["aggregate"]["error_messages"]
+    assert len(msgs) == 1 and msgs[0].startswith("closed by the server: 4503 at_capacity: this avatar already has 4 open streams"), msgs
+    assert msgs[0].count("4503") == 1 and "FASTGHA_MAX_STREAMS_PER_AVATAR" in msgs[0]
+    assert f"error: {msgs[0]}" in out

@@ -209,3 +209,19 @@ def test_live_link_face_pose_names_are_explained_not_just_unknown():
     with pytest.raises(ValueError) as e:
         space.parse({"jawOpenn": 1.0})
     assert "Live Link" not in str(e.value)
+
+
+def test_side_less_names_say_which_sided_names_to_send():
+    """``eyeBlink`` / ``mouthSmile`` are what a user types for a blink or a smile; the shapes come per
+    side, and the error names the pair to send (ARKit's names in ict53); a name with no sided pair,
+    or a space without per-side shapes (flame120), keeps the plain message."""
+    space = get_space("ict53")
+    with pytest.raises(ValueError, match=r"'eyeBlink' comes per side: 'eyeBlinkLeft' and 'eyeBlinkRight'.*'mouthSmile' comes per side: 'mouthSmileLeft' and 'mouthSmileRight'"):
+        space.parse({"eyeBlink": 1.0, "mouthSmile": 1.0, "jawOpen": 0.2})
+    assert_close(space.parse({"eyeBlinkLeft": 1.0, "eyeBlinkRight": 1.0}), space.parse({"eyeBlink_L": 1.0, "eyeBlink_R": 1.0}))
+    with pytest.raises(ValueError) as e:
+        space.parse({"smile": 1.0})
+    assert "per side" not in str(e.value)
+    with pytest.raises(ValueError) as e:
+        get_space("flame120").parse({"eyeBlink": 1.0})
+    assert "per side" not in str(e.value)

@@ -75,3 +75,66 @@ def test_exif6_portrait_without_cameras_is_tracked_by_a_creation_job(model_dir, 
     job = _run_job(_ctx(model_dir, tmp_path), CreationRequest(photos, None, None), tracker=PhotoTracker())
     assert job.status == "ready", job.error and f"{job.error.code}: {job.error.message}"
     assert job.stages[:3] == ["queued", "decoding", "tracking"] and job.result["tracking_ms"] > 0
+
+
+def _cut_out_png(rgb: Image.Image, margin: float) -> bytes:
+    """``rgb`` as an RGBA PNG cut out by its alpha: opaque below the top eighth and between
+    ``margin`` of the width from either side, transparent elsewhere."""
+    import io
+
+    cut = rgb.convert("RGBA")
+    alpha = np.zeros((cut.height, cut.width), np.uint8)
+    alpha[cut.height // 8 :, int(cut.width * margin) : int(cut.width * (1 - margin))] = 255
+    cut.putalpha(Image.fromarray(alpha))
+    buf = io.BytesIO()
+    cut.save(buf, format="PNG")
+    return buf.getvalue()
+
+
+@needs_faces
+def test_opaque_rgba_png_is_matted_like_the_same_photo_without_alpha(model_dir, tmp_path):
+    """A PNG saved with an alpha channel that is opaque everywhere (editors, screenshots, conversions)
+    carries no matte: posted without cameras it is matted by the tracked head like the same pixels
+    without alpha. It used to be taken as an all-foreground mask, so the whole background (the flag
+    behind the portrait) stayed in the avatar as a flat card, with ~60% more Gaussians."""
+    import io
+
+    from server.tracking import PhotoTracker
+
+    rgb = Image.open(FIX / "grace_hopper_upright.jpg").convert("RGB")
+    results = {}
+    for mode in ("RGB", "RGBA"):
+        buf = io.BytesIO()
+        rgb.convert(mode).save(buf, format="PNG")
+        job = _run_job(_ctx(model_dir, tmp_path / mode), CreationRequest([Photo(f"grace_{mode}.png", buf.getvalue())], None, None), tracker=PhotoTracker())
+        assert job.status == "ready", job.error and f"{job.error.code}: {job.error.message}"
+        results[mode] = job.result["num_gaussians"]
+    assert results["RGBA"] == results["RGB"], results
+    # a real matte (transparent background) still wins over the tracked silhouette
+    cut = _cut_out_png(rgb, 1 / 4)
+    job = _run_job(_ctx(model_dir, tmp_path / "cut"), CreationRequest([Photo("grace_cut.png", cut)], None, None), tracker=PhotoTracker())
+    assert job.status == "ready" and job.result["num_gaussians"] != results["RGB"], job.result
+
+
+@needs_faces
+def test_a_photo_without_matte_beside_one_with_is_matted_by_the_tracked_head(model_dir, tmp_path):
+    """Photos of one person, one a PNG cut out with transparency and one a JPEG: the JPEG has no
+    matte of its own, so the tracker makes one from the fitted head. It used to be handed an
+    all-foreground mask (the request had "masks"), keeping that photo's whole background."""
+    from server.tracking import PhotoTracker
+
+    rgb = Image.open(FIX / "grace_hopper_upright.jpg").convert("RGB")
+    photos = [Photo("cut.png", _cut_out_png(rgb, 1 / 6)), Photo("plain.jpg", (FIX / "grace_hopper_upright.jpg").read_bytes())]
+    seen = {}
+
+    class Spy(PhotoTracker):
+        def track(self, images, masks, size, names=None):
+            out = super().track(images, masks, size, names=names)
+            seen["given"], seen["crop_masks"] = masks, out[2]
+            return out
+
+    job = _run_job(_ctx(model_dir, tmp_path), CreationRequest(photos, None, None), tracker=Spy())
+    assert job.status == "ready", job.error and f"{job.error.code}: {job.error.message}"
+    assert seen["given"][0] is not None and seen["given"][1] is None
+    plain = seen["crop_masks"][1, 0]
+    assert 0.05 < float(plain.mean()) < 0.9, float(plain.mean())  # the head's silhouette, not the whole crop

@@ -208,6 +208,21 @@ def test_export_command(tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
 
 
+def test_export_counts_what_min_opacity_left_out(tmp_path, capsys):
+    """``--min-opacity`` drops faint Gaussians; the summary counts them, not only the stray ones
+    (it used to say "of N; 0 stray dropped" with hundreds fewer Gaussians written)."""
+    g = random_gaussians(40, f=4, seed=6)
+    src = tmp_path / "a.safetensors"
+    save_avatar_file(src, g, {"model_name": "tiny", "expression_space": "ict53"})
+    faint = int((g.opacities < 0.5).sum())
+    assert 0 < faint < 40
+    out = tmp_path / "a.ply"
+    assert cli_main(["export", "--avatar", str(src), "--ply", str(out), "--min-opacity", "0.5", "--keep-outliers"]) == 0
+    said = capsys.readouterr().out
+    assert len(load_ply(out)) == 40 - faint
+    assert f"{40 - faint} Gaussians (of 40; {faint} below --min-opacity 0.5, 0 stray dropped)" in said, said
+
+
 def test_export_of_a_view_blended_avatar_says_the_ply_is_unweighted(tmp_path, capsys):
     """A tracked-head avatar is view-blended per frame; its PLY holds the plain opacities, and the
     export says so (a viewer shows all views' Gaussians at once). Older files say nothing."""

@@ -129,6 +129,25 @@ def test_exif_rotated_photo_is_probed_and_decoded_upright():
     assert ei.value.code == "camera_size_mismatch" and "portrait.jpg" in ei.value.message
 
 
+def test_size_mismatch_of_a_sideways_stored_photo_says_the_server_turns_it_upright():
+    """A file browser (or ``PIL.Image.open(...).size``) shows a phone photo's stored grid; the server
+    measures the upright one. The refusal says both, so a camera of the stored grid is understood."""
+    from types import SimpleNamespace
+
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    buf = io.BytesIO()
+    Image.fromarray(_smooth(30, 40)).save(buf, format="JPEG", quality=95, exif=exif.tobytes())
+    with pytest.raises(ApiError) as ei:
+        probe_request([Photo("portrait.jpg", buf.getvalue())], None, [SimpleNamespace(width=40, height=30)],
+                      max_pixels=10**6, max_request_pixels=10**7)  # fmt: skip
+    assert "portrait.jpg is 30x40 upright (stored as 40x30 with EXIF orientation 6" in ei.value.message, ei.value.message
+    plain = Photo("flat.png", _png(_smooth(30, 40)))
+    with pytest.raises(ApiError) as ei:  # an unrotated photo keeps the short message
+        probe_request([plain], None, [SimpleNamespace(width=30, height=40)], max_pixels=10**6, max_request_pixels=10**7)
+    assert ei.value.message.endswith("but flat.png is 40x30"), ei.value.message
+
+
 def test_job_progress_is_monotonic_over_its_stages():
     import asyncio
 

@@ -177,6 +177,27 @@ def test_animate_refuses_an_out_file_type_it_does_not_write(tmp_path, model_dir,
     assert len(list((tmp_path / "frames.v2").glob("frame_*.png"))) == 2
 
 
+def test_animate_refuses_a_model_other_than_the_avatars(tmp_path, model_dir, capsys):
+    """An avatar's Gaussians carry its model's features, which only that model's deformation MLP
+    reads (the server closes such a stream with 4409). ``animate --model`` of another model is
+    refused in one line naming both, instead of frames of garbage or an expression-name error."""
+    req = _request(tmp_path / "req", masks=True)
+    out = tmp_path / "avatar.safetensors"
+    assert main(["reconstruct", "--input", str(req), "--model", str(model_dir), "--out", str(out)]) == 0
+    other = tmp_path / "other"
+    model = FastGHA.from_pretrained(model_dir)
+    model.config.name = "toy2"
+    model.save_pretrained(other)
+    np.save(tmp_path / "seq.npy", np.zeros((2, 53), np.float32))
+    capsys.readouterr()
+    args = ["animate", "--avatar", str(out), "--expressions", str(tmp_path / "seq.npy"), "--size", "16", "--out", str(tmp_path / "f")]
+    assert main(args + ["--model", str(other)]) == 2
+    err = [x for x in capsys.readouterr().err.strip().splitlines() if "error" in x]
+    assert len(err) == 1 and "is model 'toy2' (ict53)" in err[0] and "reconstructed by model 'toy' (ict53)" in err[0], err
+    assert not (tmp_path / "f").exists()
+    assert main(args + ["--model", str(model_dir)]) == 0
+
+
 def test_expression_files_of_every_shipped_json_form_load_in_animate_and_client(tmp_path):
     """The JSON forms FastGHA itself writes are read by both `animate` and `client`: a list,
     {"frames": [...]} (GET /v1/samples/{name}/expressions.json) and `fastgha track`'s

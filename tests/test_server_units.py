@@ -377,3 +377,35 @@ def test_server_imports_set_openmp_defaults_before_torch(stmt):
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "10000"
     assert "ran after torch was imported" not in r.stderr, r.stderr
+
+
+def test_multipart_boundary_is_read_without_a_deprecation_warning():
+    """Every upload's boundary is read through python-multipart's own module name; the old
+    ``multipart`` alias warned (PendingDeprecationWarning) into the server log and every test run."""
+    import warnings
+
+    from server.app import _boundary
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _boundary('multipart/form-data; boundary="ab-12"') == b"ab-12"
+        assert _boundary("multipart/form-data") is None
+
+
+def test_binary_request_sizes_are_the_ones_docs_protocol_md_gives():
+    """docs/protocol.md states the compact request's total sizes; they are what
+    ``pack_binary_request`` builds and the server parses (it said 115 more bytes with a camera, not 104)."""
+    import re
+    from pathlib import Path
+
+    from fastgha_core.cameras import orbit_cameras
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "protocol.md").read_text(encoding="utf-8")
+    m = re.search(r"Total 11 \+ 4·E bytes without a camera \((\d+) for `ict53`\), (\d+) more with one", text)
+    assert m, "the sentence giving the binary request's sizes"
+    e = SPACE.dim
+    bare = pack_binary_request(3, [0.0] * e)
+    with_cam = pack_binary_request(3, [0.0] * e, orbit_cameras(1, width=96, height=80))
+    assert len(bare) == 11 + 4 * e == int(m.group(1))
+    assert len(with_cam) - len(bare) == int(m.group(2))
+    assert parse_binary_message(with_cam, SPACE).camera.width == 96

@@ -217,7 +217,7 @@ def test_cli_writes_a_request_folder(tmp_path):
 
     p = tmp_path / "gh.jpg"
     Image.fromarray(_grace_hopper()).save(p)
-    rc = main(["track", "--images", str(p), "--out", str(tmp_path / "req"), "--size", "96", "--json", str(tmp_path / "r.json")])
+    rc = main(["track", "--images", str(p), "--out", str(tmp_path / "req"), "--size", "96", "--json", str(tmp_path / "reports" / "r.json")])
     assert rc == 0
     images, cams = load_request_folder(tmp_path / "req")
     assert len(images) == 1 and cams[0].width == 96
@@ -225,7 +225,7 @@ def test_cli_writes_a_request_folder(tmp_path):
     assert (tmp_path / "req" / (images[0].stem + "_mask.png")).is_file()
     ex = json.loads((tmp_path / "req" / "expressions.json").read_text())
     assert ex["space"] == "ict53" and len(ex["expressions"][0]) == 53
-    assert json.loads((tmp_path / "r.json").read_text())["photos"][0]["mask"] == "estimated"
+    assert json.loads((tmp_path / "reports" / "r.json").read_text())["photos"][0]["mask"] == "estimated"  # its folder made
 
 
 @needs_faces

@@ -9,6 +9,21 @@ def loading(model: str) -> None:
     print(f"loading model {str(model)!r} ...", file=sys.stderr, flush=True)
 
 
+def check_model_has_weights(spec: str) -> None:
+    """Refuse a preset name without shipped weights (``paper``): it would build a randomly initialised
+    network (minutes and gigabytes for ``paper``) only to reconstruct or render noise. Model folders
+    and shipped presets pass. Raises ``ValueError`` naming the presets that ship weights."""
+    from ..config import PRESETS
+    from ..model.fastgha import ASSET_MODELS_DIR, CONFIG_NAME, WEIGHTS_NAME
+
+    shipped = sorted(n for n in PRESETS if (ASSET_MODELS_DIR / n / CONFIG_NAME).is_file() and (ASSET_MODELS_DIR / n / WEIGHTS_NAME).is_file())
+    if spec in PRESETS and spec not in shipped:
+        raise ValueError(
+            f"--model {spec!r}: no shipped weights for this preset (shipped: {', '.join(shipped) or 'none'}); "
+            "give a trained model folder instead (`fastgha train ... --out RUN` writes RUN/model)"
+        )
+
+
 #: Largest view-blending tau (degrees) the commands and the server accept: angles between cameras are at most
 #: 180 degrees, so beyond this every weight is above exp(-1/2) and the value only hides a typo (0 turns blending off).
 MAX_VIEW_BLEND_TAU_DEG = 360.0

@@ -112,11 +112,15 @@ def run(args) -> int:
     from ..constants import BACKGROUND_RGB
     from ..model.avatar import CanonicalAvatar
     from ..model.fastgha import load_model
-    from . import loading
+    from . import check_model_has_weights, loading
     from ..render import render
 
     if args.size <= 0 or args.fps <= 0:
         raise ValueError(f"--size and --fps must be positive, got {args.size} and {args.fps}")
+    if not args.radius > 0:
+        raise ValueError(f"--radius must be > 0 metres, got {args.radius}")
+    if not 0 < args.fov < 180:
+        raise ValueError(f"--fov must be in (0, 180) degrees, got {args.fov}")
     from . import view_blend_tau_problem
 
     if args.view_blend_tau_deg is not None and view_blend_tau_problem(args.view_blend_tau_deg):
@@ -131,8 +135,15 @@ def run(args) -> int:
     from ..cli import check_device
 
     check_device(args.device)
+    check_model_has_weights(args.model or avatar.model_name)
     loading(args.model or avatar.model_name)
     model = load_model(args.model or avatar.model_name, device=args.device)
+    if (model.config.name, model.config.expression_space) != (avatar.model_name, avatar.expression_space):
+        raise ValueError(  # as the server's avatar_model_mismatch: the MLP reads the reconstructing model's features
+            f"--model {args.model!r} is model {model.config.name!r} ({model.config.expression_space}), but {args.avatar} was "
+            f"reconstructed by model {avatar.model_name!r} ({avatar.expression_space}), whose deformation it needs: "
+            "animate it with that model (without --model for a shipped one)"
+        )
     if args.view_blend_tau_deg is not None:  # as the server's FASTGHA_VIEW_BLEND_TAU_DEG
         model.config.gaussians.view_blend_tau_deg = float(args.view_blend_tau_deg)
     codes = load_expressions(args.expressions, model.expression_space)  # [T, E]

@@ -55,7 +55,7 @@ def add_arguments(parser) -> None:
     parser.add_argument(
         "--in-flight", type=int, default=1, help="unanswered requests at a time: 1 renders every frame, 2 is faster but may drop some (default 1)"
     )
-    parser.add_argument("--keep", action="store_true", help="do not delete the avatar afterwards")
+    parser.add_argument("--keep", action="store_true", help="do not delete the avatar afterwards; prints its id and token")
 
 
 _BUILTIN_FRAMES = 48
@@ -372,6 +372,9 @@ def run(args) -> int:
             signal.signal(signal.SIGINT, restore)
         if not args.keep:
             client.delete(avatar)
+        else:  # the server shows a token once: without it the kept avatar cannot be reached again
+            print(f"kept avatar {avatar.avatar_id} on {args.url}, token {avatar.token} "
+                  "(shown once: needed to stream, export or delete it)", flush=True)  # fmt: skip
     if driver is not None:
         n = stats.sent
         if args.save_track:

@@ -10,7 +10,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--sample", default=None, help="shipped sample subject (default: the first; see --list)")
     parser.add_argument("--list", action="store_true", help="list the shipped sample subjects and exit")
     parser.add_argument("--out", default="out/demo", help="output folder (default: out/demo)")
-    parser.add_argument("--frames", type=int, default=0, help="animate only the first N frames (default: all)")
+    parser.add_argument("--frames", type=int, default=None, help="animate only the first N frames, N >= 1 (default: all)")
     parser.add_argument("--json", default=None, metavar="PATH", help="also write the figures as JSON (keys reconstruction_s, fps, psnr)")
     parser.add_argument("--backend", default="auto", help="render backend (default: auto)")
 
@@ -47,20 +47,6 @@ def _label(img, text):  # draw a caption on an [H, W, 3] uint8 image
     return np.asarray(im)
 
 
-def _check_model_has_weights(spec: str) -> None:
-    """The demo shows a trained model: a preset without shipped weights (``paper``) would build a
-    randomly initialised network (minutes and gigabytes for ``paper``) only to render noise."""
-    from ..config import PRESETS
-    from ..model.fastgha import ASSET_MODELS_DIR, CONFIG_NAME, WEIGHTS_NAME
-
-    shipped = sorted(n for n in PRESETS if (ASSET_MODELS_DIR / n / CONFIG_NAME).is_file() and (ASSET_MODELS_DIR / n / WEIGHTS_NAME).is_file())
-    if spec in PRESETS and spec not in shipped:
-        raise ValueError(
-            f"--model {spec!r}: no shipped weights for this preset (shipped: {', '.join(shipped) or 'none'}); "
-            "give a trained model folder instead (`fastgha train ... --out RUN` writes RUN/model)"
-        )
-
-
 def run(args) -> int:
     import json
     import statistics
@@ -76,10 +62,12 @@ def run(args) -> int:
     from ..constants import BACKGROUND_RGB
     from ..data.samples import list_samples, load_sample
     from ..model.fastgha import load_model
-    from . import loading
+    from . import check_model_has_weights, loading
     from ..render import render
     from ..train.metrics import psnr
 
+    if args.frames is not None and args.frames < 1:
+        raise ValueError(f"--frames must be >= 1, got {args.frames} (leave it out for all frames)")
     names = list_samples()
     if args.list:
         print("\n".join(names))
@@ -89,7 +77,7 @@ def run(args) -> int:
     name = args.sample or names[0]
     if name not in names:
         raise ValueError(f"unknown sample {name!r}; shipped samples: {', '.join(names)}")
-    _check_model_has_weights(args.model)
+    check_model_has_weights(args.model)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
@@ -112,7 +100,7 @@ def run(args) -> int:
     expr = sample.expressions
     orbit = sample.orbit_cameras
     n = min(len(expr), orbit.K.shape[0])
-    if args.frames > 0:
+    if args.frames is not None:
         n = min(n, args.frames)
     gt = sample.gt_frames
     bg = torch.tensor(BACKGROUND_RGB)

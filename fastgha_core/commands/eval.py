@@ -35,11 +35,20 @@ def run(args) -> int:
     from ..train.evaluate import EvalConfig, evaluate, write_report
 
     log = logging.getLogger(__name__)
+    for flag, value, least in (("--subjects", args.subjects, 1), ("--num-inputs", args.num_inputs, 1), ("--expressions", args.expressions, 1),
+                               ("--views", args.views, 1), ("--refine-steps", args.refine_steps, 0), ("--grid-subject", args.grid_subject, 0)):  # fmt: skip
+        if value is not None and value < least:
+            raise CLIError(f"{flag} must be >= {least}, got {value}")
+    if args.resolution < 0:
+        raise CLIError(f"--resolution must be positive (or 0 for the model's render size), got {args.resolution}")
     if bool(args.vgg_weights) != bool(args.lpips_weights):
         raise CLIError("LPIPS needs both --vgg-weights and --lpips-weights (got only one)")
     from ..cli import check_device
 
     check_device(args.device)
+    from . import check_model_has_weights
+
+    check_model_has_weights(args.model)
     model = load_model(args.model, device=args.device)
     if args.responses:
         return _run_responses(args, model)
@@ -56,8 +65,6 @@ def run(args) -> int:
 
         faces = load_face_metrics()
     cfg = EvalConfig(num_inputs=args.num_inputs, num_target_timesteps=args.expressions, num_target_views=args.views, ablation=args.ablation, backend=args.backend, resolution=args.resolution, refine_steps=args.refine_steps, refine_cameras=args.refine_cameras, surface=args.surface)
-    if args.resolution < 0:
-        raise CLIError(f"--resolution must be positive (or 0 for the model's render size), got {args.resolution}")
     res = args.resolution or int(model.config.render_size)
     sources = build_eval_sources(args.data, args.subjects, resolution=max(res, int(model.config.input_size)), num_cameras=max(16, args.num_inputs + args.views), first_seed=args.first_seed)
     report = evaluate(model, sources, cfg, lpips=lpips, faces=faces, out_dir=args.out)
@@ -90,7 +97,9 @@ def _run_responses(args, model) -> int:
     out.mkdir(parents=True, exist_ok=True)
     report = evaluate_responses(model, sources, cfg, out_dir=out)
     report["model"], report["data"], report["ablation"] = str(args.model), str(args.data), args.ablation
-    (Path(args.json) if args.json else out / "responses.json").write_text(json.dumps(report, indent=2))
+    report_path = Path(args.json) if args.json else out / "responses.json"
+    report_path.parent.mkdir(parents=True, exist_ok=True)
+    report_path.write_text(json.dumps(report, indent=2))
     md = responses_markdown(report)
     (out / "responses.md").write_text(md)
     print(md)

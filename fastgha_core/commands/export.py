@@ -47,14 +47,16 @@ def run(args) -> int:
         raise CLIError(f"--min-opacity must lie in [0, 1], got {args.min_opacity}")
     g, meta, extra = load_avatar_file(src)
     n_in = len(g)
+    faint = ""
     if args.min_opacity > 0:
         g = g.prune(args.min_opacity)
+        faint = f"{n_in - len(g)} below --min-opacity {args.min_opacity:g}, "
     dropped = 0
     if not args.keep_outliers:
         g, dropped = drop_outliers(g)
     save_ply(dst, g, axes=args.axes, outliers=False)
     print(
-        f"wrote {dst}: {len(g)} Gaussians (of {n_in}; {dropped} stray dropped), axes {args.axes}, from model "
+        f"wrote {dst}: {len(g)} Gaussians (of {n_in}; {faint}{dropped} stray dropped), axes {args.axes}, from model "
         f"{meta.get('model_name', '?')!r}, expression space {meta.get('expression_space', '?')!r}"
     )
     views = int(extra["view.dirs"].shape[0]) if "view.dirs" in extra else 0

@@ -140,7 +140,7 @@ def run(args) -> int:
     from ..cameras import load_request_folder
     from ..cli import CLIError, check_device
     from ..model.fastgha import load_model
-    from . import loading
+    from . import check_model_has_weights, loading
 
     if args.refine_steps < 0:
         raise CLIError(f"--refine-steps must be >= 0, got {args.refine_steps}")
@@ -156,6 +156,7 @@ def run(args) -> int:
     if args.ply is not None and not str(args.ply).lower().endswith(".ply"):
         raise CLIError(f"--ply must name a .ply file, got {args.ply!r}")
     check_device(args.device)
+    check_model_has_weights(args.model)
     paths, cams = load_request_folder(args.input)
     images = [_read_image(p) for p in paths]
     masks = []

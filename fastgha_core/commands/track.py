@@ -85,6 +85,8 @@ def run(args) -> int:
     log = logging.getLogger(__name__)
     if args.size < 16:
         raise CLIError(f"--size must be at least 16, got {args.size}")
+    if not 1 <= args.fov <= 150:
+        raise CLIError(f"--fov must be in [1, 150] degrees, got {args.fov}")
     out = Path(args.out)
     earlier = _earlier_run_files(out, [Path(n) for n in args.images])
     photos, masks, names, focals = [], [], [], []
@@ -153,6 +155,7 @@ def run(args) -> int:
                 for i in range(len(names))
             ],
         }
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(report, indent=1))
     log.info("tracked %d photo(s)", len(names))
     print(f"wrote {out}: {len(names)} crop(s) {args.size}x{args.size} + masks, cameras.json, expressions.json, head.json")

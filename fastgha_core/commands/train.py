@@ -60,6 +60,11 @@ def run(args) -> int:
         raise CLIError(f"--min-lr-ratio must be in [0, 1], got {cfg.min_lr_ratio}")
     if cfg.steps < 1 or cfg.batch_size < 1:
         raise CLIError(f"--steps and --batch-size must be >= 1, got {cfg.steps} and {cfg.batch_size}")
+    if not cfg.lr > 0 or not cfg.lr_deform >= 0:
+        raise CLIError(f"--lr must be > 0 and --lr-deform >= 0 (0 freezes the deformation MLP), got {cfg.lr} and {cfg.lr_deform}")
+    for flag, value in (("--workers", cfg.workers), ("--warmup-steps", cfg.warmup_steps), ("--val-every", cfg.val_every), ("--ckpt-every", cfg.ckpt_every)):
+        if value < 0:
+            raise CLIError(f"{flag} must be >= 0, got {value}")
     dist = init_distributed(args.device)
     try:
         model = build_model(cfg, args.dino_weights, args.vae_weights, args.init_from)
