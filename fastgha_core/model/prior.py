@@ -175,14 +175,16 @@ LIP_SEAM_DEFAULT = (0.45, 0.2, 0.18)  # lip red, without an avatar to take it fr
 # a seam drawn there lies on the avatar's lip instead of between its lips. The avatar's own colours
 # place the lips: along the fit's up axis, the opacity-weighted luma of its solid Gaussians within
 # LIP_SEAM_COLUMNS of the inner mouth's half-width from its centre and in front of the lips' front less
-# LIP_SEAM_DEPTH, smoothed over LIP_SEAM_SMOOTH, is darkest on the upper lip, LIP_SEAM_BELOW under which
-# the truth's seam lies (median over those seeds; the residual: 0.9 mm mean, against 2.0 mm for the fit).
-# The seam moves by that amount, at most LIP_SEAM_MAX_SHIFT; searched within LIP_SEAM_SEARCH of the fit.
+# LIP_SEAM_DEPTH, smoothed over LIP_SEAM_SMOOTH, is darkest on the upper lip, a few mm above the truth's
+# seam vertices (median 2.85 mm; the residual: 0.9 mm mean, against 2.0 mm for the fit). The seam goes
+# LIP_SEAM_BELOW under that line, at most LIP_SEAM_MAX_SHIFT from the fit (searched within
+# LIP_SEAM_SEARCH of it): 1.5 mm gave the best smile and neutral mouth PSNR on those seeds (0.5 / 1.0 /
+# 1.5 / 2.2 / 2.85 mm: smile 22.97 / 23.06 / 23.10 / 23.06 / 22.91 dB; the fitted place: 22.72 dB).
 LIP_SEAM_COLUMNS = 0.4
 LIP_SEAM_DEPTH = 0.008  # metres
 LIP_SEAM_SMOOTH = 0.00075  # metres (Gaussian kernel sd)
 LIP_SEAM_SEARCH = 0.006  # metres
-LIP_SEAM_BELOW = 0.00285  # metres
+LIP_SEAM_BELOW = 0.0015  # metres
 LIP_SEAM_MAX_SHIFT = 0.005  # metres
 LIP_SEAM_MIN_POINTS = 10
 LIP_SEAM_MIN_CONTRAST = 0.02  # luma: a flatter profile leaves the seam where the fit puts it
