@@ -158,7 +158,9 @@ LIP_RADIUS = 0.008  # metres
 # between LIP_SEAM_BAND (metres, below / above the inner-lip landmarks' mean height), within
 # LIP_SEAM_REACH of an inner-lip landmark and inside the mouth corners (196 points), LIP_SEAM_SCALE
 # in the basis and drawn LIP_SEAM_AXES wide; coloured like the avatar's own lips there (median of the LIP_SEAM_K nearest solid Gaussians)
-# times their brightness against the lips' front under the generic light, ** (1/2.2) (sRGB).
+# times their brightness against the lips' front under the generic light, ** (LIP_SEAM_CONTRAST/2.2)
+# (sRGB; LIP_SEAM_CONTRAST < 1 draws it lighter: the blurred reconstruction's seam is wider than the
+# truth's 1-px line, and at full contrast it cost 0.23 dB of the smile's mouth PSNR, training seeds 0-29).
 LIP_SEAM_NY = -0.5
 LIP_SEAM_BAND = (-0.001, 0.0015)
 LIP_SEAM_REACH = 0.012
@@ -168,6 +170,7 @@ LIP_SEAM_SCALE = 0.0008
 # continuous line (isotropic LIP_SEAM_SCALE drew a beaded line of dots at 512², darker and wider than
 # the truth's 1-px line); rotated with the fit
 LIP_SEAM_AXES = (0.0015, 0.0001, 0.0003)
+LIP_SEAM_CONTRAST = 0.75
 LIP_SEAM_K = 8
 LIP_SEAM_DEFAULT = (0.45, 0.2, 0.18)  # lip red, without an avatar to take it from
 # Where the seam sits (``_seam_shift``): the fitted head's lip line is off by -5.8 to +5.6 mm in height
@@ -178,13 +181,14 @@ LIP_SEAM_DEFAULT = (0.45, 0.2, 0.18)  # lip red, without an avatar to take it fr
 # LIP_SEAM_DEPTH, smoothed over LIP_SEAM_SMOOTH, is darkest on the upper lip, a few mm above the truth's
 # seam vertices (median 2.85 mm; the residual: 0.9 mm mean, against 2.0 mm for the fit). The seam goes
 # LIP_SEAM_BELOW under that line, at most LIP_SEAM_MAX_SHIFT from the fit (searched within
-# LIP_SEAM_SEARCH of it): 1.5 mm gave the best smile and neutral mouth PSNR on those seeds (0.5 / 1.0 /
-# 1.5 / 2.2 / 2.85 mm: smile 22.97 / 23.06 / 23.10 / 23.06 / 22.91 dB; the fitted place: 22.72 dB).
+# LIP_SEAM_SEARCH of it). 1.5 mm read a higher smile mouth PSNR on those seeds (0.5 / 1.0 / 1.5 / 2.2 /
+# 2.85 mm: 22.97 / 23.06 / 23.10 / 23.06 / 22.91 dB; the fitted place 22.72) but a held-out jawOpen of
+# 0.69 (B 256²; 0.72 at 2.85 mm, as before the shift): a seam that high reads as parted lips at neutral.
 LIP_SEAM_COLUMNS = 0.4
 LIP_SEAM_DEPTH = 0.008  # metres
 LIP_SEAM_SMOOTH = 0.00075  # metres (Gaussian kernel sd)
 LIP_SEAM_SEARCH = 0.006  # metres
-LIP_SEAM_BELOW = 0.0015  # metres
+LIP_SEAM_BELOW = 0.00285  # metres
 LIP_SEAM_MAX_SHIFT = 0.005  # metres
 LIP_SEAM_MIN_POINTS = 10
 LIP_SEAM_MIN_CONTRAST = 0.02  # luma: a flatter profile leaves the seam where the fit puts it
@@ -377,7 +381,7 @@ def _ict_basis() -> HeadBasis:
 
 def _lip_seam(m, faces: np.ndarray, reg) -> tuple[np.ndarray, np.ndarray]:
     """The lip seam's vertex ids ``[S]`` on ICT-FaceKit and their brightness factor ``[S]`` against the
-    lips' front (generic light, ** (1/2.2)); see ``LIP_SEAM_NY``."""
+    lips' front (generic light, ** (LIP_SEAM_CONTRAST / 2.2)); see ``LIP_SEAM_NY``."""
     from scipy.spatial import cKDTree
 
     from ..data.headmodel import vertex_normals
@@ -395,7 +399,7 @@ def _lip_seam(m, faces: np.ndarray, reg) -> tuple[np.ndarray, np.ndarray]:
     d, a = SHADE_LIGHT, SHADE_AMBIENT
     br = a + (1.0 - a) * np.clip(n @ np.asarray(d, np.float64), 0.0, None)
     front = lips & (n[:, 2] > 0.8)
-    f = np.minimum((br[ids] / np.median(br[front])) ** (1.0 / SHADE_GAMMA), 1.0)
+    f = np.minimum((br[ids] / np.median(br[front])) ** (LIP_SEAM_CONTRAST / SHADE_GAMMA), 1.0)
     return ids, f.astype(np.float32)
 
 
