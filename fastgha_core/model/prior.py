@@ -35,8 +35,8 @@ Pieces (all numpy/torch on CPU, no learning):
   an opacity gate that is 0 while the lips are closed; and Gaussians on the upper eyelids, coloured
   like the avatar's skin, and on the upper lashes, dark (the avatar's darkest colours at the open
   eye's upper lid), that appear as a blink closes the lids (``gate_factors``); and thin dark
-  Gaussians on the upper lip's underside, the seam between closed lips (``LIP_SEAM_NY``), that fade
-  as the mouth opens.
+  Gaussians on the upper lip's underside, the seam between closed lips (``LIP_SEAM_NY``), moved to
+  where the avatar's own lip colours put it (``_seam_shift``), that fade as the mouth opens.
 - ``hide_open_lips(binding, ...)``: the reconstructed Gaussians near the lips from input photos whose
   (tracked) expression opens the mouth fade out as the avatar's mouth opens: undone onto the closed
   lips, those photos' teeth and mouth gap lined the opening (``open_mouth_views``).
