@@ -1032,3 +1032,50 @@ def test_the_lip_seam_is_a_thin_line_flat_across_the_seam_in_the_fitted_heads_fr
         assert np.all(np.abs(rot[:, :, k] @ a) > 0.99)
     others = ~seam
     assert torch.allclose(g.scales[others][:, 0], g.scales[others][:, 1])  # the rest stay isotropic
+
+
+def test_the_lip_seam_moves_to_where_the_avatars_own_colours_put_the_lips(fit, basis):
+    """The fitted head's lip line is off by up to ~6 mm in height (issue 16), and a seam drawn there
+    lay on the avatar's lip. ``mouth_interior`` moves the seam along the fitted head's up axis to
+    ``LIP_SEAM_BELOW`` under the darkest line of the avatar's lips in front of the mouth (the upper
+    lip): a dark band placed at different heights on a sheet of lip-red Gaussians moves the seam by
+    the band's own step; a sheet of one colour, or no avatar, leaves it on the fitted vertices."""
+    from fastgha_core.gaussians import Gaussians
+    from fastgha_core.model.prior import LIP_SEAM_BELOW, LIP_SEAM_MAX_SHIFT, _fit_frame
+
+    seam = torch.from_numpy(basis.seam)
+    ids = basis.interior_vertices[basis.seam]
+    rot, s = _fit_frame(fit)
+    t = fit.transform[:3, 3].astype(np.float64)
+    fq = (fit.vertices.astype(np.float64) - t) @ rot / s  # the fitted head's own frame
+    ys = fq[ids, 1].mean()
+    lip = fq[basis.lip_landmarks]
+    xc = 0.5 * (lip[12, 0] + lip[16, 0])
+    gx, gy = np.meshgrid(np.linspace(xc - 0.008, xc + 0.008, 17), np.arange(ys - 0.009, ys + 0.009, 0.0004))
+    q = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, lip[:, 2].max() - 0.001)], 1)
+    means = (q * s) @ rot.T + t  # a sheet just behind the lips' front, in the world
+
+    def seam_height(band: float | None, avatar: bool = True) -> float:
+        """Mean height (metres, head frame) of the seam over its fitted vertices, with a dark band
+        ``band`` metres above the fitted seam (None: one colour)."""
+        red = np.tile(np.array([0.7, 0.3, 0.3], np.float32), (len(q), 1))
+        if band is not None:
+            red[np.abs(q[:, 1] - ys - band) < 0.00075] *= 0.5
+        n = len(q)
+        a = Gaussians(
+            means=torch.from_numpy(means.astype(np.float32)), quats=torch.tensor([1.0, 0, 0, 0]).expand(n, 4).contiguous(),
+            scales=torch.full((n, 3), 0.0005), opacities=torch.full((n,), 0.9), colors=torch.from_numpy(red), features=torch.zeros(n, 0),
+        )
+        g, _ = mouth_interior(fit, basis, num_features=0, avatar=a if avatar else None)
+        return float(((g.means[seam].double().numpy() - fit.vertices[ids]) @ rot[:, 1]).mean() / s)
+
+    for band in (-0.001, 0.002, 0.004):
+        want = float(np.clip(band - LIP_SEAM_BELOW, -LIP_SEAM_MAX_SHIFT, LIP_SEAM_MAX_SHIFT))
+        assert abs(seam_height(band) - want) < 0.0004, band
+    assert abs((seam_height(0.004) - seam_height(0.002)) - 0.002) < 0.0004  # it follows the lips, step for step
+    assert abs(seam_height(None)) < 1e-6 and abs(seam_height(0.004, avatar=False)) < 1e-6
+    with pytest.raises(ValueError, match="drawn"):
+        n = len(q)
+        a = Gaussians(means=torch.zeros(n, 3), quats=torch.tensor([1.0, 0, 0, 0]).expand(n, 4).contiguous(), scales=torch.full((n, 3), 0.001),
+                      opacities=torch.ones(n), colors=torch.full((n, 3), 0.5), features=torch.zeros(n, 0))
+        mouth_interior(fit, basis, num_features=0, avatar=a, drawn=np.zeros((n - 1, 3)))

@@ -378,7 +378,7 @@ class FastGHA(nn.Module):
         if self.config.deform.mouth_interior and len(basis.interior_vertices):
             # the interior behind the avatar's own lips, which sit a few mm behind the fitted ones
             inset = interior_inset(drawn, fit, basis, g.opacities[: len(drawn)])
-            gi, bi = mouth_interior(fit, basis, g.features.shape[1], avatar=g[: len(g) - n_int], inset=inset)
+            gi, bi = mouth_interior(fit, basis, g.features.shape[1], avatar=g[: len(g) - n_int], inset=inset, drawn=drawn)
             gi = gi.to(dev, g.means.dtype)
             g = Gaussians.concat([g, gi])
             binding = PriorBinding.concat(binding, bi.to(dev))
