@@ -1079,3 +1079,71 @@ def test_the_lip_seam_moves_to_where_the_avatars_own_colours_put_the_lips(fit, b
         a = Gaussians(means=torch.zeros(n, 3), quats=torch.tensor([1.0, 0, 0, 0]).expand(n, 4).contiguous(), scales=torch.full((n, 3), 0.001),
                       opacities=torch.ones(n), colors=torch.full((n, 3), 0.5), features=torch.zeros(n, 0))
         mouth_interior(fit, basis, num_features=0, avatar=a, drawn=np.zeros((n - 1, 3)))
+
+
+def test_a_closed_lid_covers_the_hole_its_faded_eye_leaves():
+    """A closing lid fades the reconstructed Gaussians over its eye; where the avatar's eye is wider
+    than the fitted one, that left a hole around the skin-coloured lid through which the back shell's
+    inside (the hair's dark brown) drew a dark outline: "goggles" (issue 16, the astronaut portrait).
+    Toy avatar: the face's skin with a hole 4 mm wider than the closed lid's eye opening, blinked, in
+    front of a dark background. Around the closed lid the render is skin-coloured and opaque (its
+    backing, ``LID_BACK_*``), not the background, and the lid is no brighter than the skin."""
+
+    from fastgha_core.cameras import Cameras
+    from fastgha_core.config import get_preset
+    from fastgha_core.gaussians import Gaussians
+    from fastgha_core.model.avatar import CanonicalAvatar
+    from fastgha_core.model.fastgha import FastGHA
+    from fastgha_core.render import render
+
+    basis = load_basis("ict53")
+    hm = HeadModel.load()
+    v = hm.neutral
+    face = np.arange(0, 11248, 2)
+    face = face[v[face, 2] > v[hm.landmarks68[0], 2] - 0.01]
+    grp = basis.interior_group
+    blink = [hm.expression_names.index(n) for n in ("eyeBlink_L", "eyeBlink_R")]
+    lid_rows = (grp > 0) & (grp < basis.gates.shape[0])  # the closed lids and their lashes
+    if basis.lid_back is not None:
+        lid_rows &= ~basis.lid_back
+    vid = basis.interior_vertices[lid_rows]
+    closed = v[vid] + hm.expression_basis[blink][:, vid].sum(0)  # [P, 3] where the closed lids are drawn
+    from scipy.spatial import cKDTree
+
+    foot = cKDTree(closed[:, :2])
+    face = face[foot.query(v[face, :2])[0] > 0.006]  # the hole: 6 mm around the closed lids, seen through
+    # the ring to look at: 4-5 mm outside the closed lids' Gaussian centres, inside the hole
+    off = np.array([[dx, dy, 0.0] for dx in (-0.0045, 0.0, 0.0045) for dy in (-0.0045, 0.0, 0.0045)])
+    ring = (closed[:, None] + off[None]).reshape(-1, 3)
+    dring = foot.query(ring[:, :2])[0]
+    ring = ring[(dring > 0.004) & (dring < 0.005)]
+    assert len(ring) > 50
+    skin = np.array([0.78, 0.58, 0.48], np.float32)
+    n = len(face)
+    g = Gaussians(
+        torch.from_numpy(v[face].copy()), torch.tensor([1.0, 0, 0, 0]).expand(n, 4).clone(), torch.full((n, 3), 0.0025),
+        torch.full((n,), 0.95), torch.from_numpy(np.tile(skin, (n, 1))), torch.zeros(n, 32),
+    )
+    torch.manual_seed(0)
+    model = FastGHA(get_preset("tiny")).eval()
+    with torch.no_grad():
+        model.deform.out.weight.zero_()
+        model.deform.out.bias.zero_()
+    model.config.deform.back_shell = False  # the background stands for the shell's inside
+    g2, b, n_int = model.build_prior(g)
+    av = CanonicalAvatar(g2, "tiny", "ict53", b, n_int)
+    z = torch.zeros(53)
+    z[blink] = 1.0
+    lm = v[hm.landmarks68]
+    centre = torch.tensor([0.0, float(lm[36:48, 1].mean()), 0.0])
+    cam = Cameras.look_at((centre + torch.tensor([0.0, 0.0, 0.5]))[None], centre[None], fov_deg=20.0, width=192, height=192)
+    out = render(model.animate(av, z), cam, background=(0.0, 0.0, 0.0))
+    uv, _ = cam.project(torch.from_numpy(ring.astype(np.float32)))
+    uv = uv.reshape(-1, 2).round().long().clamp(0, 191)
+    alpha = out.alpha[0, 0][uv[:, 1], uv[:, 0]]
+    rgb = out.rgb[0][:, uv[:, 1], uv[:, 0]]  # [3, P]
+    lum = torch.from_numpy(np.array([0.299, 0.587, 0.114], np.float32)) @ rgb
+    skin_l = float(np.array([0.299, 0.587, 0.114]) @ skin)
+    # covered: 0.87 of the skin's luma and alpha on average (0.80 without the backing, the lid's edge alone)
+    assert float(lum.mean()) > 0.835 * skin_l and float(alpha.mean()) > 0.835, (float(lum.mean()) / skin_l, float(alpha.mean()))
+    assert float(lum.max()) < 1.05 * skin_l  # and nowhere brighter than the skin

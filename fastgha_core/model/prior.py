@@ -225,6 +225,7 @@ class HeadBasis:
     sample_color: np.ndarray  # [I] bool: colour taken from the avatar (nearest Gaussian above the point)
     hide_group: np.ndarray  # [Nv] int8: reconstructed Gaussians bound here fade out with this gate (0: never)
     lash: np.ndarray | None = None  # [I] bool: closed-lid lash points (dark, ``_lash_color``); None: none
+    lid_back: np.ndarray | None = None  # [I] bool: the closed lids' backing (``LID_BACK_*``); None: none
     # [F] bool: triangles of ``bind_faces`` inside the mouth (teeth, gums/tongue, socket) that the
     # reconstructed Gaussians do not bind to (``bind``); None: every triangle binds
     mouth_faces: np.ndarray | None = None
@@ -315,7 +316,7 @@ def _ict_basis() -> HeadBasis:
     # response 0.65 -> 0.68)
     scales = [np.concatenate([np.full(len(teeth), TEETH_SCALE), np.full(len(gums) + len(sock), 0.0022 * 0.9)])]
     sample = [np.zeros(len(ids), bool)]
-    lid_ids, lash_ids = [], []
+    lid_ids, lash_ids, back_ids = [], [], []
     lash_all = np.flatnonzero(reg.lashes > 0)
     for gi, side in ((1, "L"), (2, "R")):
         k = m.expression_names.index(f"eyeBlink_{side}")
@@ -330,6 +331,13 @@ def _ict_basis() -> HeadBasis:
         groups += [np.full(len(lid), gi), np.full(len(lash), gi)]
         scales += [np.full(len(lid), 0.0022), np.full(len(lash), LASH_SCALE)]
         sample += [np.ones(len(lid), bool), np.ones(len(lash), bool)]
+        # the lid's backing (LID_BACK_*): wider discs behind the closed lid that fill the hole the
+        # eyeball's fading Gaussians leave around it
+        back = lid[::LID_BACK_STEP]
+        back_ids.append(back)
+        groups.append(np.full(len(back), gi))
+        scales.append(np.full(len(back), LID_BACK_SCALE))
+        sample.append(np.ones(len(back), bool))
     # Reconstructed Gaussians on the eyeballs fade out as the lids close over them.
     from ..data.headmodel import EYEBALL_VERTEX_RANGE
 
@@ -340,9 +348,11 @@ def _ict_basis() -> HeadBasis:
     for gi, sg in zip((1, 2), sides):
         hide[eye & (np.sign(v[:, 0]) == sg)] = gi
     n_mouth = len(ids)
-    ids = np.concatenate([ids, *(x for pair in zip(lid_ids, lash_ids) for x in pair)]).astype(np.int64)
+    ids = np.concatenate([ids, *(x for trio in zip(lid_ids, lash_ids, back_ids) for x in trio)]).astype(np.int64)
     lash_flag = np.zeros(len(ids), bool)
-    lash_flag[n_mouth:] = np.concatenate([np.r_[np.zeros(len(a), bool), np.ones(len(b), bool)] for a, b in zip(lid_ids, lash_ids)])
+    lash_flag[n_mouth:] = np.concatenate([np.r_[np.zeros(len(a), bool), np.ones(len(b), bool), np.zeros(len(c), bool)] for a, b, c in zip(lid_ids, lash_ids, back_ids)])
+    back_flag = np.zeros(len(ids), bool)
+    back_flag[n_mouth:] = np.concatenate([np.r_[np.zeros(len(a) + len(b), bool), np.ones(len(c), bool)] for a, b, c in zip(lid_ids, lash_ids, back_ids)])
     cols = np.concatenate([cols, np.zeros((len(ids) - n_mouth, 3), np.float32)])
     # the lip seam (LIP_SEAM_NY): on while the lips are closed (``lip_hide_group``: 1 - the mouth gate;
     # with the seam on at an open jaw, B 512²'s jaw read 0.68), its colour factor in interior_colors;
@@ -350,6 +360,7 @@ def _ict_basis() -> HeadBasis:
     seam_ids, seam_f = _lip_seam(m, faces, reg)
     ids = np.concatenate([seam_ids, ids]).astype(np.int64)
     lash_flag = np.concatenate([np.zeros(len(seam_ids), bool), lash_flag])
+    back_flag = np.concatenate([np.zeros(len(seam_ids), bool), back_flag])
     cols = np.concatenate([np.repeat(seam_f[:, None], 3, 1).astype(np.float32), cols])
     groups.insert(0, np.full(len(seam_ids), 2 * len(gates) - 1))  # lip_hide_group: fades as the lips part
     scales.insert(0, np.full(len(seam_ids), LIP_SEAM_SCALE))
@@ -373,6 +384,7 @@ def _ict_basis() -> HeadBasis:
         sample_color=np.concatenate(sample),
         hide_group=hide,
         lash=lash_flag,
+        lid_back=back_flag,
         mouth_faces=inside[faces].any(1),
         lip_landmarks=np.asarray(m.landmarks68[48:68], np.int64),
         seam=seam_flag,
@@ -800,6 +812,39 @@ def _lash_color(lid: np.ndarray, tree, colors: np.ndarray, skin: np.ndarray, k: 
     return np.clip(col, 0.0, 1.0).astype(np.float32)
 
 
+# The closed lid's own Gaussians fade in over LID_EDGE_TRAVEL (metres of blink travel) from
+# LID_EDGE_OPACITY (times LID_OPACITY) at the crease side to full: a soft edge, not a cut-out oval.
+LID_EDGE_TRAVEL = (0.0025, 0.0045)
+# The closed lid's backing: every LID_BACK_STEP-th upper-lid vertex once more, as a LID_BACK_SCALE
+# (metres) Gaussian LID_BACK_INSET behind the lid along the fitted head's forward axis, coloured like
+# the lid. A closing lid fades the reconstructed Gaussians bound to its eyeball; where the avatar's eye
+# is wider or sits lower than the fitted one (1-5 mm on real photos), that left a hole around the
+# lid through which the back shell's inside (the hair's dark brown) showed: a dark outline, "goggles".
+LID_BACK_STEP = 2
+LID_BACK_SCALE = 0.004
+LID_BACK_INSET = 0.015
+LID_EDGE_OPACITY = 0.3
+LID_OPACITY = 0.9
+
+
+def _lid_parts(basis: HeadBasis) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """Per lid gate ``k``: ``(k, lid_rows, travel)``, the rows of ``basis.interior_vertices`` that are that
+    eye's closed-lid skin (not lashes, not the backing) and how far (metres, head model units) its blink moves each."""
+    ids, grp = basis.interior_vertices, basis.interior_group
+    lash = np.zeros(len(ids), bool) if basis.lash is None else basis.lash
+    if basis.lid_back is not None:
+        lash = lash | basis.lid_back
+    out = []
+    for k in range(1, basis.gates.shape[0]):
+        rows = np.flatnonzero((grp == k) & ~lash & basis.sample_color)
+        if not len(rows):
+            continue
+        shapes = np.flatnonzero(basis.gates[k] > 0)
+        travel = np.linalg.norm(basis.expression_basis[shapes][:, ids[rows]], axis=-1).max(0)
+        out.append((k, rows, travel))
+    return out
+
+
 def interior_inset(points: np.ndarray | Tensor, fit: HeadFit, basis: HeadBasis, opacities: np.ndarray | Tensor | None = None) -> float:
     """How far (metres) to move the mouth interior back behind the fitted head's lips: as deep as the
     avatar's own lips are drawn behind the fitted lip surface.
@@ -850,7 +895,8 @@ def mouth_interior(
     interior (teeth, gums/tongue, mouth socket; coloured as the synthetic renderer shows them,
     ``INTERIOR_SHADE``; moved ``inset`` metres back along the fitted head's forward axis, see
     ``interior_inset``), the closed upper eyelids (coloured like the avatar's skin around the eye,
-    ``_lid_skin_colors``; skin grey without ``avatar``) and their lashes (``_lash_color``;
+    ``_lid_skin_colors``; skin grey without ``avatar``; fading in towards the crease,
+    ``LID_EDGE_*``; with a backing of wider Gaussians behind them, ``LID_BACK_*``) and their lashes (``_lash_color``;
     ``LASH_DEFAULT`` without ``avatar``), and the lip seam (``LIP_SEAM_NY``; ``lip_hide_group``: it
     fades as the mouth opens; flat across the seam and stretched along it, ``LIP_SEAM_AXES`` turned with the
     fit), coloured like the avatar's lips nearby times its brightness factor (``LIP_SEAM_DEFAULT``
@@ -867,8 +913,8 @@ def mouth_interior(
     M = fit.transform[:3, :3].astype(np.float64)
     s = float(np.cbrt(abs(np.linalg.det(M))))
     pos = fit.vertices[ids].astype(np.float32)
+    fwd = M[:, 2] / max(np.linalg.norm(M[:, 2]), 1e-9)
     if inset:
-        fwd = M[:, 2] / max(np.linalg.norm(M[:, 2]), 1e-9)
         pos[basis.interior_group == 0] -= (float(inset) * fwd).astype(np.float32)
     cols = basis.interior_colors.astype(np.float32).copy()
     seam = np.zeros(n, bool) if basis.seam is None else basis.seam
@@ -915,6 +961,12 @@ def mouth_interior(
                     sel = np.flatnonzero(smp)[over_eye & (grp[smp] == gi)]
                     if len(sel):
                         cols[lash & (grp == gi)] = _lash_color(pos[sel], tree, ac, np.median(cols[sel], axis=0))
+    if basis.lid_back is not None:  # the closed lids' backing (coloured like the lid above), behind them
+        pos[basis.lid_back] -= (LID_BACK_INSET * s * fwd).astype(np.float32)
+    opac = np.full(n, LID_OPACITY, np.float32)
+    for _, rows, travel in _lid_parts(basis):  # the closed lid's soft edge towards the crease
+        t0, t1 = LID_EDGE_TRAVEL
+        opac[rows] = LID_OPACITY * (LID_EDGE_OPACITY + (1.0 - LID_EDGE_OPACITY) * _smoothstep(np.clip((travel - t0) / (t1 - t0), 0.0, 1.0)))
     quats = np.tile(np.array([1.0, 0.0, 0.0, 0.0], np.float32), (n, 1))
     scales = np.repeat((basis.interior_scale * s).astype(np.float32)[:, None], 3, 1)
     if seam.any():  # flat across the seam, along it in the head's x (LIP_SEAM_AXES), turned with the fit
@@ -928,7 +980,7 @@ def mouth_interior(
         means=torch.from_numpy(pos),
         quats=torch.from_numpy(quats),
         scales=torch.from_numpy(scales),
-        opacities=torch.full((n,), 0.9),
+        opacities=torch.from_numpy(opac),
         colors=torch.from_numpy(np.clip(cols, 0, 1)),
         features=torch.zeros(n, num_features),
     )
