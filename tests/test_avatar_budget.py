@@ -35,7 +35,7 @@ def _held_bytes(avatar) -> int:
     return sum(_tensor_bytes(v, seen) for part in parts for v in part)
 
 
-def test_serving_bytes_match_what_an_animated_avatar_holds(model_and_avatar):
+def test_serving_bytes_match_what_an_animated_avatar_holds(model_and_avatar):  # noqa: F811 (the imported fixture)
     model, avatar, _ = model_and_avatar
     avatar.deform_cache = avatar.prior_runtime = None
     estimate = model.serving_nbytes(avatar)

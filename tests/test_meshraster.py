@@ -61,7 +61,10 @@ def test_supersampling_is_box_filter_of_fine_render():
     for s in (2, 3):
         fine = render_mesh(pts, faces, attrs, K * np.array([[s], [s], [1]]), 32 * s, 32 * s, supersample=1)
         coarse = render_mesh(pts, faces, attrs, K, 32, 32, supersample=s, background=[1.0, 1.0, 1.0])
-        box = lambda a: a.reshape(32, s, 32, s, *a.shape[2:]).mean((1, 3))
+
+        def box(a, s=s):
+            return a.reshape(32, s, 32, s, *a.shape[2:]).mean((1, 3))
+
         alpha = box(fine.alpha)
         np.testing.assert_allclose(coarse.alpha, alpha, atol=1e-6)
         np.testing.assert_allclose(coarse.color, box(fine.color) + (1 - alpha[..., None]), atol=1e-5)

@@ -3,7 +3,6 @@ analytic cases (single Gaussian, occlusion, depth of a plane, empty scenes)."""
 
 from __future__ import annotations
 
-import math
 
 import pytest
 import torch

@@ -100,7 +100,7 @@ def test_camera_rig_spread_and_framing():
 
 def test_expressions_sparse_smooth_and_in_range():
     names = HeadModel.load().expression_names
-    neutral_frac, jumps = [], []
+    neutral_frac = []
     for s in range(8):
         e = expression_trajectory(np.random.default_rng(s), 64, names)
         assert e.shape == (64, 53) and e.dtype == np.float32

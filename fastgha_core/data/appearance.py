@@ -393,15 +393,15 @@ def shade(
     """Baked, view-independent lighting -> sRGB colours ``[N, 3]`` in [0, 1] (float32)."""
     lin = np.asarray(albedo, dtype=np.float64) ** 2.2
     n = np.asarray(normals, dtype=np.float64)
-    l = params.key_dir
+    key = params.key_dir
     wrap = 0.25
-    ndl = np.clip((n @ l + wrap) / (1 + wrap), 0, None)[:, None]
-    fill_dir = np.array([-l[0], 0.2, abs(l[2])])
+    ndl = np.clip((n @ key + wrap) / (1 + wrap), 0, None)[:, None]
+    fill_dir = np.array([-key[0], 0.2, abs(key[2])])
     fill_dir /= np.linalg.norm(fill_dir)
     ndf = np.clip(n @ fill_dir, 0, None)[:, None]
     hemi = (0.65 + 0.35 * (0.5 + 0.5 * n[:, 1]))[:, None]
     rad = lin * (params.ambient_rgb * hemi + params.key_rgb * ndl + params.fill_rgb * ndf)
-    h = l + np.array([0.0, 0.0, 1.0])
+    h = key + np.array([0.0, 0.0, 1.0])
     h /= np.linalg.norm(h)
     spec = (np.clip(n @ h, 0, None) ** shininess * specular)[:, None] * params.key_rgb
     out = (rad + spec) * exposure
