@@ -24,6 +24,7 @@ from client_demo.client import describe_avatar
 from server.avatar_info import FACT_KEYS, avatar_options
 from server.identity import IdentityChecker, same_person_groups
 from server.jobs import CreationRequest, Photo
+from extras import hide_modules
 from server_process import SAMPLE_NAME, make_model_dir, make_sample_dir
 
 pytestmark = pytest.mark.timeout(300)
@@ -266,16 +267,7 @@ def test_check_names_the_photos_of_each_person():
 
 
 def test_without_dlib_nothing_is_checked_and_the_avatar_says_so(model_dir, samples, tmp_path, monkeypatch):
-    import builtins
-
-    real_import = builtins.__import__
-
-    def no_dlib(name, *a, **k):
-        if name in ("dlib", "face_recognition_models"):
-            raise ImportError(f"No module named {name!r}")
-        return real_import(name, *a, **k)
-
-    monkeypatch.setattr(builtins, "__import__", no_dlib)
+    hide_modules(monkeypatch, "dlib", "face_recognition_models")
     ctx = _ctx(model_dir, tmp_path)
     photos, cams = _sample_request(samples)
     job = _run_job(ctx, CreationRequest(photos, None, cams))

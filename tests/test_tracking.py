@@ -17,6 +17,7 @@ from fastgha_core.tracking.evaluate import evaluate, random_subject, rotation_er
 from fastgha_core.tracking.fit import FRONTAL_R, FitConfig, LandmarkModel, default_intrinsics, fit_landmarks
 from fastgha_core.tracking.matting import GaussianMixture
 from fastgha_core.tracking.video import OneEuroFilter
+from extras import hide_modules
 
 try:
     from fastgha_core.tracking.faces import load_face_detector
@@ -267,18 +268,9 @@ def test_cli_refuses_an_out_folder_holding_other_photos(tmp_path, capsys):
 
 
 def test_missing_faces_extra_names_the_extra(monkeypatch):
-    import builtins
-
     from fastgha_core.tracking import faces
 
-    real = builtins.__import__
-
-    def fake(name, *a, **k):
-        if name in ("dlib", "mediapipe"):
-            raise ImportError(f"No module named '{name}'")
-        return real(name, *a, **k)
-
-    monkeypatch.setattr(builtins, "__import__", fake)
+    hide_modules(monkeypatch, "dlib", "mediapipe")
     with pytest.raises(faces.FacesUnavailableError, match=r"pip install -e '\.\[faces\]'"):
         faces.load_face_detector()
 
