@@ -123,8 +123,9 @@ def run(args) -> int:
         raise ValueError(f"--fov must be in (0, 180) degrees, got {args.fov}")
     from . import view_blend_tau_problem
 
-    if args.view_blend_tau_deg is not None and view_blend_tau_problem(args.view_blend_tau_deg):
-        raise ValueError(f"--view-blend-tau-deg: {view_blend_tau_problem(args.view_blend_tau_deg)}")
+    problem = None if args.view_blend_tau_deg is None else view_blend_tau_problem(args.view_blend_tau_deg)
+    if problem:
+        raise ValueError(f"--view-blend-tau-deg: {problem}")
     out = Path(args.out)
     if out.suffix.lower() in _NOT_A_FOLDER and not out.is_dir():
         raise ValueError(
