@@ -549,6 +549,10 @@ class FastGHA(nn.Module):
         g = self.forward_gaussians(
             images.to(dev, torch.float32)[None], cameras.to(dev, torch.float32)[None], ray_depth if ray_depth is None or callable(ray_depth) else ray_depth.to(dev)
         )[0]
+        v_real = v
+        if surface is not None and self.config.gaussians.mirror_views and self.config.expression_space == "ict53":
+            # turned views' mirror images as virtual views of the unseen side, after the real ones (model/mirror.py)
+            g, images, cameras, sd, expressions, v = self._add_mirrored_views(g, images, cameras, sd, expressions, surface, surface_mode)
         view_index = torch.arange(v, device=dev).repeat_interleave(len(g) // v)  # Gaussians are V*S*S, view-major
         if surface is not None and surface_mode == "replace" and self.config.gaussians.grazing_stretch > 0:
             from .surface import stretch_to_patches, surface_steps  # grazing views' Gaussians cover their patch (model/surface.py)
@@ -578,9 +582,16 @@ class FastGHA(nn.Module):
             from .coverage import fill_coverage  # each view's matte covered by the avatar (model/coverage.py)
             from .gaussian_head import foreground_weight
 
-            g, _ = fill_coverage(
-                g, cameras.to(dev, torch.float32), foreground_weight(images.to(dev, torch.float32)), cover, None if surface is None else sd.beyond_face.to(dev)
-            )
+            c32, fg = cameras.to(dev, torch.float32), foreground_weight(images.to(dev, torch.float32))
+            excl = None if surface is None else sd.beyond_face.to(dev)
+            n_r = len(g) // v * v_real
+            gr, _ = fill_coverage(g[:n_r], c32[:v_real], fg[:v_real], cover, None if excl is None else excl[:v_real])
+            if v > v_real:  # mirrored views fill only what the real views leave uncovered; the real views' Gaussians are as without them
+                excl = excl.clone()
+                excl[:v_real] = True
+                g, _ = fill_coverage(Gaussians.concat([gr, g[n_r:]]), c32, fg, cover, excl)
+            else:
+                g = gr
         thr = self.config.gaussians.prune_opacity
         blend_data = None
         if v <= MAX_BLEND_VIEWS and (surface is not None or not self.config.gaussians.view_blend_surface_only):  # each view's depth, before pruning, for which views see each Gaussian (model/viewblend.py)
@@ -604,6 +615,34 @@ class FastGHA(nn.Module):
         avatar = CanonicalAvatar(g, self.config.name, self.config.expression_space, prior, n_int, blend)
         self._deform_partial(avatar)
         return avatar
+
+    def _add_mirrored_views(self, g: Gaussians, images: Tensor, cameras: Cameras, sd, expressions: Tensor | None, surface, surface_mode: str):
+        """``reconstruct``'s mirrored virtual views (``model/mirror.py``): the real views' Gaussians
+        ``g`` (``V*S*S``) followed by those of the mirrors of the views turned by at least
+        ``gaussians.mirror_min_yaw_deg`` (a second network pass over the mirrored views alone), so
+        that at most ``MAX_BLEND_VIEWS`` views result. Returns ``(gaussians, images, cameras,
+        surface depth, expressions, views)`` of all views, real first (unchanged when none is turned)."""
+        from .mirror import mirrored_views
+
+        v = images.shape[0]
+        gc = self.config.gaussians
+        mv = mirrored_views(images, cameras, sd, expressions, gc.mirror_min_yaw_deg, surface.head_to_world, limit=MAX_BLEND_VIEWS - v)
+        if mv is None:
+            return g, images, cameras, sd, expressions, v
+        from .surface import SurfaceDepth, blend_network_depth
+
+        dev, m = self.device, len(mv)
+        msd = mv.depth
+        rd = (lambda t_pred: blend_network_depth(msd, t_pred[0])[None]) if surface_mode == "blend" else msd.t[None].to(dev)  # noqa: E731
+        gm = self.forward_gaussians(mv.images.to(dev, torch.float32)[None], mv.cameras.to(dev, torch.float32)[None], rd)[0]
+        log.info("reconstruct: %d mirrored view(s) of input view(s) %s", m, mv.source)
+        cat = lambda a, b: None if a is None or b is None else torch.cat([a, b.to(a)])  # noqa: E731
+        sd = SurfaceDepth(cat(sd.t, msd.t), cat(sd.hit, msd.hit), cat(sd.beyond_face, msd.beyond_face), cat(sd.face_hit, msd.face_hit))
+        if expressions is not None:
+            expressions = torch.cat([expressions, mv.expressions.to(expressions)])
+        images = torch.cat([images, mv.images.to(images)])
+        cameras = Cameras.stack([cameras, mv.cameras.to(cameras.K.device, cameras.K.dtype)])
+        return Gaussians.concat([g, gm]), images, cameras, sd, expressions, v + m
 
     # ------------------------------------------------------------ animation
     def _deform_partial(self, avatar: CanonicalAvatar) -> Tensor:

@@ -1,0 +1,249 @@
+"""Mirrored virtual views of the unseen side of the head (``fastgha_core/model/mirror.py``, issue 17)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from fastgha_core.cameras import Cameras, look_at_w2c
+from fastgha_core.expressions import ICT53_NAMES
+from fastgha_core.model.mirror import (
+    flip_images,
+    flip_surface_depth,
+    ict53_mirror_permutation,
+    mirror_cameras,
+    mirror_expressions,
+    mirror_points,
+    sagittal_reflection,
+    turned_views,
+    view_yaw_deg,
+)
+
+
+def _rigid(deg, axis, t):
+    a = np.radians(deg)
+    c, s = np.cos(a), np.sin(a)
+    i, j = [k for k in range(3) if k != axis]
+    h = np.eye(4)
+    h[i, i], h[i, j], h[j, i], h[j, j] = c, -s, s, c
+    h[:3, 3] = t
+    return h
+
+
+def _cameras(yaws_deg, size=40, dist=0.6, skew=0.0, pitch_m=0.05, head_to_world=None):
+    """Cameras looking at the head centre from ``yaws_deg`` (+90 = the subject's left, +x), with an
+    off-centre principal point (and optional skew) so that ``cx`` matters."""
+    eyes = torch.tensor([[dist * math.sin(math.radians(y)), pitch_m, dist * math.cos(math.radians(y))] for y in yaws_deg], dtype=torch.float64)
+    w2c = look_at_w2c(eyes).double()
+    if head_to_world is not None:  # the same cameras around a head moved into another world
+        w2c = w2c @ torch.linalg.inv(torch.as_tensor(head_to_world, dtype=torch.float64))
+    K = torch.tensor([[1.3 * size, skew, 0.43 * size], [0.0, 1.25 * size, 0.55 * size], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    return Cameras(K.expand(len(yaws_deg), 3, 3).clone(), w2c, size, size)
+
+
+@pytest.mark.parametrize("h2w", [None, _rigid(20.0, 1, [0.03, -0.02, 0.1]) @ _rigid(-10.0, 0, [0.0, 0.0, 0.0])])
+@pytest.mark.parametrize("skew", [0.0, 1.5])
+def test_a_point_lands_at_the_flipped_pixel_of_its_mirror_in_the_mirrored_camera(h2w, skew):
+    cams = _cameras([55.0, -70.0, 10.0], skew=skew, head_to_world=h2w)
+    gen = torch.Generator().manual_seed(0)
+    X = torch.randn(200, 3, generator=gen, dtype=torch.float64) * 0.08
+    if h2w is not None:
+        X = X @ torch.as_tensor(h2w[:3, :3]).T + torch.as_tensor(h2w[:3, 3])
+    mc = mirror_cameras(cams, h2w)
+    assert torch.allclose(torch.linalg.det(mc.R), torch.ones(3, dtype=torch.float64))  # proper rotations
+    for i in range(3):
+        uv, z = cams[i].project(X)
+        uv2, z2 = mc[i].project(mirror_points(X, h2w))
+        assert torch.allclose(uv2[:, 0], cams.width - uv[:, 0], atol=1e-9)  # column j -> W - 1 - j (centres at j + 0.5)
+        assert torch.allclose(uv2[:, 1], uv[:, 1], atol=1e-9) and torch.allclose(z2, z, atol=1e-12)
+    # pixel rays: the mirrored camera's ray through the flipped pixel is the mirror of the original ray
+    o, d = cams.pixel_rays()
+    o2, d2 = mc.pixel_rays()
+    p = o + 0.5 * d
+    assert torch.allclose(flip_images(mirror_points(p, h2w).movedim(-1, 1)).movedim(1, -1), o2 + 0.5 * d2, atol=1e-9)
+
+
+def test_mirroring_twice_gives_the_view_back():
+    h2w = _rigid(15.0, 1, [0.02, 0.0, -0.05])
+    cams = _cameras([40.0, -80.0], skew=0.7, head_to_world=h2w)
+    back = mirror_cameras(mirror_cameras(cams, h2w), h2w)
+    assert torch.allclose(back.K, cams.K) and torch.allclose(back.w2c, cams.w2c, atol=1e-12)
+    assert not torch.allclose(mirror_cameras(cams, h2w).w2c, cams.w2c, atol=1e-3)
+    s = sagittal_reflection(h2w)
+    assert torch.allclose(s @ s, torch.eye(4, dtype=torch.float64), atol=1e-12)
+    img = torch.rand(2, 3, 5, 7)
+    assert torch.equal(flip_images(flip_images(img)), img) and not torch.equal(flip_images(img), img)
+    e = torch.rand(4, 53)
+    assert torch.equal(mirror_expressions(mirror_expressions(e)), e) and not torch.equal(mirror_expressions(e), e)
+    # yaw flips its sign, so a mirror of a turned view is turned the other way
+    assert torch.allclose(view_yaw_deg(mirror_cameras(cams, h2w), h2w), -view_yaw_deg(cams, h2w))
+    assert torch.allclose(view_yaw_deg(cams, h2w), torch.tensor([40.0, -80.0], dtype=torch.float64), atol=1e-6)
+
+
+def test_the_left_right_swap_is_an_involution_mapping_each_name_to_its_twin():
+    perm = ict53_mirror_permutation()
+    names = list(ICT53_NAMES)
+    assert sorted(perm) == list(range(53)) and all(perm[perm[i]] == i for i in range(53))
+    twin = {names[i]: names[perm[i]] for i in range(53)}
+    for a, b in [("jawLeft", "jawRight"), ("mouthLeft", "mouthRight"), ("eyeBlink_L", "eyeBlink_R"), ("eyeLookIn_L", "eyeLookIn_R"), ("mouthSmile_R", "mouthSmile_L")]:
+        assert twin[a] == b and twin[b] == a
+    fixed = sorted(n for n in names if twin[n] == n)
+    assert fixed == sorted(["jawForward", "jawOpen", "mouthClose", "mouthFunnel", "mouthPucker", "mouthRollLower", "mouthRollUpper", "mouthShrugLower", "mouthShrugUpper"])
+    for n in names:  # every other name is an L/R pair
+        if n not in fixed:
+            assert twin[n] != n and twin[n].rstrip("LRightef_") == n.rstrip("LRightef_")
+    with pytest.raises(ValueError, match="no twin"):
+        ict53_mirror_permutation(["jawLeft", "jawOpen"])
+
+
+def test_the_twin_of_each_blendshape_is_its_mirror_on_the_head_model():
+    """Geometric check of the permutation: the mirror image of each shape's displacement is its twin's
+    (ICT-FaceKit's neutral head is symmetric; a wrong twin would be off by the whole displacement)."""
+    from scipy.spatial import cKDTree
+
+    from fastgha_core.data.headmodel import HeadModel
+
+    head = HeadModel.load()
+    v = head.neutral
+    d, corr = cKDTree(v).query(v * [-1.0, 1.0, 1.0])
+    sym = d < 1e-4
+    assert sym.mean() > 0.95
+    ident = np.zeros(head.num_identity, np.float32)
+    perm = ict53_mirror_permutation(head.expression_names)
+    for i in range(53):
+        e = np.zeros(53, np.float32)
+        e[i] = 1.0
+        a, b = head.vertices(ident, e), head.vertices(ident, e[perm])
+        moved = np.abs(a - v).max()
+        err = np.abs((a * [-1.0, 1.0, 1.0])[sym] - b[corr[sym]]).max()
+        assert err < 0.3 * moved, head.expression_names[i]
+
+
+def test_flipped_surface_depth_is_the_mirrored_heads_depth_at_the_mirrored_camera():
+    """The mirrored view's ray depths (the real view's, flipped) put its pixels on the mirrored head:
+    the same as rasterising the head with the twin expression from the mirrored camera."""
+    from fastgha_core.data.headmodel import HeadModel
+    from fastgha_core.model.surface import HeadSurface, surface_ray_depth
+
+    names = HeadModel.load().expression_names
+    e = np.zeros((2, 53), np.float32)
+    e[0, names.index("mouthSmile_L")] = 0.8
+    e[1, names.index("jawLeft")] = 0.7
+    e[1, names.index("eyeBlink_R")] = 1.0
+    cams = _cameras([60.0, -75.0], size=64, pitch_m=0.0)
+    sd = surface_ray_depth(HeadSurface(np.zeros(100, np.float32), e), cams)
+    flipped = flip_surface_depth(sd)
+    direct = surface_ray_depth(HeadSurface(np.zeros(100, np.float32), mirror_expressions(e).numpy()), mirror_cameras(cams))
+    both = flipped.hit & direct.hit
+    assert float((flipped.hit ^ direct.hit).float().mean()) < 0.01
+    assert float((flipped.t - direct.t)[both].abs().median()) < 1e-4 and float((flipped.t - direct.t)[both].abs().max()) < 0.01
+    # without the swap the smile / jaw would sit on the wrong side
+    wrong = surface_ray_depth(HeadSurface(np.zeros(100, np.float32), e), mirror_cameras(cams))
+    assert float((flipped.t - wrong.t)[both & wrong.hit].abs().max()) > 0.003
+
+
+def test_only_turned_views_are_mirrored_most_turned_first():
+    cams = _cameras([5.0, -70.0, 35.0, 29.0, -85.0])
+    assert turned_views(cams, 30.0) == [4, 1, 2]
+    assert turned_views(cams, 30.0, limit=2) == [4, 1]
+    assert turned_views(cams, 90.0) == []
+
+
+# ------------------------------------------------------------------ reconstruction
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    from fastgha_core.model.fastgha import load_model
+
+    return load_model("tiny")
+
+
+def _inputs(model, yaws):
+    from fastgha_core.constants import BACKGROUND_RGB
+    from fastgha_core.model.surface import HeadSurface
+
+    s = model.config.input_size
+    cams = _cameras(yaws, size=s, pitch_m=0.0)
+    g = torch.Generator().manual_seed(3)
+    v = len(yaws)
+    imgs = torch.tensor(BACKGROUND_RGB, dtype=torch.float32).view(1, 3, 1, 1).repeat(v, 1, s, s)
+    imgs[:, :, s // 8 : 7 * s // 8, s // 4 : 3 * s // 4] = 0.2 + 0.5 * torch.rand(v, 3, 3 * s // 4, s // 2, generator=g)
+    e = np.zeros((v, 53), np.float32)
+    e[:, ICT53_NAMES.index("mouthSmile_L")] = 0.5
+    return imgs, cams.to(dtype=torch.float32), HeadSurface(np.zeros(100, np.float32), e)
+
+
+def _with(model, **changes):
+    gc = model.config.gaussians
+    old = {k: getattr(gc, k) for k in changes}
+
+    class _Ctx:
+        def __enter__(self):
+            for k, x in changes.items():
+                setattr(gc, k, x)
+
+        def __exit__(self, *a):
+            for k, x in old.items():
+                setattr(gc, k, x)
+
+    return _Ctx()
+
+
+def test_reconstruct_adds_mirrored_gaussians_only_for_turned_views(tiny):
+    imgs, cams, head = _inputs(tiny, [0.0, 60.0, -10.0])
+    with _with(tiny, mirror_views=False):
+        off = tiny.reconstruct(imgs, cams, surface=head)
+    with _with(tiny, mirror_views=True, mirror_min_yaw_deg=30.0):
+        on = tiny.reconstruct(imgs, cams, surface=head)
+    with _with(tiny, mirror_views=True, mirror_min_yaw_deg=80.0):
+        none_turned = tiny.reconstruct(imgs, cams, surface=head)
+    assert torch.equal(none_turned.gaussians.means, off.gaussians.means) and torch.equal(none_turned.gaussians.opacities, off.gaussians.opacities)
+    vb_off, vb = off.view_blend, on.view_blend
+    assert vb_off.directions.shape[0] == 3 and vb.directions.shape[0] == 4  # one mirrored view: of the 60-degree one
+    mirrored = vb.source_view.long() == 3
+    assert int(mirrored.sum()) > 100 and on.num_reconstructed == off.num_reconstructed + int(mirrored.sum())
+    # the real views' Gaussians are exactly those without mirroring (they come first, in the same order)
+    n_real = off.num_reconstructed
+    assert torch.equal(vb.source_view[:n_real], vb_off.source_view)
+    for name in ("means", "opacities", "colors", "scales"):
+        assert torch.allclose(getattr(on.gaussians, name)[:n_real], getattr(off.gaussians, name)[:n_real], atol=1e-6), name
+    # its camera direction is the 60-degree view's, mirrored
+    assert torch.allclose(vb.directions[3], vb.directions[1] * torch.tensor([-1.0, 1.0, 1.0]), atol=1e-5)
+    # mirrored Gaussians lie on the subject's other side (-x here, the real view sees +x)
+    assert float(on.gaussians.means[:on.num_reconstructed][mirrored][:, 0].median()) < 0 < float(off.gaussians.means[:n_real][vb_off.source_view.long() == 1][:, 0].median())
+
+
+def test_without_a_surface_mirroring_changes_nothing(tiny):
+    imgs, cams, _ = _inputs(tiny, [0.0, 60.0, -50.0])
+    with _with(tiny, mirror_views=False):
+        off = tiny.reconstruct(imgs, cams)
+    with _with(tiny, mirror_views=True, mirror_min_yaw_deg=30.0):
+        on = tiny.reconstruct(imgs, cams)
+    assert len(on.gaussians) == len(off.gaussians) and torch.equal(on.gaussians.means, off.gaussians.means)
+    assert torch.equal(on.gaussians.opacities, off.gaussians.opacities)
+
+
+def test_a_mirrored_avatar_saves_loads_and_draws_the_same(tiny, tmp_path):
+    from fastgha_core.model.avatar import CanonicalAvatar
+
+    imgs, cams, head = _inputs(tiny, [0.0, 60.0, -50.0])
+    with _with(tiny, mirror_views=True, mirror_min_yaw_deg=30.0):
+        av = tiny.reconstruct(imgs, cams, surface=head)
+    assert av.view_blend.directions.shape[0] == 5
+    av.save(tmp_path / "m.safetensors")
+    back = CanonicalAvatar.load(tmp_path / "m.safetensors")
+    assert torch.equal(back.view_blend.source_view, av.view_blend.source_view) and torch.equal(back.view_blend.mask, av.view_blend.mask)
+    assert torch.equal(back.view_blend.directions, av.view_blend.directions)
+    z = torch.zeros(53)
+    z[ICT53_NAMES.index("jawOpen")] = 0.4
+    cam = _cameras([-45.0], size=64, pitch_m=0.0).to(dtype=torch.float32)
+    a, b = tiny.animate(av, z, camera=cam), tiny.animate(back, z, camera=cam)
+    assert torch.equal(a.opacities, b.opacities) and torch.allclose(a.means, b.means)
+    # a camera on the mirrored side draws the mirrored Gaussians fully where only they are near
+    f = av.view_blend.factors(cam, tiny.config.gaussians.view_blend_tau_deg)
+    mir = av.view_blend.source_view.long() >= 3
+    assert float(f[mir].mean()) > float(f[av.view_blend.source_view.long() == 1].mean())
