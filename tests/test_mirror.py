@@ -247,3 +247,64 @@ def test_a_mirrored_avatar_saves_loads_and_draws_the_same(tiny, tmp_path):
     f = av.view_blend.factors(cam, tiny.config.gaussians.view_blend_tau_deg)
     mir = av.view_blend.source_view.long() >= 3
     assert float(f[mir].mean()) > float(f[av.view_blend.source_view.long() == 1].mean())
+
+
+def test_seen_by_views_needs_the_matte_no_occlusion_and_a_low_incidence():
+    from fastgha_core.model.mirror import seen_by_views, surface_normals
+    from fastgha_core.model.viewblend import view_depth_maps
+
+    cams = _cameras([0.0], size=64, pitch_m=0.0).to(dtype=torch.float32)
+    o, d = cams.pixel_rays()  # a sphere of radius 0.1 at the origin, seen by the frontal camera
+    b = (o * d).sum(-1)
+    disc = b * b - ((o * o).sum(-1) - 0.01)
+    hit = disc > 0
+    t = torch.where(hit, -b - disc.clamp(min=0).sqrt(), torch.full_like(b, 0.6))
+    p = (o + t[..., None] * d).reshape(-1, 3)
+    depth = view_depth_maps(p, cams, hit.reshape(-1))
+    n = surface_normals(t, cams)
+    radial = torch.nn.functional.normalize(p, dim=-1).reshape(n.shape)
+    inner = hit.clone()
+    inner[:, :2], inner[:, -2:], inner[:, :, :2], inner[:, :, -2:] = False, False, False, False
+    assert float((n * radial).sum(-1)[inner & (torch.roll(hit, 2, 1) & torch.roll(hit, -2, 1) & torch.roll(hit, 2, 2) & torch.roll(hit, -2, 2))].min()) > 0.98
+    # points on the sphere: facing the camera -> seen; beyond 60 degrees of incidence, behind, or outside the matte -> not
+    ang = torch.deg2rad(torch.tensor([0.0, 30.0, 45.0, 65.0, 150.0]))  # incidence from the camera 0.6 m away: 0, ~33, ~53, ~74 degrees, behind
+    q = torch.stack([0.1 * torch.sin(ang), torch.zeros(5), 0.1 * torch.cos(ang)], -1)
+    nq = torch.nn.functional.normalize(q, dim=-1)
+    fg = hit.float()
+    got = seen_by_views(q, nq, cams, fg, depth, 60.0)
+    assert got.tolist() == [True, True, True, False, False]
+    assert not bool(seen_by_views(q, nq, cams, torch.zeros_like(fg), depth, 60.0).any())
+    assert not bool(seen_by_views(q, torch.zeros_like(nq), cams, fg, depth, 89.0).any())
+
+
+def test_mirrored_gaussians_a_real_view_sees_well_are_dropped(tiny):
+    imgs, cams, head = _inputs(tiny, [0.0, 60.0, -10.0])
+    with _with(tiny, mirror_views=True, mirror_min_yaw_deg=30.0, mirror_drop_seen_deg=0.0):
+        keep = tiny.reconstruct(imgs, cams, surface=head)
+    with _with(tiny, mirror_views=True, mirror_min_yaw_deg=30.0, mirror_drop_seen_deg=60.0):
+        drop = tiny.reconstruct(imgs, cams, surface=head)
+    k, d = (a.view_blend.source_view.long() == 3 for a in (keep, drop))
+    assert 0 < int(d.sum()) < int(k.sum())
+    n_real = int((~k).sum())
+    assert int((~d).sum()) == n_real and torch.equal(drop.gaussians.opacities[:n_real], keep.gaussians.opacities[:n_real])
+    # what stays lies further to the mirrored side (-x) than what went: the frontal views see the face's middle head-on
+    mk = keep.gaussians.means[: keep.num_reconstructed][k]
+    md = drop.gaussians.means[: drop.num_reconstructed][d]
+    assert float(md[:, 0].mean()) < float(mk[:, 0].mean())
+
+
+def test_dropping_mirrored_gaussians_leaves_no_hole_at_the_mirrored_camera(tiny):
+    """A mirrored view counts as seeing a point only where it kept its Gaussians: otherwise the real
+    views' Gaussians would fade towards it at its camera, over a hole."""
+    from fastgha_core.render import render
+
+    imgs, cams, head = _inputs(tiny, [0.0, 60.0, -10.0])
+    cam = _cameras([-60.0], size=64, pitch_m=0.0).to(dtype=torch.float32)
+    z = torch.zeros(53)
+    alpha = {}
+    for name, on, drop in (("off", False, 0.0), ("drop", True, 60.0)):
+        with _with(tiny, mirror_views=on, mirror_min_yaw_deg=30.0, mirror_drop_seen_deg=drop):
+            av = tiny.reconstruct(imgs, cams, surface=head)
+        alpha[name] = render(tiny.animate(av, z, camera=cam), cam).alpha[0, 0]
+    head_px = alpha["off"] > 0.5
+    assert float(alpha["drop"][head_px].mean()) >= float(alpha["off"][head_px].mean()) - 0.01

@@ -32,7 +32,11 @@ network pass (the network sees at most ``config.max_views`` views), fills their 
 the real views' (``model/coverage.py``: the real views' Gaussians are exactly those without
 mirroring), and registers them as extra source views of the view-dependent blending
 (``model/viewblend.py``): a frame draws a mirrored view's Gaussians fully only where its camera is
-nearer the render camera than every real view that sees the point.
+nearer the render camera than every real view that sees the point. With
+``GaussianHeadConfig.mirror_drop_seen_deg > 0`` the mirrored Gaussians whose point some real view
+sees well (inside its matte, not occluded, at an incidence below that angle: ``seen_by_views``) are
+dropped: there the real photos have the person's own, asymmetric face, and the mirror would only
+add a flipped copy (and Gaussians to draw).
 """
 
 from __future__ import annotations
@@ -57,6 +61,8 @@ __all__ = [
     "turned_views",
     "MirroredViews",
     "mirrored_views",
+    "surface_normals",
+    "seen_by_views",
 ]
 
 
@@ -213,3 +219,40 @@ def mirrored_views(images: Tensor, cameras: Cameras, depth, expressions: Tensor 
         expressions=None if expressions is None else mirror_expressions(expressions[src]),
         depth=flip_surface_depth(sub),
     )
+
+
+def surface_normals(t: Tensor, cameras: Cameras) -> Tensor:
+    """``[V, H, W, 3]`` unit normals of the surface that per-pixel ray distances ``t [V, H, W]``
+    (metres) describe, from the steps to the neighbouring pixels' points (``surface.surface_steps``),
+    turned towards the view's camera; zero where a pixel has no neighbour on the same surface."""
+    from .surface import surface_steps
+
+    steps, _ = surface_steps(t, cameras)
+    n = torch.linalg.cross(steps[..., 0, :], steps[..., 1, :])
+    o, d = cameras.flatten().to(t.device, torch.float32).pixel_rays()
+    n = torch.where(((n * d).sum(-1, keepdim=True) > 0), -n, n)
+    return torch.nn.functional.normalize(n, dim=-1)
+
+
+def seen_by_views(points: Tensor, normals: Tensor, cameras: Cameras, foreground: Tensor, depth: Tensor, max_incidence_deg: float) -> Tensor:
+    """``[N]`` bool: points that at least one of ``cameras`` sees well.
+
+    A view sees a point well when the point is inside the view's matte and not occluded in it
+    (``viewblend.coverage_masks`` with the view's own depth map) and the angle between the point's
+    ``normals`` and its direction to the camera centre is below ``max_incidence_deg``.
+
+    Args:
+        points: ``[N, 3]`` world points (metres); normals: ``[N, 3]`` unit normals (zero: never well seen).
+        cameras: ``Cameras [R]`` (``R <= 8``) of size ``W x H``; foreground, depth: ``[R, H, W]`` as
+            ``coverage_masks`` takes them.
+    """
+    from .viewblend import coverage_masks
+
+    cams = cameras.flatten().to(points.device, torch.float32)
+    mask = coverage_masks(points, cams, foreground, depth).long()
+    cos_max = float(np.cos(np.radians(max_incidence_deg)))
+    out = torch.zeros(len(points), dtype=torch.bool, device=points.device)
+    for i, c in enumerate(cams.centers):
+        to_cam = torch.nn.functional.normalize(c[None] - points.float(), dim=-1)
+        out |= (((mask >> i) & 1) == 1) & ((normals.float() * to_cam).sum(-1) >= cos_max)
+    return out
