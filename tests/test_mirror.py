@@ -231,22 +231,27 @@ def test_a_mirrored_avatar_saves_loads_and_draws_the_same(tiny, tmp_path):
     from fastgha_core.model.avatar import CanonicalAvatar
 
     imgs, cams, head = _inputs(tiny, [0.0, 60.0, -50.0])
-    with _with(tiny, mirror_views=True, mirror_min_yaw_deg=30.0):
+    with _with(tiny, mirror_views=True, mirror_min_yaw_deg=30.0, mirror_blend_offset_deg=15.0):
         av = tiny.reconstruct(imgs, cams, surface=head)
-    assert av.view_blend.directions.shape[0] == 5
+    assert av.view_blend.directions.shape[0] == 5 and av.view_blend.offsets.tolist() == [0.0, 0.0, 0.0, 15.0, 15.0]
     av.save(tmp_path / "m.safetensors")
     back = CanonicalAvatar.load(tmp_path / "m.safetensors")
     assert torch.equal(back.view_blend.source_view, av.view_blend.source_view) and torch.equal(back.view_blend.mask, av.view_blend.mask)
-    assert torch.equal(back.view_blend.directions, av.view_blend.directions)
+    assert torch.equal(back.view_blend.directions, av.view_blend.directions) and torch.equal(back.view_blend.offsets, av.view_blend.offsets)
     z = torch.zeros(53)
     z[ICT53_NAMES.index("jawOpen")] = 0.4
     cam = _cameras([-45.0], size=64, pitch_m=0.0).to(dtype=torch.float32)
     a, b = tiny.animate(av, z, camera=cam), tiny.animate(back, z, camera=cam)
     assert torch.equal(a.opacities, b.opacities) and torch.allclose(a.means, b.means)
-    # a camera on the mirrored side draws the mirrored Gaussians fully where only they are near
+    # where no real view sees its point, a mirrored Gaussian is drawn fully whatever its offset; where the
+    # real -50-degree view (5 degrees from this camera) sees it too, the mirror of the 60-degree view
+    # (-60: 15 + 15 degrees) fades
     f = av.view_blend.factors(cam, tiny.config.gaussians.view_blend_tau_deg)
-    mir = av.view_blend.source_view.long() >= 3
-    assert float(f[mir].mean()) > float(f[av.view_blend.source_view.long() == 1].mean())
+    src, mask = av.view_blend.source_view.long(), av.view_blend.mask.long()
+    alone = (src == 3) & ((mask & 0b111) == 0)
+    shared = (src == 3) & ((mask >> 2) & 1 == 1)
+    assert int(alone.sum()) > 0 and int(shared.sum()) > 0
+    assert torch.allclose(f[alone], torch.ones(int(alone.sum()))) and float(f[shared].max()) < 0.5
 
 
 def test_seen_by_views_needs_the_matte_no_occlusion_and_a_low_incidence():
@@ -308,3 +313,52 @@ def test_dropping_mirrored_gaussians_leaves_no_hole_at_the_mirrored_camera(tiny)
         alpha[name] = render(tiny.animate(av, z, camera=cam), cam).alpha[0, 0]
     head_px = alpha["off"] > 0.5
     assert float(alpha["drop"][head_px].mean()) >= float(alpha["off"][head_px].mean()) - 0.01
+
+
+def test_near_midline_measures_the_distance_to_the_sagittal_plane_of_the_head_frame():
+    from fastgha_core.model.mirror import near_midline
+
+    p = torch.tensor([[0.005, 0.1, 0.05], [-0.015, 0.0, 0.1], [0.03, 0.0, 0.0], [-0.05, 0.02, 0.0]])
+    assert near_midline(p, 0.02).tolist() == [True, True, False, False]
+    h2w = _rigid(90.0, 1, [0.1, 0.0, 0.0])  # the head turned 90 degrees about y and moved: its x axis is world -z
+    pw = p.double() @ torch.as_tensor(h2w[:3, :3]).T + torch.as_tensor(h2w[:3, 3])
+    assert near_midline(pw, 0.02, h2w).tolist() == [True, True, False, False]
+    assert near_midline(pw, 0.02).tolist() != [True, True, False, False]
+
+
+def test_blend_offsets_count_a_view_as_further_away_and_survive_a_file(tmp_path):
+    """``ViewBlend.offsets`` (mirrored views' precedence): the factors equal a plain loop with each
+    view's angle plus its offset, and the offsets travel with the avatar file."""
+    from fastgha_core.gaussians import Gaussians
+    from fastgha_core.model.avatar import CanonicalAvatar
+    from fastgha_core.model.viewblend import ViewBlend, blend_factors, view_directions
+
+    yaws = [0.0, 60.0, -60.0]
+    cams = _cameras(yaws, pitch_m=0.0).to(dtype=torch.float32)
+    render_cam = _cameras([-50.0], pitch_m=0.0).to(dtype=torch.float32)
+    gen = torch.Generator().manual_seed(5)
+    n = 200
+    src = torch.randint(0, 3, (n,), generator=gen)
+    mask = (torch.randint(0, 8, (n,), generator=gen) | (1 << src)).to(torch.uint8)
+    off = torch.tensor([0.0, 0.0, 25.0])
+    vb = ViewBlend(src.to(torch.int8), mask, view_directions(cams), off)
+    f = vb.factors(render_cam, 20.0)
+    assert torch.allclose(f, blend_factors(src, mask, view_directions(cams), render_cam, 20.0, off), rtol=1e-6)
+    c = render_cam.centers[0].double()
+    a = [math.degrees(math.acos(float(cams.centers[k].double() @ c / cams.centers[k].double().norm() / c.norm()))) + float(off[k]) for k in range(3)]
+    for i in range(n):
+        m, s = int(mask[i]), int(src[i])
+        assert float(f[i]) == pytest.approx(math.exp(-(a[s] - min(a[k] for k in range(3) if m >> k & 1)) / 20.0), rel=1e-3, abs=1e-6)
+    # the offset view (at 10 degrees from the render camera) no longer wins over the frontal (50 degrees) outright
+    both = (mask.long() & 0b101) == 0b101
+    plain = ViewBlend(src.to(torch.int8), mask, view_directions(cams)).factors(render_cam, 20.0)
+    assert bool((f[both & (src == 0)] > plain[both & (src == 0)]).all())
+    with pytest.raises(ValueError, match="offsets"):
+        ViewBlend(src.to(torch.int8), mask, view_directions(cams), torch.tensor([0.0, -1.0, 0.0]))
+    g = Gaussians(means=torch.zeros(n, 3), quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), scales=torch.full((n, 3), 0.01),
+                  opacities=torch.rand(n, generator=gen), colors=torch.rand(n, 3, generator=gen), features=torch.zeros(n, 32))
+    CanonicalAvatar(g, "tiny", "ict53", None, 0, vb).save(tmp_path / "o.safetensors")
+    back = CanonicalAvatar.load(tmp_path / "o.safetensors").view_blend
+    assert torch.equal(back.offsets, off) and torch.equal(back.factors(render_cam, 20.0), f)
+    CanonicalAvatar(g, "tiny", "ict53", None, 0, ViewBlend(src.to(torch.int8), mask, view_directions(cams))).save(tmp_path / "p.safetensors")
+    assert CanonicalAvatar.load(tmp_path / "p.safetensors").view_blend.offsets is None

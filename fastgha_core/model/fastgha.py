@@ -594,6 +594,13 @@ class FastGHA(nn.Module):
                 g = gr
         thr = self.config.gaussians.prune_opacity
         dropped = None
+        if v > v_real and self.config.gaussians.mirror_midline_m > 0:  # at the sagittal plane a mirror only doubles the real views' own copy
+            from .mirror import near_midline
+
+            n_r = len(g) // v * v_real
+            mid = near_midline(g.means[n_r:], self.config.gaussians.mirror_midline_m, surface.head_to_world)
+            g = g.replace(opacities=torch.cat([g.opacities[:n_r], g.opacities[n_r:] * (~mid).to(g.opacities.dtype)]))
+            dropped = torch.cat([torch.zeros(n_r, dtype=torch.bool, device=dev), mid]).reshape(v, *images.shape[-2:])
         if v > v_real and self.config.gaussians.mirror_drop_seen_deg > 0:  # where a real photo sees the head well, the mirror only adds a flipped copy
             from .gaussian_head import foreground_weight
             from .mirror import seen_by_views, surface_normals
@@ -604,7 +611,8 @@ class FastGHA(nn.Module):
             normals = surface_normals(sd.t[v_real:].to(dev), c32[v_real:]).reshape(-1, 3)
             seen = seen_by_views(g.means[n_r:], normals, c32[:v_real], fg[:v_real], depth, self.config.gaussians.mirror_drop_seen_deg)
             g = g.replace(opacities=torch.cat([g.opacities[:n_r], g.opacities[n_r:] * (~seen).to(g.opacities.dtype)]))
-            dropped = torch.cat([torch.zeros(n_r, dtype=torch.bool, device=dev), seen]).reshape(v, *images.shape[-2:])
+            seen = seen.reshape(v - v_real, *images.shape[-2:])
+            dropped = torch.cat([torch.zeros(v_real, *images.shape[-2:], dtype=torch.bool, device=dev), seen]) if dropped is None else dropped | torch.cat([torch.zeros(v_real, *images.shape[-2:], dtype=torch.bool, device=dev), seen])
         blend_data = None
         if v <= MAX_BLEND_VIEWS and (surface is not None or not self.config.gaussians.view_blend_surface_only):  # each view's depth, before pruning, for which views see each Gaussian (model/viewblend.py)
             from .gaussian_head import foreground_weight
@@ -622,7 +630,11 @@ class FastGHA(nn.Module):
         if blend_data is not None:
             c32, fg, depth = blend_data
             mask = coverage_masks(g.means, c32, fg, depth, view_index)
-            blend = ViewBlend(view_index.to(torch.int8), mask, view_directions(c32))
+            offsets = None
+            if v > v_real and self.config.gaussians.mirror_blend_offset_deg > 0:  # mirrored views count as further from every render camera
+                offsets = torch.zeros(v, device=dev)
+                offsets[v_real:] = float(self.config.gaussians.mirror_blend_offset_deg)
+            blend = ViewBlend(view_index.to(torch.int8), mask, view_directions(c32), offsets)
         prior, n_int = None, 0
         if self.config.deform.prior:
             g, prior, n_int = self.build_prior(g, view_index if expressions is not None else None, expressions, head_fit=head_fit)

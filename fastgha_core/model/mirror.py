@@ -63,6 +63,7 @@ __all__ = [
     "mirrored_views",
     "surface_normals",
     "seen_by_views",
+    "near_midline",
 ]
 
 
@@ -256,3 +257,15 @@ def seen_by_views(points: Tensor, normals: Tensor, cameras: Cameras, foreground:
         to_cam = torch.nn.functional.normalize(c[None] - points.float(), dim=-1)
         out |= (((mask >> i) & 1) == 1) & ((normals.float() * to_cam).sum(-1) >= cos_max)
     return out
+
+
+def near_midline(points: Tensor, width_m: float, head_to_world=None) -> Tensor:
+    """``[N]`` bool: world ``points [N, 3]`` within ``width_m`` metres of the head's sagittal plane
+    (``|x| < width_m`` in the head frame; ``head_to_world`` as in ``sagittal_reflection``). There a
+    point and its mirror image nearly coincide: a mirrored view adds no side the real views miss,
+    only a flipped copy of an asymmetric midline (nose, parting)."""
+    p = points.double()
+    if head_to_world is not None:
+        h = torch.as_tensor(np.asarray(head_to_world), dtype=torch.float64, device=p.device)
+        p = (p - h[:3, 3]) @ h[:3, :3]
+    return p[:, 0].abs() < float(width_m)

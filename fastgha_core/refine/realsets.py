@@ -144,7 +144,9 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
     ``photo_align``: register the photos' poses photometrically in tracking (``TrackConfig.photo_align``).
     ``mirror``: variants of the mirrored virtual views (``model/mirror.py``) to compare on the same
     tracking, each ``"off"``, ``"on"`` (the config's thresholds), a yaw threshold in degrees
-    (``mirror_min_yaw_deg``) or ``"YAW/DROP"`` (and ``mirror_drop_seen_deg``); rows
+    (``mirror_min_yaw_deg``), ``"YAW/DROP"`` (and ``mirror_drop_seen_deg``), ``"YAW/DROP/MM"`` (and
+    ``mirror_midline_m`` in millimetres) or ``"YAW/DROP/MM/OFFSET"`` (and ``mirror_blend_offset_deg``;
+    an empty field keeps the config's value); rows
     then carry a ``"mirror"`` key and ``renders`` is keyed by ``(variant, steps)``. None: the
     model's config as it is, rows without that key, ``renders`` keyed by steps."""
     from ..model.surface import HeadSurface
@@ -180,7 +182,7 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
     variants = [None] if mirror is None else list(mirror)
     rows, renders = [], {(s if mv is None else (mv, s)): [] for mv in variants for s in steps_list}
     gcfg = model.config.gaussians
-    saved = (gcfg.mirror_views, gcfg.mirror_min_yaw_deg, gcfg.mirror_drop_seen_deg)
+    saved = (gcfg.mirror_views, gcfg.mirror_min_yaw_deg, gcfg.mirror_drop_seen_deg, gcfg.mirror_midline_m, gcfg.mirror_blend_offset_deg)
     for k, mv in ((k, mv) for k in range(v) for mv in variants):
         keep = [i for i in range(v) if i != k][: model.config.max_views]
         imgs, in_cams = model.prepare(matted[keep], cams[keep])
@@ -188,14 +190,16 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
         if mv is not None:
             gcfg.mirror_views = mv != "off"
             if mv not in ("on", "off"):
-                yaw, _, drop = mv.partition("/")
-                gcfg.mirror_min_yaw_deg = float(yaw)
-                gcfg.mirror_drop_seen_deg = float(drop) if drop else saved[2]
+                parts = mv.split("/")
+                gcfg.mirror_min_yaw_deg = float(parts[0])
+                gcfg.mirror_drop_seen_deg = float(parts[1]) if len(parts) > 1 and parts[1] else saved[2]
+                gcfg.mirror_midline_m = float(parts[2]) / 1000 if len(parts) > 2 and parts[2] else saved[3]
+                gcfg.mirror_blend_offset_deg = float(parts[3]) if len(parts) > 3 else saved[4]
         t1 = time.perf_counter()
         try:
             avatar0 = model.reconstruct(imgs, in_cams, expressions=expr[keep], surface=head)
         finally:
-            gcfg.mirror_views, gcfg.mirror_min_yaw_deg, gcfg.mirror_drop_seen_deg = saved
+            gcfg.mirror_views, gcfg.mirror_min_yaw_deg, gcfg.mirror_drop_seen_deg, gcfg.mirror_midline_m, gcfg.mirror_blend_offset_deg = saved
         t_rec = time.perf_counter() - t1
         target = matted[k : k + 1]
         m = (masks[k : k + 1] > 0.5).float()
@@ -301,7 +305,7 @@ def main(argv=None) -> int:
     ap.add_argument("--size", type=int, default=256, help="crop side of the tracked photos and of the renders")
     ap.add_argument("--mirror", default=None,
                     help="comma-separated mirrored-view variants to compare on the same tracking (model/mirror.py): off, on (the config's thresholds), "
-                    "a yaw threshold in degrees or YAW/DROP (mirror_min_yaw_deg / mirror_drop_seen_deg), e.g. off,30,30/60 (default: the model's config)")
+                    "a yaw threshold in degrees or YAW/DROP/MM/OFFSET, trailing fields optional (mirror_min_yaw_deg / mirror_drop_seen_deg / mirror_midline_m in mm / mirror_blend_offset_deg), e.g. off,30,30/60,30/0/20,30///20 (default: the model's config)")
     ap.add_argument("--json", default=None, help="write all rows here")
     ap.add_argument("--grid", default=None, help="write a grid picture here (NOT inside the repository)")
     args = ap.parse_args(argv)
@@ -328,9 +332,11 @@ def main(argv=None) -> int:
         for x in mirror:
             if x not in ("on", "off"):
                 try:
-                    [float(p) for p in x.split("/", 1)]
+                    if len(x.split("/")) > 4:
+                        raise ValueError(x)
+                    [float(p) for p in x.split("/") if p]
                 except ValueError:
-                    ap.error(f"--mirror: each variant must be off, on, YAW or YAW/DROP in degrees, got {x!r}")
+                    ap.error(f"--mirror: each variant must be off, on or YAW[/DROP[/MM[/OFFSET]]] (numbers), got {x!r}")
     cols = steps_list if mirror is None else [(mv, s) for mv in mirror for s in steps_list]
     all_rows, grid = [], []
     for folder in sets:
