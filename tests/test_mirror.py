@@ -298,7 +298,8 @@ def test_mirrored_gaussians_a_real_view_sees_well_are_dropped(tiny):
     assert float(md[:, 0].mean()) < float(mk[:, 0].mean())
 
 
-def test_dropping_mirrored_gaussians_leaves_no_hole_at_the_mirrored_camera(tiny):
+@pytest.mark.parametrize("drop_deg, midline_m", [(60.0, 0.0), (0.0, 0.03)])
+def test_dropping_mirrored_gaussians_leaves_no_hole_at_the_mirrored_camera(tiny, drop_deg, midline_m):
     """A mirrored view counts as seeing a point only where it kept its Gaussians: otherwise the real
     views' Gaussians would fade towards it at its camera, over a hole."""
     from fastgha_core.render import render
@@ -307,9 +308,12 @@ def test_dropping_mirrored_gaussians_leaves_no_hole_at_the_mirrored_camera(tiny)
     cam = _cameras([-60.0], size=64, pitch_m=0.0).to(dtype=torch.float32)
     z = torch.zeros(53)
     alpha = {}
-    for name, on, drop in (("off", False, 0.0), ("drop", True, 60.0)):
-        with _with(tiny, mirror_views=on, mirror_min_yaw_deg=30.0, mirror_drop_seen_deg=drop):
+    for name, on, drop, mid in (("off", False, 0.0, 0.0), ("drop", True, drop_deg, midline_m)):
+        with _with(tiny, mirror_views=on, mirror_min_yaw_deg=30.0, mirror_drop_seen_deg=drop, mirror_midline_m=mid):
             av = tiny.reconstruct(imgs, cams, surface=head)
+        if on:  # something was dropped
+            with _with(tiny, mirror_views=True, mirror_min_yaw_deg=30.0):
+                assert tiny.reconstruct(imgs, cams, surface=head).num_reconstructed > av.num_reconstructed
         alpha[name] = render(tiny.animate(av, z, camera=cam), cam).alpha[0, 0]
     head_px = alpha["off"] > 0.5
     assert float(alpha["drop"][head_px].mean()) >= float(alpha["off"][head_px].mean()) - 0.01

@@ -597,25 +597,10 @@ class FastGHA(nn.Module):
                 g = gr
         thr = self.config.gaussians.prune_opacity
         dropped = None
-        if v > v_real and self.config.gaussians.mirror_midline_m > 0:  # at the sagittal plane a mirror only doubles the real views' own copy
-            from .mirror import near_midline
+        if v > v_real:  # optionally thin the mirrored views where a real one sees the head (model/mirror.py; off by default)
+            from .mirror import thin_mirrored
 
-            n_r = len(g) // v * v_real
-            mid = near_midline(g.means[n_r:], self.config.gaussians.mirror_midline_m, surface.head_to_world)
-            g = g.replace(opacities=torch.cat([g.opacities[:n_r], g.opacities[n_r:] * (~mid).to(g.opacities.dtype)]))
-            dropped = torch.cat([torch.zeros(n_r, dtype=torch.bool, device=dev), mid]).reshape(v, *images.shape[-2:])
-        if v > v_real and self.config.gaussians.mirror_drop_seen_deg > 0:  # where a real photo sees the head well, the mirror only adds a flipped copy
-            from .gaussian_head import foreground_weight
-            from .mirror import seen_by_views, surface_normals
-
-            c32, fg = cameras.to(dev, torch.float32), foreground_weight(images.to(dev, torch.float32))
-            n_r = len(g) // v * v_real
-            depth = view_depth_maps(g.means[:n_r], c32[:v_real], (g.opacities[:n_r] >= max(thr, 1e-6)) & (fg[:v_real].reshape(-1) > 0.5))
-            normals = surface_normals(sd.t[v_real:].to(dev), c32[v_real:]).reshape(-1, 3)
-            seen = seen_by_views(g.means[n_r:], normals, c32[:v_real], fg[:v_real], depth, self.config.gaussians.mirror_drop_seen_deg)
-            g = g.replace(opacities=torch.cat([g.opacities[:n_r], g.opacities[n_r:] * (~seen).to(g.opacities.dtype)]))
-            seen = seen.reshape(v - v_real, *images.shape[-2:])
-            dropped = torch.cat([torch.zeros(v_real, *images.shape[-2:], dtype=torch.bool, device=dev), seen]) if dropped is None else dropped | torch.cat([torch.zeros(v_real, *images.shape[-2:], dtype=torch.bool, device=dev), seen])
+            g, dropped = thin_mirrored(g, v_real, images, cameras, sd.t, self.config.gaussians, surface.head_to_world)
         blend_data = None
         if v <= MAX_BLEND_VIEWS and (surface is not None or not self.config.gaussians.view_blend_surface_only):  # each view's depth, before pruning, for which views see each Gaussian (model/viewblend.py)
             from .gaussian_head import foreground_weight

@@ -64,6 +64,7 @@ __all__ = [
     "surface_normals",
     "seen_by_views",
     "near_midline",
+    "thin_mirrored",
 ]
 
 
@@ -269,3 +270,43 @@ def near_midline(points: Tensor, width_m: float, head_to_world=None) -> Tensor:
         h = torch.as_tensor(np.asarray(head_to_world), dtype=torch.float64, device=p.device)
         p = (p - h[:3, 3]) @ h[:3, :3]
     return p[:, 0].abs() < float(width_m)
+
+
+def thin_mirrored(g, v_real: int, images: Tensor, cameras: Cameras, t: Tensor, config, head_to_world=None):
+    """Drop mirrored Gaussians by ``config`` (a ``GaussianHeadConfig``): those within
+    ``mirror_midline_m`` of the sagittal plane (``near_midline``) and those a real view sees at an
+    incidence below ``mirror_drop_seen_deg`` (``seen_by_views``; both 0 = off, the defaults).
+
+    Args:
+        g: ``V * S * S`` pixel-aligned Gaussians, view-major, the first ``v_real`` views real, the
+            rest mirrored (``FastGHA.reconstruct``'s layout before pruning).
+        images: ``[V, 3, S, S]`` matted views; cameras: ``Cameras [V]``; t: ``[V, S, S]`` ray depths (metres).
+        head_to_world: the surface's head-to-world transform (None: world = head frame).
+    Returns:
+        ``(gaussians, dropped)``: dropped Gaussians get opacity 0 (pruning removes them), and
+        ``dropped [V, S, S]`` bool marks their pixels (None when nothing was asked): a mirrored view
+        must not count as seeing a point there (``viewblend.coverage_masks``), or the real views'
+        Gaussians would fade towards it over a hole.
+    """
+    from .gaussian_head import foreground_weight
+    from .viewblend import view_depth_maps
+
+    v = images.shape[0]
+    n_r = len(g) // v * v_real
+    dev = g.means.device
+    drop = torch.zeros(len(g) - n_r, dtype=torch.bool, device=dev)
+    asked = False
+    if config.mirror_midline_m > 0:
+        drop |= near_midline(g.means[n_r:], config.mirror_midline_m, head_to_world)
+        asked = True
+    if config.mirror_drop_seen_deg > 0:
+        c32, fg = cameras.to(dev, torch.float32), foreground_weight(images.to(dev, torch.float32))
+        thr = max(float(config.prune_opacity), 1e-6)
+        depth = view_depth_maps(g.means[:n_r], c32[:v_real], (g.opacities[:n_r] >= thr) & (fg[:v_real].reshape(-1) > 0.5))
+        normals = surface_normals(t[v_real:].to(dev), c32[v_real:]).reshape(-1, 3)
+        drop |= seen_by_views(g.means[n_r:], normals, c32[:v_real], fg[:v_real], depth, config.mirror_drop_seen_deg)
+        asked = True
+    if not asked:
+        return g, None
+    g = g.replace(opacities=torch.cat([g.opacities[:n_r], g.opacities[n_r:] * (~drop).to(g.opacities.dtype)]))
+    return g, torch.cat([torch.zeros(n_r, dtype=torch.bool, device=dev), drop]).reshape(v, *images.shape[-2:])
