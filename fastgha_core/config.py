@@ -119,6 +119,11 @@ class GaussianHeadConfig:
     grazing_min_ratio: float = 2.5  # ... only Gaussians whose patch of surface is longer than this many pixel footprints (incidence beyond ~66 deg; model/surface.py stretch_to_patches min_ratio)
     view_blend_tau_deg: float = 20.0  # frames: each input view's Gaussians' opacity x exp(-(angle of its camera to the render camera - smallest such angle among the views that see the Gaussian's point) / tau), degrees (0 = off; 20 from real-photo leave-one-out, docs/model-card.md; model/viewblend.py; avatars without view data render unweighted)
     view_blend_surface_only: bool = True  # record the per-view data (and so blend) only for avatars reconstructed on a tracked head surface (on the network-depth path tau 20 lowered held-out synthetic PSNR; docs/model-card.md)
+    mirror_views: bool = False  # reconstruct() on a tracked head surface (ict53): add the left-right mirror of every input view turned by >= mirror_min_yaw_deg as a virtual view of the unseen side of the head (model/mirror.py; docs/model-card.md)
+    mirror_min_yaw_deg: float = 30.0  # ... only views whose camera is turned at least this far from frontal, degrees (a near-frontal mirror doubles an asymmetric face)
+    mirror_blend_offset_deg: float = 0.0  # ... view blending counts each mirrored view this many degrees further from the render camera than it is (real photos keep precedence where both see a point; 0 = none; model/viewblend.py offsets)
+    mirror_midline_m: float = 0.0  # ... drop the mirrored Gaussians within this many metres of the head's sagittal plane (0 = keep them; model/mirror.py near_midline)
+    mirror_drop_seen_deg: float = 0.0  # ... drop the mirrored Gaussians whose point a real view sees (inside its matte, unoccluded) at an incidence below this many degrees (0 = keep them all; model/mirror.py seen_by_views)
 
     @property
     def channels(self) -> int:

@@ -494,7 +494,10 @@ class FastGHA(nn.Module):
         are lengthened along it to cover their patch of skin (``surface.stretch_to_patches``).
         On a surface (or everywhere with ``config.gaussians.view_blend_surface_only=False``) the
         avatar also records each reconstructed Gaussian's source view and which input views see its
-        point (``avatar.view_blend``, ``model/viewblend.py``) for view-dependent frames.
+        point (``avatar.view_blend``, ``model/viewblend.py``) for view-dependent frames. With
+        ``config.gaussians.mirror_views`` (off by default) and an ict53 model, the input views turned by
+        at least ``mirror_min_yaw_deg`` also add their left-right mirror images as virtual views of the
+        unseen side of the head, after the real views' Gaussians (``model/mirror.py``).
         """
         s, vmax = self.config.input_size, self.config.max_views
         hint = "use model.prepare(images, cameras) to crop/resize them"
@@ -549,6 +552,10 @@ class FastGHA(nn.Module):
         g = self.forward_gaussians(
             images.to(dev, torch.float32)[None], cameras.to(dev, torch.float32)[None], ray_depth if ray_depth is None or callable(ray_depth) else ray_depth.to(dev)
         )[0]
+        v_real = v
+        if surface is not None and self.config.gaussians.mirror_views and self.config.expression_space == "ict53":
+            # turned views' mirror images as virtual views of the unseen side, after the real ones (model/mirror.py)
+            g, images, cameras, sd, expressions, v = self._add_mirrored_views(g, images, cameras, sd, expressions, surface, surface_mode)
         view_index = torch.arange(v, device=dev).repeat_interleave(len(g) // v)  # Gaussians are V*S*S, view-major
         if surface is not None and surface_mode == "replace" and self.config.gaussians.grazing_stretch > 0:
             from .surface import stretch_to_patches, surface_steps  # grazing views' Gaussians cover their patch (model/surface.py)
@@ -578,16 +585,30 @@ class FastGHA(nn.Module):
             from .coverage import fill_coverage  # each view's matte covered by the avatar (model/coverage.py)
             from .gaussian_head import foreground_weight
 
-            g, _ = fill_coverage(
-                g, cameras.to(dev, torch.float32), foreground_weight(images.to(dev, torch.float32)), cover, None if surface is None else sd.beyond_face.to(dev)
-            )
+            c32, fg = cameras.to(dev, torch.float32), foreground_weight(images.to(dev, torch.float32))
+            excl = None if surface is None else sd.beyond_face.to(dev)
+            n_r = len(g) // v * v_real
+            gr, _ = fill_coverage(g[:n_r], c32[:v_real], fg[:v_real], cover, None if excl is None else excl[:v_real])
+            if v > v_real:  # mirrored views fill only what the real views leave uncovered; the real views' Gaussians are as without them
+                excl = excl.clone()
+                excl[:v_real] = True
+                g, _ = fill_coverage(Gaussians.concat([gr, g[n_r:]]), c32, fg, cover, excl)
+            else:
+                g = gr
         thr = self.config.gaussians.prune_opacity
+        dropped = None
+        if v > v_real:  # optionally thin the mirrored views where a real one sees the head (model/mirror.py; off by default)
+            from .mirror import thin_mirrored
+
+            g, dropped = thin_mirrored(g, v_real, images, cameras, sd.t, self.config.gaussians, surface.head_to_world)
         blend_data = None
         if v <= MAX_BLEND_VIEWS and (surface is not None or not self.config.gaussians.view_blend_surface_only):  # each view's depth, before pruning, for which views see each Gaussian (model/viewblend.py)
             from .gaussian_head import foreground_weight
 
             c32 = cameras.to(dev, torch.float32)
             fg = foreground_weight(images.to(dev, torch.float32))
+            if dropped is not None:  # a mirrored view covers only where it kept its Gaussians (else real ones would fade into a hole)
+                fg = fg * (~dropped).to(fg.dtype)
             depth = view_depth_maps(g.means, c32, (g.opacities >= max(thr, 1e-6)) & (fg.reshape(-1) > 0.5))
             blend_data = (c32, fg, depth)
         if thr > 0:
@@ -597,13 +618,45 @@ class FastGHA(nn.Module):
         if blend_data is not None:
             c32, fg, depth = blend_data
             mask = coverage_masks(g.means, c32, fg, depth, view_index)
-            blend = ViewBlend(view_index.to(torch.int8), mask, view_directions(c32))
+            offsets = None
+            if v > v_real and self.config.gaussians.mirror_blend_offset_deg > 0:  # mirrored views count as further from every render camera
+                offsets = torch.zeros(v, device=dev)
+                offsets[v_real:] = float(self.config.gaussians.mirror_blend_offset_deg)
+            blend = ViewBlend(view_index.to(torch.int8), mask, view_directions(c32), offsets)
         prior, n_int = None, 0
         if self.config.deform.prior:
             g, prior, n_int = self.build_prior(g, view_index if expressions is not None else None, expressions, head_fit=head_fit)
         avatar = CanonicalAvatar(g, self.config.name, self.config.expression_space, prior, n_int, blend)
         self._deform_partial(avatar)
         return avatar
+
+    def _add_mirrored_views(self, g: Gaussians, images: Tensor, cameras: Cameras, sd, expressions: Tensor | None, surface, surface_mode: str):
+        """``reconstruct``'s mirrored virtual views (``model/mirror.py``): the real views' Gaussians
+        ``g`` (``V*S*S``) followed by those of the mirrors of the views turned by at least
+        ``gaussians.mirror_min_yaw_deg`` (a second network pass over the mirrored views alone), so
+        that at most ``MAX_BLEND_VIEWS`` views result. Returns ``(gaussians, images, cameras,
+        surface depth, expressions, views)`` of all views, real first (unchanged when none is turned)."""
+        from .mirror import mirrored_views
+
+        v = images.shape[0]
+        gc = self.config.gaussians
+        mv = mirrored_views(images, cameras, sd, expressions, gc.mirror_min_yaw_deg, surface.head_to_world, limit=MAX_BLEND_VIEWS - v)
+        if mv is None:
+            return g, images, cameras, sd, expressions, v
+        from .surface import SurfaceDepth, blend_network_depth
+
+        dev, m = self.device, len(mv)
+        msd = mv.depth
+        rd = (lambda t_pred: blend_network_depth(msd, t_pred[0])[None]) if surface_mode == "blend" else msd.t[None].to(dev)  # noqa: E731
+        gm = self.forward_gaussians(mv.images.to(dev, torch.float32)[None], mv.cameras.to(dev, torch.float32)[None], rd)[0]
+        log.info("reconstruct: %d mirrored view(s) of input view(s) %s", m, mv.source)
+        cat = lambda a, b: None if a is None or b is None else torch.cat([a, b.to(a)])  # noqa: E731
+        sd = SurfaceDepth(cat(sd.t, msd.t), cat(sd.hit, msd.hit), cat(sd.beyond_face, msd.beyond_face), cat(sd.face_hit, msd.face_hit))
+        if expressions is not None:
+            expressions = torch.cat([expressions, mv.expressions.to(expressions)])
+        images = torch.cat([images, mv.images.to(images)])
+        cameras = Cameras.stack([cameras, mv.cameras.to(cameras.K.device, cameras.K.dtype)])
+        return Gaussians.concat([g, gm]), images, cameras, sd, expressions, v + m
 
     # ------------------------------------------------------------ animation
     def _deform_partial(self, avatar: CanonicalAvatar) -> Tensor:

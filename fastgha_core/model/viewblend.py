@@ -123,15 +123,19 @@ def angles_deg(directions: Tensor, camera: Cameras) -> Tensor:
     return torch.rad2deg(torch.arccos((directions @ c).clamp(-1.0, 1.0)))
 
 
-def blend_factors(source_view: Tensor, mask: Tensor, directions: Tensor, camera: Cameras, tau_deg: float) -> Tensor:
+def blend_factors(source_view: Tensor, mask: Tensor, directions: Tensor, camera: Cameras, tau_deg: float, offsets: Tensor | None = None) -> Tensor:
     """Opacity factors ``[N]`` in (0, 1] for the render ``camera`` (batch ``[1]`` or ``[]``; module doc).
 
     ``source_view [N]`` int (``-1`` = no source view: factor 1), ``mask [N]`` uint8 coverage masks,
-    ``directions [V, 3]`` the input views' unit directions, ``tau_deg > 0`` the fall-off in degrees.
+    ``directions [V, 3]`` the input views' unit directions, ``tau_deg > 0`` the fall-off in degrees,
+    ``offsets [V]`` (optional, degrees >= 0) added to each view's angle: a view with an offset
+    counts as that much further from every render camera (mirrored virtual views, ``model/mirror.py``).
     """
     if tau_deg <= 0:
         raise ValueError(f"blend_factors: tau_deg must be > 0, got {tau_deg}")
     ang = angles_deg(directions, camera)  # [V]
+    if offsets is not None:
+        ang = ang + offsets.to(ang)
     table = min_angle_table(ang)  # [2^V]
     sv = source_view.long()
     own = sv >= 0
@@ -149,11 +153,15 @@ class ViewBlend:
         source_view: ``int8 [N]`` input view of each reconstructed Gaussian (``-1`` = none).
         mask: ``uint8 [N]`` coverage mask (bit ``v``: input view ``v`` sees the Gaussian's point).
         directions: ``float32 [V, 3]`` unit directions from the head centre to the input cameras.
+        offsets: ``float32 [V]`` degrees added to each view's angle to the render camera (None: 0;
+            ``blend_factors``): mirrored virtual views (``model/mirror.py``) count as further away
+            than the real photos, so real views keep precedence where both see a point.
     """
 
     source_view: Tensor
     mask: Tensor
     directions: Tensor
+    offsets: Tensor | None = None
 
     def __post_init__(self) -> None:
         n, v = self.source_view.shape[0], self.directions.shape[0]
@@ -164,6 +172,8 @@ class ViewBlend:
             )
         if n and int(self.source_view.max()) >= v:
             raise ValueError(f"ViewBlend: source_view must be < {v} (the number of directions), got {int(self.source_view.max())}")
+        if self.offsets is not None and (self.offsets.shape != (v,) or not bool(torch.isfinite(self.offsets).all()) or bool((self.offsets < 0).any())):
+            raise ValueError(f"ViewBlend: offsets must be [V={v}] finite degrees >= 0, got {self.offsets.tolist()}")
 
     def __len__(self) -> int:
         return int(self.source_view.shape[0])
@@ -183,6 +193,8 @@ class ViewBlend:
             key = torch.where(sv >= 0, (self.mask.long() & ((1 << v) - 1)) * v + sv.clamp(min=0), torch.full_like(sv, (1 << v) * v))
             self.__dict__["_key"] = key
         ang = angles_deg(self.directions, camera)  # [V]
+        if self.offsets is not None:
+            ang = ang + self.offsets.to(ang)
         table = min_angle_table(ang)  # [2^V]
         f = torch.exp(-(ang[None, :] - table[:, None]).clamp(min=0) / float(tau_deg)).reshape(-1)  # [2^V * V]
         return torch.cat([f, f.new_ones(1)])[key]
@@ -190,18 +202,22 @@ class ViewBlend:
     @property
     def nbytes(self) -> int:
         """Bytes held once a frame has been drawn: the tensors and the cached int64 pair index."""
-        return sum(t.numel() * t.element_size() for t in (self.source_view, self.mask, self.directions)) + 8 * len(self)
+        extra = 0 if self.offsets is None else self.offsets.numel() * self.offsets.element_size()
+        return sum(t.numel() * t.element_size() for t in (self.source_view, self.mask, self.directions)) + 8 * len(self) + extra
 
     def subset(self, keep: Tensor) -> "ViewBlend":
-        return ViewBlend(self.source_view[keep], self.mask[keep], self.directions)
+        return ViewBlend(self.source_view[keep], self.mask[keep], self.directions, self.offsets)
 
     def to(self, device) -> "ViewBlend":
         if self.mask.device == torch.device(device):
             return self  # keeps the cached pair index
-        return ViewBlend(self.source_view.to(device), self.mask.to(device), self.directions.to(device))
+        return ViewBlend(self.source_view.to(device), self.mask.to(device), self.directions.to(device), None if self.offsets is None else self.offsets.to(device))
 
     def tensors(self) -> dict[str, Tensor]:
-        return {"view.source": self.source_view.to(torch.int8), "view.mask": self.mask.to(torch.uint8), "view.dirs": self.directions.float()}
+        out = {"view.source": self.source_view.to(torch.int8), "view.mask": self.mask.to(torch.uint8), "view.dirs": self.directions.float()}
+        if self.offsets is not None:
+            out["view.offsets"] = self.offsets.float()
+        return out
 
     @staticmethod
     def from_tensors(t: dict[str, Tensor], n: int) -> "ViewBlend | None":
@@ -209,7 +225,8 @@ class ViewBlend:
         keys = ("view.source", "view.mask", "view.dirs")
         if not all(k in t for k in keys):
             return None
-        b = ViewBlend(t[keys[0]].to(torch.int8), t[keys[1]].to(torch.uint8), t[keys[2]].float())
+        off = t.get("view.offsets")  # absent in files without mirrored views' offsets
+        b = ViewBlend(t[keys[0]].to(torch.int8), t[keys[1]].to(torch.uint8), t[keys[2]].float(), None if off is None else off.float())
         if len(b) != n:
             raise ValueError(f"avatar view blend must cover the {n} reconstructed Gaussians, got {len(b)}")
         return b

@@ -20,7 +20,8 @@ left-out photo's tracked camera with its tracked expression, and compare with th
   covered ones, each given as the PSNR that term alone would allow.
 
 ``python -m fastgha_core.refine.realsets --refine-steps 0,60 --grid OUT.png`` prints a markdown
-table and writes a grid picture (per set: photo, then one render per step count). The sets are not
+table and writes a grid picture (per set: photo, then one render per step count; with ``--mirror off,30``
+one per mirrored-view variant and step count, ``model/mirror.py``). The sets are not
 ours to publish: write the grid outside the repository. Sets that fail to track are reported and
 skipped, and a photo the tracker cannot handle is dropped from its set (reported) while at least 3 remain;
 without the folder the script says so and exits 0.
@@ -135,11 +136,19 @@ def _identity(faces, img: np.ndarray, box=None):
 
 
 def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, faces=None, refine_cameras: bool = True, surface: bool = True,
-                 photo_align: bool = False) -> dict:
-    """Leave-one-out over the photos of ``folder`` (see the module docstring); one row per (photo, steps).
+                 photo_align: bool = False, mirror: list[str] | None = None) -> dict:
+    """Leave-one-out over the photos of ``folder`` (see the module docstring); one row per (photo, steps)
+    and mirror variant.
 
     ``surface``: reconstruct on the tracked head surface (``model/surface.py``), as the server does.
-    ``photo_align``: register the photos' poses photometrically in tracking (``TrackConfig.photo_align``)."""
+    ``photo_align``: register the photos' poses photometrically in tracking (``TrackConfig.photo_align``).
+    ``mirror``: variants of the mirrored virtual views (``model/mirror.py``) to compare on the same
+    tracking, each ``"off"``, ``"on"`` (the config's thresholds), a yaw threshold in degrees
+    (``mirror_min_yaw_deg``), ``"YAW/DROP"`` (and ``mirror_drop_seen_deg``), ``"YAW/DROP/MM"`` (and
+    ``mirror_midline_m`` in millimetres) or ``"YAW/DROP/MM/OFFSET"`` (and ``mirror_blend_offset_deg``;
+    an empty field keeps the config's value); rows
+    then carry a ``"mirror"`` key and ``renders`` is keyed by ``(variant, steps)``. None: the
+    model's config as it is, rows without that key, ``renders`` keyed by steps."""
     from ..model.surface import HeadSurface
     from ..refine import RefineConfig, refine_avatar
     from ..render import render
@@ -170,12 +179,28 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
     cams = tr.cameras
     expr = torch.from_numpy(tr.expressions).float()
     v = len(names)
-    rows, renders = [], {s: [] for s in steps_list}
-    for k in range(v):
+    variants = [None] if mirror is None else list(mirror)
+    rows, renders = [], {(s if mv is None else (mv, s)): [] for mv in variants for s in steps_list}
+    gcfg = model.config.gaussians
+    saved = (gcfg.mirror_views, gcfg.mirror_min_yaw_deg, gcfg.mirror_drop_seen_deg, gcfg.mirror_midline_m, gcfg.mirror_blend_offset_deg)
+    for k, mv in ((k, mv) for k in range(v) for mv in variants):
         keep = [i for i in range(v) if i != k][: model.config.max_views]
         imgs, in_cams = model.prepare(matted[keep], cams[keep])
         head = HeadSurface.from_tracking(tr).subset(keep) if surface else None
-        avatar0 = model.reconstruct(imgs, in_cams, expressions=expr[keep], surface=head)
+        if mv is not None:
+            gcfg.mirror_views = mv != "off"
+            if mv not in ("on", "off"):
+                parts = mv.split("/")
+                gcfg.mirror_min_yaw_deg = float(parts[0])
+                gcfg.mirror_drop_seen_deg = float(parts[1]) if len(parts) > 1 and parts[1] else saved[2]
+                gcfg.mirror_midline_m = float(parts[2]) / 1000 if len(parts) > 2 and parts[2] else saved[3]
+                gcfg.mirror_blend_offset_deg = float(parts[3]) if len(parts) > 3 else saved[4]
+        t1 = time.perf_counter()
+        try:
+            avatar0 = model.reconstruct(imgs, in_cams, expressions=expr[keep], surface=head)
+        finally:
+            gcfg.mirror_views, gcfg.mirror_min_yaw_deg, gcfg.mirror_drop_seen_deg, gcfg.mirror_midline_m, gcfg.mirror_blend_offset_deg = saved
+        t_rec = time.perf_counter() - t1
         target = matted[k : k + 1]
         m = (masks[k : k + 1] > 0.5).float()
         t_img = to_uint8_hwc(target[0])
@@ -204,8 +229,12 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
                 "cnn_faces_in_render": None,
                 "cnn_faces_in_photo": n_photo_cnn,
                 "refine_s": round(dt, 2),
+                "reconstruct_s": round(t_rec, 2),
+                "gaussians": len(res.avatar.gaussians),
                 **error_split(pred[0], target[0], m[0], ro.alpha[0]),
             }
+            if mv is not None:
+                row["mirror"] = mv
             if faces is not None:
                 p_img = to_uint8_hwc(pred[0])
                 p_desc, n_faces, _ = _identity(faces, p_img, t_box)
@@ -214,7 +243,7 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
                 if p_desc is not None and t_desc is not None:
                     row["identity_distance"] = float(np.linalg.norm(p_desc - t_desc))
             rows.append(row)
-            renders[steps].append(pred[0])
+            renders[steps if mv is None else (mv, steps)].append(pred[0])
     return {"set": folder.name, "track_s": round(t_track, 1), "dropped": dropped, "rows": rows, "targets": list(matted.unbind(0)), "renders": renders}
 
 
@@ -239,19 +268,22 @@ def summary_table(rows: list[dict]) -> str:
     Columns after identity: photos with exactly one face by HOG (renders, left-out photos) and by
     dlib's CNN detector (renders, photos); the mean share of the mask left uncovered by the render,
     and the mean PSNR each error term alone would allow (``error_split``)."""
+    mir = any("mirror" in r for r in rows)
     head = (
         "| set | refine steps | photos | masked PSNR ↑ | masked SSIM ↑ | identity distance ↓ | renders with exactly 1 face | left-out photos with exactly 1 face "
         "| CNN: renders with 1 face | CNN: photos with 1 face | mask uncovered | PSNR, uncovered error only | PSNR, covered error only |\n"
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
     )
+    if mir:  # the mirrored-view variant (model/mirror.py) after the set
+        head = head.replace("| set |", "| set | mirror |", 1).replace("|---|", "|---|---|", 1)
     body = ""
-    keys = sorted({(r["set"], r["steps"]) for r in rows})
-    for s, st in keys:
-        rs = [r for r in rows if r["set"] == s and r["steps"] == st]
+    keys = sorted({(r["set"], r.get("mirror", ""), r["steps"]) for r in rows}, key=lambda k: (k[0], [r.get("mirror", "") for r in rows].index(k[1]), k[2]))
+    for s, mv, st in keys:
+        rs = [r for r in rows if r["set"] == s and r["steps"] == st and r.get("mirror", "") == mv]
         idd = _mean([r["identity_distance"] for r in rs])
         unc = _mean([r.get("uncovered_frac") for r in rs])
         body += (
-            f"| {s} | {st} | {len(rs)} | {_mean([r['masked_psnr'] for r in rs]):.2f} | {_mean([r['masked_ssim'] for r in rs]):.3f} | "
+            f"| {s} |{f' {mv} |' if mir else ''} {st} | {len(rs)} | {_mean([r['masked_psnr'] for r in rs]):.2f} | {_mean([r['masked_ssim'] for r in rs]):.3f} | "
             f"{_fmt(idd, '.3f')} | {_count_one(rs, 'faces_in_render')} | {_count_one(rs, 'faces_in_photo')} | "
             f"{_count_one(rs, 'cnn_faces_in_render')} | {_count_one(rs, 'cnn_faces_in_photo')} | "
             f"{'n/a' if unc is None else f'{100 * unc:.1f}%'} | {_fmt(_mean([r.get('psnr_uncovered_only') for r in rs]), '.2f')} | "
@@ -271,6 +303,9 @@ def main(argv=None) -> int:
     ap.add_argument("--photo-align", action="store_true", help="track with the photometric registration of the photos (TrackConfig.photo_align, off by default)")
     ap.add_argument("--no-cnn-faces", action="store_true", help="skip dlib's CNN face detector column (slower than HOG)")
     ap.add_argument("--size", type=int, default=256, help="crop side of the tracked photos and of the renders")
+    ap.add_argument("--mirror", default=None,
+                    help="comma-separated mirrored-view variants to compare on the same tracking (model/mirror.py): off, on (the config's thresholds), "
+                    "a yaw threshold in degrees or YAW/DROP/MM/OFFSET, trailing fields optional (mirror_min_yaw_deg / mirror_drop_seen_deg / mirror_midline_m in mm / mirror_blend_offset_deg), e.g. off,30,30/60,30/0/20,30///20 (default: the model's config)")
     ap.add_argument("--json", default=None, help="write all rows here")
     ap.add_argument("--grid", default=None, help="write a grid picture here (NOT inside the repository)")
     args = ap.parse_args(argv)
@@ -291,17 +326,29 @@ def main(argv=None) -> int:
     if faces is not None and not args.no_cnn_faces:
         faces = _load_cnn(faces)
     steps_list = [int(s) for s in args.refine_steps.split(",")]
+    mirror = None
+    if args.mirror:
+        mirror = [x.strip() for x in args.mirror.split(",") if x.strip()]
+        for x in mirror:
+            if x not in ("on", "off"):
+                try:
+                    if len(x.split("/")) > 4:
+                        raise ValueError(x)
+                    [float(p) for p in x.split("/") if p]
+                except ValueError:
+                    ap.error(f"--mirror: each variant must be off, on or YAW[/DROP[/MM[/OFFSET]]] (numbers), got {x!r}")
+    cols = steps_list if mirror is None else [(mv, s) for mv in mirror for s in steps_list]
     all_rows, grid = [], []
     for folder in sets:
         try:
             out = evaluate_set(model, folder, steps_list, args.size, faces, refine_cameras=not args.no_refine_cameras, surface=not args.no_surface,
-                               photo_align=args.photo_align)
+                               photo_align=args.photo_align, mirror=mirror)
         except (ValueError, ImportError) as e:
             print(f"{folder.name}: skipped ({e})")
             continue
         all_rows += out["rows"]
         for k, t in enumerate(out["targets"]):
-            grid.append([t] + [out["renders"][s][k] for s in steps_list])
+            grid.append([t] + [out["renders"][c][k] for c in cols])
         print(f"{folder.name}: tracked in {out['track_s']} s; photos dropped (tracking failed): {out['dropped'] or 'none'}", flush=True)
         for r in out["rows"]:
             print(json.dumps(r), flush=True)
