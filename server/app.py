@@ -66,6 +66,16 @@ _STATUS_CODES = {
 }
 
 
+def apply_model_overrides(model, s: Settings) -> None:
+    """The settings that override the loaded model's own options, set on ``model.config``:
+    ``view_blend_tau_deg`` (``FASTGHA_VIEW_BLEND_TAU_DEG`` / ``--view-blend-tau-deg``, 0 = off) and
+    ``mirror_views`` (``FASTGHA_MIRROR_VIEWS``); ``None`` keeps the model's own."""
+    if s.view_blend_tau_deg is not None:
+        model.config.gaussians.view_blend_tau_deg = float(s.view_blend_tau_deg)
+    if s.mirror_views is not None:  # model/mirror.py
+        model.config.gaussians.mirror_views = bool(s.mirror_views)
+
+
 # ---------------------------------------------------------------- start-up
 def _load(ctx: ServerContext) -> None:
     """Load the model, choose the MLP precision, compile, open the store and warm up (blocking; runs
@@ -87,11 +97,12 @@ def _load(ctx: ServerContext) -> None:
     t0 = time.perf_counter()
     ctx.model = load_model(s.model, device=ctx.device)
     log.info("loaded model %r on %s in %.1f s", ctx.model.config.name, ctx.device, time.perf_counter() - t0)
-    if s.view_blend_tau_deg is not None:  # FASTGHA_VIEW_BLEND_TAU_DEG / --view-blend-tau-deg: the server's tau, 0 = off
-        ctx.model.config.gaussians.view_blend_tau_deg = float(s.view_blend_tau_deg)
+    apply_model_overrides(ctx.model, s)
     tau = ctx.model.config.gaussians.view_blend_tau_deg
     log.info("view blending of avatars with per-view data: %s (%s)", f"tau {tau:g} deg" if tau > 0 else "off",
              "FASTGHA_VIEW_BLEND_TAU_DEG / --view-blend-tau-deg" if s.view_blend_tau_deg is not None else "the model's own")  # fmt: skip
+    log.info("mirrored views of turned photos (avatars on a tracked head): %s (%s)", "on" if ctx.model.config.gaussians.mirror_views else "off",
+             "FASTGHA_MIRROR_VIEWS" if s.mirror_views is not None else "the model's own")  # fmt: skip
     ctx.mlp_choice = _choose_precision(ctx, lambda: step("precision", "timing the deformation MLP in fp32 and bf16 (FASTGHA_MLP_PRECISION=auto)"))
     bf16 = ctx.mlp_choice.bf16
     ctx.renderer = FrameRenderer(ctx.model, ctx.device, s.default_camera_distance, s.default_camera_fov_deg, bf16=bf16)

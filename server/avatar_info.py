@@ -40,10 +40,11 @@ def avatar_facts(avatar: Any) -> dict:
 
 def server_options(model: Any) -> dict:
     """The model's view-blending tau and expression-prior options as the server runs them
-    (``GET /v1/model``): ``{"view_blend_tau_deg": float, "expression_prior": {...}}``."""
+    (``GET /v1/model``): ``{"view_blend_tau_deg": float, "mirror_views": bool, "expression_prior": {...}}``."""
     d = model.config.deform
     return {
         "view_blend_tau_deg": float(model.config.gaussians.view_blend_tau_deg),
+        "mirror_views": bool(model.config.gaussians.mirror_views),
         "expression_prior": {
             "enabled": bool(d.prior),
             "shading": bool(d.prior and d.prior_shading),

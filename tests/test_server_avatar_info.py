@@ -56,6 +56,7 @@ def samples(tmp_path_factory) -> Path:
 def _ctx(model_dir, tmp_path, **settings):
     from fastgha_core import load_model
     from fastgha_core.model.avatar import CanonicalAvatar
+    from server.app import apply_model_overrides
     from server.context import ServerContext
     from server.settings import Settings
     from server.store import AvatarStore
@@ -63,8 +64,7 @@ def _ctx(model_dir, tmp_path, **settings):
     s = Settings(data_dir=tmp_path, warmup=False, **settings)
     ctx = ServerContext(settings=s)
     ctx.model = load_model(str(model_dir), device="cpu")
-    if s.view_blend_tau_deg is not None:
-        ctx.model.config.gaussians.view_blend_tau_deg = s.view_blend_tau_deg
+    apply_model_overrides(ctx.model, s)  # as the server's start-up does
     ctx.store = AvatarStore(tmp_path, 10**9, 0, load_fn=CanonicalAvatar.load)
     ctx.identity = IdentityChecker(s.same_person_check, s.same_person_max_distance)
     return ctx
@@ -117,10 +117,11 @@ class _Tracker:
 def test_tracked_avatar_reports_per_view_data_and_whether_frames_are_blended(model_dir, samples, tmp_path, tau, views):
     """An avatar built on a tracked head has per-view data: the report says so, with the number of
     views, the server's tau, and ``active`` exactly when a side camera changes the frame's opacities
-    (never with one view: its every weight is 1)."""
+    (never with one view: its every weight is 1). Mirrored views off (FASTGHA_MIRROR_VIEWS=false),
+    so the views are the photos."""
     from fastgha_core.cameras import Cameras
 
-    ctx = _ctx(model_dir, tmp_path, view_blend_tau_deg=tau)
+    ctx = _ctx(model_dir, tmp_path, view_blend_tau_deg=tau, mirror_views=False)
     photos, cams = _sample_request(samples)
     photos = photos[:views]
     job = _run_job(ctx, CreationRequest(photos, None, None), tracker=_Tracker(cams))
@@ -142,6 +143,23 @@ def test_tracked_avatar_reports_per_view_data_and_whether_frames_are_blended(mod
     assert (prior["shading"], prior["rotate"], prior["back_shell"]) == (d.prior_shading, d.prior_rotate, d.back_shell)
     meta = ctx.store.get_meta(job.id)
     assert avatar_options(ctx.model, meta) == {k: job.result[k] for k in ("view_blend", "expression_prior")}
+
+
+def test_mirrored_views_count_in_the_report_and_the_setting_turns_them_off(model_dir, samples, tmp_path):
+    """With the model's default (mirrored views on), the sample's turned photos add mirrored virtual
+    views: the report counts the avatar's recorded views, more than the 4 photos; FASTGHA_MIRROR_VIEWS=false
+    (``mirror_views=False``) leaves the photos alone."""
+    photos, cams = _sample_request(samples)
+    counts = {}
+    for setting in (None, False):
+        ctx = _ctx(model_dir, tmp_path / str(setting), mirror_views=setting)
+        assert ctx.model.config.gaussians.mirror_views is (setting is None)  # tiny's own default is on
+        job = _run_job(ctx, CreationRequest(photos, None, None), tracker=_Tracker(cams))
+        assert job.status == "ready", job.error and job.error.message
+        vb = ctx.store.get(job.id).avatar.view_blend
+        assert job.result["view_blend"]["views"] == vb.directions.shape[0]
+        counts[setting] = vb.directions.shape[0]
+    assert counts[False] == 4 and 4 < counts[None] <= 8, counts
 
 
 def test_avatar_from_photos_with_cameras_has_no_per_view_data(model_dir, samples, tmp_path):

@@ -495,7 +495,7 @@ class FastGHA(nn.Module):
         On a surface (or everywhere with ``config.gaussians.view_blend_surface_only=False``) the
         avatar also records each reconstructed Gaussian's source view and which input views see its
         point (``avatar.view_blend``, ``model/viewblend.py``) for view-dependent frames. With
-        ``config.gaussians.mirror_views`` (off by default) and an ict53 model, the input views turned by
+        ``config.gaussians.mirror_views`` (on by default) and an ict53 model, the input views turned by
         at least ``mirror_min_yaw_deg`` also add their left-right mirror images as virtual views of the
         unseen side of the head, after the real views' Gaussians (``model/mirror.py``).
         """
