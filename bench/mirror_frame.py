@@ -47,10 +47,15 @@ def main(argv=None) -> int:
     from fastgha_core.tracking.pipeline import TrackConfig
     from server.frames import FrameRenderer
 
-    sets = [s for s in list_sets(realsets_root()) if s.name == args.set]
-    if not sets:
-        print(f"no real photo set {args.set!r} under {realsets_root()}: nothing to measure")
+    every = list_sets(realsets_root())
+    sets = [s for s in every if s.name == args.set]
+    if not every:  # the real sets are not on this machine: skip cleanly
+        print(f"no real photo sets under {realsets_root()} (set FASTGHA_REALSETS): nothing to measure")
         return 0
+    if not sets:  # a set name that is not there (a typo) is an error, not a silent skip
+        print(f"mirror_frame.py: --set {args.set!r} is not a real photo set under {realsets_root()}; expected one of: "
+              f"{', '.join(s.name for s in every)}", file=sys.stderr)  # fmt: skip
+        return 2
     model = load_model(args.model)
     gc = model.config.gaussians
     if args.min_yaw is not None:

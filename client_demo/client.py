@@ -108,7 +108,7 @@ class Avatar:
     round_trip_ms: float = 0.0  # client-side time of the create call (upload, queue, reconstruction)
     tracking_ms: float | None = None  # server-side photo tracking, when the photos came without cameras
     # what the server reports about the avatar's frames and photos (docs/protocol.md, GET /v1/avatars/{id}):
-    # "view_blend", "expression_prior", "same_person"; empty from a server that predates them
+    # "view_blend", "expression_prior", "same_person" (empty from a server that predates them), and "num_images" (photos sent)
     info: dict = field(default_factory=dict, hash=False)
 
     def describe(self) -> str:
@@ -120,12 +120,18 @@ class Avatar:
 def describe_avatar(info: dict) -> str:
     """``"view blending on (4 views, tau 20 deg); expression prior on; same person: 4 photos compared
     (largest distance 0.47)"`` from the ``view_blend`` / ``expression_prior`` / ``same_person`` of a
-    creation answer or ``GET /v1/avatars/{id}``; parts the server did not report are left out."""
+    creation answer or ``GET /v1/avatars/{id}``; parts the server did not report are left out. With
+    ``num_images`` too, blended views beyond the photos are named as mirrored views of turned photos
+    (``"6 views: 4 photos + 2 mirrored"``)."""
     parts = []
     vb = info.get("view_blend")
     if isinstance(vb, dict):
         if vb.get("active"):
-            parts.append(f"view blending on ({vb.get('views')} views, tau {vb.get('tau_deg'):g} deg)")
+            views, photos = vb.get("views"), info.get("num_images")
+            what = f"{views} views"
+            if isinstance(views, int) and isinstance(photos, int) and views > photos:  # mirrored views of turned photos
+                what += f": {photos} photo{'s' if photos != 1 else ''} + {views - photos} mirrored"
+            parts.append(f"view blending on ({what}, tau {vb.get('tau_deg'):g} deg)")
         elif not vb.get("per_view_data"):
             parts.append("view blending off (no per-view data: photos sent with cameras alone)")
         elif int(vb.get("views", 0)) < 2:
@@ -497,7 +503,7 @@ class FastGHAClient:
         return Avatar(
             d["avatar_id"], d["token"], int(d["num_gaussians"]), float(d["reconstruction_ms"]), d["expression_space"], rt,
             float(tracking) if tracking is not None else None,
-            {k: d[k] for k in ("view_blend", "expression_prior", "same_person") if k in d},
+            {"num_images": len(images), **{k: d[k] for k in ("view_blend", "expression_prior", "same_person", "num_images") if k in d}},
         )
 
     def create_avatar_from_dir(self, folder: str | Path, **kw: Any) -> Avatar:

@@ -174,7 +174,8 @@ def test_client_creates_streams_and_deletes(client, request_dir):
     assert client.download_ply(avatar).startswith(b"ply")
     got = client.avatar_info(avatar)
     assert got["num_gaussians"] == avatar.num_gaussians
-    assert avatar.info == {k: got[k] for k in ("view_blend", "expression_prior", "same_person")}  # what the server reports
+    assert avatar.info == {k: got[k] for k in ("view_blend", "expression_prior", "same_person", "num_images")}  # what the server reports
+    assert avatar.info["num_images"] == len(images)  # the photos sent: describe() names blended views beyond them as mirrored
     assert "view blending off (no per-view data" in avatar.describe()  # photos with cameras alone
     client.delete(avatar)
     with pytest.raises(RuntimeError, match="avatar_not_found"):

@@ -47,3 +47,16 @@ def test_animate_says_how_the_views_were_drawn():
     assert "unweighted" in old and "before view blending" in old
     assert "view_blend_tau_deg is 0" in blend_summary(_model(view_blend_tau_deg=0.0), _avatar(4))
     assert blend_summary(_model(), _avatar(1)) == "one input view"
+
+
+def test_the_note_counts_photos_and_mirrored_views_apart():
+    """With mirrored views (``model/mirror.py``) an avatar of 5 photos blends 7 views: the note must
+    not call them "7 input views" (a user who gave 5 photos reads that as a bug), but say where the
+    extra 2 come from; one turned photo gives 2 views, which blend."""
+    from fastgha_core.commands.reconstruct import _blend_note
+
+    five = _blend_note(_model(), _avatar(7), on_surface=True, photos=5)
+    assert "the 7 views (5 photos + 2 mirrored views of turned photos) by" in five and "7 input views" not in five
+    one = _blend_note(_model(), _avatar(2), on_surface=True, photos=1)
+    assert "on (tau 20 deg)" in one and "1 photo + 1 mirrored view of a turned photo" in one
+    assert "4 input views" in _blend_note(_model(), _avatar(4), on_surface=True, photos=4)  # no mirrored view: as before

@@ -183,6 +183,17 @@ def test_describe_avatar_says_each_case():
     assert describe_avatar({}) == ""  # an older server: nothing to say
 
 
+def test_describe_avatar_names_mirrored_views_apart_from_photos():
+    """``view_blend.views`` counts the mirrored views of turned photos (docs/protocol.md): 4 photos with
+    two turned blend 6 views; the line says where the 2 extra come from instead of "6 views" alone."""
+    vb = {"per_view_data": True, "views": 6, "tau_deg": 20.0, "active": True}
+    assert describe_avatar({"view_blend": vb, "num_images": 4}) == "view blending on (6 views: 4 photos + 2 mirrored, tau 20 deg)"
+    one = describe_avatar({"view_blend": {**vb, "views": 2}, "num_images": 1})
+    assert one == "view blending on (2 views: 1 photo + 1 mirrored, tau 20 deg)"
+    assert describe_avatar({"view_blend": {**vb, "views": 4}, "num_images": 4}) == "view blending on (4 views, tau 20 deg)"
+    assert describe_avatar({"view_blend": vb}) == "view blending on (6 views, tau 20 deg)"  # no photo count given
+
+
 # ---------------------------------------------------------------- the tau setting
 @pytest.mark.parametrize("bad", [-1.0, float("nan"), float("inf"), 361.0])
 def test_tau_setting_refuses_bad_values_with_a_clear_error(bad):

@@ -185,12 +185,13 @@ def test_reconstruct_on_a_surface_binds_the_prior_to_it(surface):
         model.reconstruct(imgs, cams, surface=surface, surface_mode="mesh")
     # blend: the face's Gaussians on the head, as with replace; the rest is the network's depth.
     # The matte fill (model/coverage.py) raises opacities by where the views' Gaussians land, which
-    # depends on depth: compare the kept pixels without it.
-    model.config.gaussians.coverage_target = 0.0
+    # depends on depth: compare the kept pixels without it. Replace mode alone adds the mirrored views
+    # of the +-35-degree views (model/mirror.py; blend mode has none): compare the real views' pixels.
+    model.config.gaussians.coverage_target, model.config.gaussians.mirror_views = 0.0, False
     av = model.reconstruct(imgs, cams, surface=surface)
     d, _ = cKDTree(neutral).query(av.gaussians.means[: av.num_reconstructed].numpy())
     bl = model.reconstruct(imgs, cams, surface=surface, surface_mode="blend")
-    model.config.gaussians.coverage_target = 0.9
+    model.config.gaussians.coverage_target, model.config.gaussians.mirror_views = 0.9, True
     sd = surface_ray_depth(surface, cams)
     n = bl.num_reconstructed
     assert n == av.num_reconstructed  # same pixels kept (the opacities do not depend on depth)

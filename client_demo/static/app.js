@@ -391,7 +391,7 @@
       const st = r.status === 202 ? await watchJob(job) : { status: "ready", avatar: job };
       if (st === null) return;
       if (st.status === "failed") throw new Error(`${st.error.code}: ${st.error.message} (HTTP ${st.error.status})`);
-      const av = { ...st.avatar, token: job.token };
+      const av = { num_images: S.inputs.images.length, ...st.avatar, token: job.token };  // photos sent: view_blend.views beyond them are mirrored
       const rt = performance.now() - t0;
       S.avatar = av;
       $("recon").textContent = `reconstruction ${av.reconstruction_ms.toFixed(0)} ms` + (av.tracking_ms != null ? `, tracking ${av.tracking_ms.toFixed(0)} ms` : "") +
@@ -685,7 +685,10 @@ function describeAvatar(av) {
   const parts = [];
   const vb = av.view_blend;
   if (vb) {
-    if (vb.active) parts.push(`view blending on (${vb.views} views, tau ${vb.tau_deg}°)`);
+    if (vb.active) {  // views beyond the photos are mirrored views of turned photos (docs/protocol.md)
+      const n = av.num_images, m = Number.isInteger(n) && vb.views > n ? vb.views - n : 0;
+      parts.push(`view blending on (${vb.views} views${m ? `: ${n} photo${n === 1 ? "" : "s"} + ${m} mirrored` : ""}, tau ${vb.tau_deg}°)`);
+    }
     else if (!vb.per_view_data) parts.push("view blending off (no per-view data: photos sent with cameras alone)");
     else if (vb.views < 2) parts.push("view blending off (one input view)");
     else parts.push("view blending off (the server's tau is 0)");

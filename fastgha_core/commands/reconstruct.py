@@ -113,8 +113,10 @@ def _fit_surface(images, cams, masks):
     return surface
 
 
-def _blend_note(model, avatar, on_surface: bool) -> str:
-    """One line: whether the avatar's frames are view-blended (``model/viewblend.py``) and, if not, why."""
+def _blend_note(model, avatar, on_surface: bool, photos: int | None = None) -> str:
+    """One line: whether the avatar's frames are view-blended (``model/viewblend.py``) and, if not, why.
+    ``photos``: the input photos; blended views beyond them are mirrored views of turned photos
+    (``model/mirror.py``), named as such (None: every view counted as an input view)."""
     tau = float(model.config.gaussians.view_blend_tau_deg)
     if avatar.view_blend is None:
         if not on_surface and model.config.gaussians.view_blend_surface_only:
@@ -126,9 +128,15 @@ def _blend_note(model, avatar, on_surface: bool) -> str:
         return "view blending: per-view data saved, but the model's gaussians.view_blend_tau_deg is 0: frames draw unweighted"
     if avatar.view_blend.directions.shape[0] == 1:
         return "view blending: one input view, nothing to weight (2 or more photos from different angles use it)"
+    v = int(avatar.view_blend.directions.shape[0])
+    views = f"{v} input views"
+    if photos is not None and v > photos:
+        m = v - photos
+        views = (f"{v} views ({photos} photo{'s' if photos != 1 else ''} + {m} mirrored "
+                 f"view{'s' if m != 1 else ''} of {'turned photos' if m != 1 else 'a turned photo'})")  # fmt: skip
     return (
-        f"view blending: on (tau {tau:g} deg): each frame weights the {avatar.view_blend.directions.shape[0]} input views' "
-        "Gaussians by their camera's angle to the frame's camera (server, animate; not the PLY)"
+        f"view blending: on (tau {tau:g} deg): each frame weights the Gaussians of the {views} "
+        "by their camera's angle to the frame's camera (server, animate; not the PLY)"
     )
 
 
@@ -198,7 +206,7 @@ def run(args) -> int:
         f"reconstructed {len(avatar)} Gaussians from {len(imgs)} views at {model.config.input_size}^2 "
         f"in {dt * 1000:.0f} ms{refine_note} (model {model.config.name!r}, expression space {model.config.expression_space}) -> {args.out}"
     )
-    print(_blend_note(model, avatar, surface is not None))
+    print(_blend_note(model, avatar, surface is not None, photos=len(imgs)))
     if args.ply:
         avatar.to_ply(args.ply)
         print(f"wrote the canonical Gaussians as a 3DGS PLY (static: unweighted opacities, no view blending) -> {args.ply}")

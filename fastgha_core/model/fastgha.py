@@ -495,7 +495,7 @@ class FastGHA(nn.Module):
         On a surface (or everywhere with ``config.gaussians.view_blend_surface_only=False``) the
         avatar also records each reconstructed Gaussian's source view and which input views see its
         point (``avatar.view_blend``, ``model/viewblend.py``) for view-dependent frames. With
-        ``config.gaussians.mirror_views`` (on by default) and an ict53 model, the input views turned by
+        ``config.gaussians.mirror_views`` (on by default), an ict53 model and ``surface_mode="replace"``, the input views turned by
         at least ``mirror_min_yaw_deg`` also add their left-right mirror images as virtual views of the
         unseen side of the head, after the real views' Gaussians (``model/mirror.py``).
         """
@@ -553,9 +553,10 @@ class FastGHA(nn.Module):
             images.to(dev, torch.float32)[None], cameras.to(dev, torch.float32)[None], ray_depth if ray_depth is None or callable(ray_depth) else ray_depth.to(dev)
         )[0]
         v_real = v
-        if surface is not None and self.config.gaussians.mirror_views and self.config.expression_space == "ict53":
-            # turned views' mirror images as virtual views of the unseen side, after the real ones (model/mirror.py)
-            g, images, cameras, sd, expressions, v = self._add_mirrored_views(g, images, cameras, sd, expressions, surface, surface_mode)
+        if surface is not None and surface_mode == "replace" and self.config.gaussians.mirror_views and self.config.expression_space == "ict53":
+            # turned views' mirror images as virtual views of the unseen side, after the real ones (model/mirror.py); not in
+            # blend mode: there the mirrored off-face pixels took a mirrored-only network pass's depth (a flap beside the neck)
+            g, images, cameras, sd, expressions, v = self._add_mirrored_views(g, images, cameras, sd, expressions, surface)
         view_index = torch.arange(v, device=dev).repeat_interleave(len(g) // v)  # Gaussians are V*S*S, view-major
         if surface is not None and surface_mode == "replace" and self.config.gaussians.grazing_stretch > 0:
             from .surface import stretch_to_patches, surface_steps  # grazing views' Gaussians cover their patch (model/surface.py)
@@ -630,7 +631,7 @@ class FastGHA(nn.Module):
         self._deform_partial(avatar)
         return avatar
 
-    def _add_mirrored_views(self, g: Gaussians, images: Tensor, cameras: Cameras, sd, expressions: Tensor | None, surface, surface_mode: str):
+    def _add_mirrored_views(self, g: Gaussians, images: Tensor, cameras: Cameras, sd, expressions: Tensor | None, surface):
         """``reconstruct``'s mirrored virtual views (``model/mirror.py``): the real views' Gaussians
         ``g`` (``V*S*S``) followed by those of the mirrors of the views turned by at least
         ``gaussians.mirror_min_yaw_deg`` (a second network pass over the mirrored views alone), so
@@ -643,12 +644,11 @@ class FastGHA(nn.Module):
         mv = mirrored_views(images, cameras, sd, expressions, gc.mirror_min_yaw_deg, surface.head_to_world, limit=MAX_BLEND_VIEWS - v)
         if mv is None:
             return g, images, cameras, sd, expressions, v
-        from .surface import SurfaceDepth, blend_network_depth
+        from .surface import SurfaceDepth
 
         dev, m = self.device, len(mv)
-        msd = mv.depth
-        rd = (lambda t_pred: blend_network_depth(msd, t_pred[0])[None]) if surface_mode == "blend" else msd.t[None].to(dev)  # noqa: E731
-        gm = self.forward_gaussians(mv.images.to(dev, torch.float32)[None], mv.cameras.to(dev, torch.float32)[None], rd)[0]
+        msd = mv.depth  # every mirrored pixel on the mirrored head (replace mode only)
+        gm = self.forward_gaussians(mv.images.to(dev, torch.float32)[None], mv.cameras.to(dev, torch.float32)[None], msd.t[None].to(dev))[0]
         log.info("reconstruct: %d mirrored view(s) of input view(s) %s", m, mv.source)
         cat = lambda a, b: None if a is None or b is None else torch.cat([a, b.to(a)])  # noqa: E731
         sd = SurfaceDepth(cat(sd.t, msd.t), cat(sd.hit, msd.hit), cat(sd.beyond_face, msd.beyond_face), cat(sd.face_hit, msd.face_hit))
