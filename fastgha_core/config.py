@@ -121,7 +121,7 @@ class GaussianHeadConfig:
     view_blend_surface_only: bool = True  # record the per-view data (and so blend) only for avatars reconstructed on a tracked head surface (on the network-depth path tau 20 lowered held-out synthetic PSNR; docs/model-card.md)
     mirror_views: bool = True  # reconstruct() on a tracked head surface in replace mode (ict53): add the left-right mirror of every input view turned by >= mirror_min_yaw_deg as a virtual view of the unseen side of the head (model/mirror.py; docs/model-card.md)
     mirror_min_yaw_deg: float = 30.0  # ... only views whose camera is turned at least this far from frontal, degrees (a near-frontal mirror doubles an asymmetric face)
-    mirror_blend_offset_deg: float = 0.0  # ... view blending counts each mirrored view this many degrees further from the render camera than it is (real photos keep precedence where both see a point; 0 = none; model/viewblend.py offsets)
+    mirror_blend_offset_deg: float = 40.0  # ... view blending counts each mirrored view this many degrees further from the render camera than it is (real photos keep precedence near their own cameras; 0 = none; 40 chosen in docs/model-card.md, "Why the 40° offset"; model/viewblend.py offsets)
     mirror_midline_m: float = 0.0  # ... drop the mirrored Gaussians within this many metres of the head's sagittal plane (0 = keep them; model/mirror.py near_midline)
     mirror_drop_seen_deg: float = 0.0  # ... drop the mirrored Gaussians whose point a real view sees (inside its matte, unoccluded) at an incidence below this many degrees (0 = keep them all; model/mirror.py seen_by_views)
 
