@@ -58,10 +58,13 @@ class FastGHAOutput:
     Attributes:
         gaussians: deformed Gaussians (target expression applied, features kept), ready to render.
         canonical: the canonical Gaussians before deformation.
+        view_depth: ``[B, V, H, W]`` each input pixel's Gaussian's distance (metres) from its view's
+            camera centre, i.e. the depth along the pixel's ray (for ``LossConfig.w_depth_smooth``).
     """
 
     gaussians: list[Gaussians]
     canonical: list[Gaussians]
+    view_depth: Tensor | None = None
 
 
 def _apply_deformation(g: Gaussians, dxyz: Tensor, drgb: Tensor) -> Gaussians:
@@ -251,8 +254,10 @@ class FastGHA(nn.Module):
             raise ValueError(f"expression must have shape [B={b}, E={e}], got {list(expression.shape)}")
         cams = Cameras(K, w2c, images.shape[-1], images.shape[-2])
         canonical = self.forward_gaussians(images, cams)
-        deformed = []
         v = images.shape[1]
+        h, w = images.shape[-2:]
+        view_depth = torch.stack([(g.means.view(v, h, w, 3) - cams.centers[i].to(g.means)[:, None, None]).norm(dim=-1) for i, g in enumerate(canonical)])
+        deformed = []
         for i, (g, z) in enumerate(zip(canonical, expression)):
             if self.config.deform.prior:
                 if input_expressions is not None:
@@ -270,7 +275,7 @@ class FastGHA(nn.Module):
             else:
                 dxyz, drgb = self.deform(g.features, g.means, z)
                 deformed.append(_apply_deformation(g, dxyz, drgb))
-        return FastGHAOutput(gaussians=deformed, canonical=canonical)
+        return FastGHAOutput(gaussians=deformed, canonical=canonical, view_depth=view_depth)
 
     # ------------------------------------------------------------ expression prior (issue 16)
     def head_basis(self):
