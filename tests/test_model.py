@@ -111,6 +111,11 @@ def test_training_forward_batch(toy_model):
     assert len(out.gaussians) == len(out.canonical) == 2
     # both samples hold identical inputs
     assert_close(out.canonical[0].means, out.canonical[1].means)
+    # each input pixel's depth along its ray (LossConfig.w_depth_smooth): its Gaussian's distance from the camera
+    assert out.view_depth.shape == (2, 2, S, S)
+    centres = torch.linalg.inv(w2c[0])[:, :3, 3]
+    ref = (out.canonical[0].means[: 2 * S * S].view(2, S, S, 3) - centres[:, None, None]).norm(dim=-1)
+    assert_close(out.view_depth[0], ref)
     with pytest.raises(ValueError, match="expression must have shape"):
         toy_model(imgs, K, w2c, torch.zeros(2, 52))
 
