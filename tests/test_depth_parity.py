@@ -15,7 +15,7 @@ from torch.testing import assert_close
 from fastgha_core.cameras import orbit_cameras
 from fastgha_core.config import GaussianHeadConfig
 from fastgha_core.model.gaussian_head import GaussianHead, remove_row_parity, row_parity
-from fastgha_core.train.losses import FastGHALoss, LossConfig, depth_smoothness_loss
+from fastgha_core.train.losses import FastGHALoss, LossConfig, depth_parity_loss, depth_smoothness_loss
 
 
 # ---------------------------------------------------------------- plain references
@@ -195,3 +195,39 @@ def test_loss_module_adds_the_weighted_depth_term():
     assert_close(terms["total"], base["total"] + 3.0 * expect)
     (grad,) = torch.autograd.grad(terms["total"], view_depth)
     assert grad.abs().sum() > 0
+
+
+def test_depth_parity_loss_matches_a_plain_loop_and_is_blind_to_smooth_maps():
+    g = torch.Generator().manual_seed(6)
+    d = torch.rand(2, 9, 8, generator=g, dtype=torch.float64)
+    m = torch.rand(2, 9, 8, generator=g) > 0.2
+    ref = 0.0
+    for i in range(2):
+        rows = _row_parity_reference(d[i].numpy(), m[i].numpy(), 1.0)
+        cols = _row_parity_reference(d[i].numpy().T, m[i].numpy().T, 1.0).T
+        ref += (np.abs(rows) + np.abs(cols))[m[i].numpy()].sum()
+    assert float(depth_parity_loss(d, m, 1.0)) == pytest.approx(ref / float(m.sum()), rel=1e-12)
+    h, w = 12, 10
+    y, x = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    bowl = (1.0 + 0.02 * ((y - 5) / h) ** 2 + 0.01 * x / w)[None]  # smooth: second differences 2.8e-4 at most
+    assert float(depth_parity_loss(bowl)) < 0.005 * float(depth_parity_loss(bowl + 0.003 * _alternating(h, w)[None]))
+    assert float(depth_parity_loss(0.003 * _alternating(h, w)[None])) == pytest.approx(0.003, rel=1e-9)
+    assert float(depth_parity_loss(0.003 * _alternating(w, h).T[None])) == pytest.approx(0.003, rel=1e-9)  # columns alike
+    z = depth_parity_loss(bowl.clone().requires_grad_(True), torch.zeros(1, h, w))
+    assert float(z.detach()) == 0.0 and z.requires_grad
+    dd = (bowl[:, :7, :6] + 0.001 * torch.rand(1, 7, 6, generator=g, dtype=torch.float64)).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda z: depth_parity_loss(z, None, 1.0), (dd,))
+
+
+def test_loss_module_adds_the_weighted_parity_term():
+    g = torch.Generator().manual_seed(7)
+    rgb = torch.rand(1, 3, 8, 8, generator=g)
+    ones = torch.ones(1, 1, 8, 8)
+    view_depth = (1 + 0.002 * ((-1.0) ** torch.arange(8))[:, None] + 0.001 * torch.rand(2, 8, 8, generator=g)).requires_grad_(True)
+    view_images = torch.rand(2, 3, 8, 8, generator=g) * 0.5
+    base = FastGHALoss(LossConfig())(rgb, ones, ones, rgb, ones, ones, view_depth=view_depth, view_images=view_images)
+    terms = FastGHALoss(LossConfig(w_depth_parity=2.0))(rgb, ones, ones, rgb, ones, ones, view_depth=view_depth, view_images=view_images)
+    expect = depth_parity_loss(view_depth, None, LossConfig().depth_parity_sigma)
+    assert float(base["dparity"]) == 0.0 and float(expect) > 0.0015
+    assert_close(terms["dparity"], expect)
+    assert_close(terms["total"], base["total"] + 2.0 * expect)

@@ -12,11 +12,16 @@
 
 Default weights are the paper's: λ_SSIM 1, λ_perc 0.5, λ_sil 1, λ_geo 0.5.
 
-Not in the paper, off by default (``w_depth_smooth`` 0): ``L_dsmooth``, an edge-aware second-order
-smoothness of each *input view's* depth map (the depth along each pixel's ray of its Gaussian,
-rows and columns alike, ``depth_smoothness_loss``). Why: the shipped decoder learned depth maps
+Not in the paper, off by default, on each *input view's* depth map (the depth along each pixel's
+ray of its Gaussian, ``FastGHAOutput.view_depth``). Why: the shipped decoder learned depth maps
 that alternate row by row, which draws bands on forehead and hair in novel views
-(docs/model-card.md, "The sample's artifacts").
+(docs/model-card.md, "The sample's artifacts"):
+
+- ``L_dparity`` (``w_depth_parity``): the mean amplitude of the row- and column-alternating parts
+  (``depth_parity_loss``); nothing else of the map is penalised;
+- ``L_dsmooth`` (``w_depth_smooth``): an edge-aware second-order smoothness, rows and columns alike
+  (``depth_smoothness_loss``). Measured: it flattens the whole head, not only the alternation
+  (docs/model-card.md).
 """
 
 from __future__ import annotations
@@ -38,12 +43,13 @@ __all__ = [
     "geometry_loss",
     "perceptual_loss",
     "depth_smoothness_loss",
+    "depth_parity_loss",
     "LOSS_TERMS",
 ]
 
 log = logging.getLogger(__name__)
 
-LOSS_TERMS = ("rgb", "ssim", "perc", "sil", "geo", "dsmooth")
+LOSS_TERMS = ("rgb", "ssim", "perc", "sil", "geo", "dsmooth", "dparity")
 
 
 @dataclass
@@ -60,6 +66,8 @@ class LossConfig:
     perc_max_size: int = 256  # images larger than this are downsampled before VGG (cost); 0 = never
     geo_mask_threshold: float = 0.5  # ground-truth mask value above which the depth prior counts
     w_depth_smooth: float = 0.0  # L_dsmooth: second-order smoothness of each input view's depth map (metres; 0 = off, not in the paper)
+    w_depth_parity: float = 0.0  # L_dparity: amplitude of the row/column alternation of each input view's depth map (metres; 0 = off, not in the paper)
+    depth_parity_sigma: float = 2.0  # L_dparity: pixels over which the alternation's amplitude is averaged (model/gaussian_head.py row_parity)
     depth_smooth_edge: float = 5.0  # L_dsmooth's edge awareness: a pixel's weight is exp(-this * the input's colour change across it)
 
 
@@ -144,6 +152,31 @@ def depth_smoothness_loss(depth: Tensor, images: Tensor | None = None, mask: Ten
     return total / count if count else total
 
 
+def depth_parity_loss(depth: Tensor, mask: Tensor | None = None, sigma: float = 2.0) -> Tensor:
+    """Mean amplitude of the row- and column-alternating parts of per-view depth maps.
+
+    ``depth [N, H, W]`` (metres), ``mask [N, H, W]`` (bool or [0, 1], > 0.5 counts; None = everywhere).
+    ``mean |row_parity(depth)| + mean |row_parity(depth^T)|`` over the mask's pixels
+    (``model.gaussian_head.row_parity``: the local amplitude ``c`` of a ``c * (-1)**y`` component, and
+    the same along x); a map without alternation (linear in y, or in x, or any smooth map) costs
+    (almost) 0, a pure ``c * (-1)**y`` pattern costs ``|c|``. With no mask pixel it is an exact zero
+    that still belongs to the graph. Raises ``ValueError`` on shapes other than the above.
+    """
+    from ..model.gaussian_head import row_parity
+
+    if depth.ndim != 3:
+        raise ValueError(f"depth_parity_loss: depth must have shape [N, H, W], got {list(depth.shape)}")
+    if mask is not None and tuple(mask.shape) != tuple(depth.shape):
+        raise ValueError(f"depth_parity_loss: mask must have shape {list(depth.shape)}, got {list(mask.shape)}")
+    m = torch.ones_like(depth) if mask is None else (mask > 0.5).to(depth.dtype)
+    n = m.sum()
+    if float(n) == 0:
+        return depth.sum() * 0.0
+    rows = row_parity(depth, m, sigma).abs()
+    cols = row_parity(depth.transpose(-1, -2), m.transpose(-1, -2), sigma).abs().transpose(-1, -2)
+    return ((rows + cols) * m).sum() / n
+
+
 def perceptual_loss(vgg: VGG16Features, pred: Tensor, target: Tensor, layers=LPIPS_LAYERS, max_size: int = 0) -> Tensor:
     """Mean over ``layers`` of the mean |Δ| between VGG16 features of ``pred`` and ``target``."""
     _check_pair("perceptual_loss", pred, target, channels=3)
@@ -162,10 +195,11 @@ class FastGHALoss(nn.Module):
     """The weighted sum of the paper's terms.
 
     ``forward(rgb, alpha, depth, target_rgb, target_mask, target_depth)`` with ``[N, 3|1, H, W]``
-    tensors returns ``{"rgb", "ssim", "perc", "sil", "geo", "dsmooth", "total"}`` (scalars; ``perc`` is 0
-    when it is off). Terms with weight 0 are not computed. ``dsmooth`` needs ``view_depth [M, H', W']``
-    (the input views' depth maps, ``FastGHAOutput.view_depth`` flattened) and takes its edges and
-    mask (``foreground_weight > 0.5``) from ``view_images [M, 3, H', W']``; it is 0 without them.
+    tensors returns ``{"rgb", "ssim", "perc", "sil", "geo", "dsmooth", "dparity", "total"}`` (scalars;
+    ``perc`` is 0 when it is off). Terms with weight 0 are not computed. ``dsmooth`` and ``dparity``
+    need ``view_depth [M, H', W']`` (the input views' depth maps, ``FastGHAOutput.view_depth``
+    flattened) and take their mask (``foreground_weight > 0.5``; ``dsmooth`` also its edges) from
+    ``view_images [M, 3, H', W']``; they are 0 without ``view_depth``.
     """
 
     def __init__(self, config: LossConfig | None = None, vgg: VGG16Features | None = None) -> None:
@@ -206,6 +240,13 @@ class FastGHALoss(nn.Module):
             terms["dsmooth"] = depth_smoothness_loss(view_depth, view_images, fg, c.depth_smooth_edge)
         else:
             terms["dsmooth"] = zero
-        weights = {"rgb": c.w_rgb, "ssim": c.w_ssim, "perc": c.w_perc if self.perceptual_enabled else 0.0, "sil": c.w_sil, "geo": c.w_geo, "dsmooth": c.w_depth_smooth}
+        if c.w_depth_parity and view_depth is not None:
+            from ..model.gaussian_head import foreground_weight
+
+            fg = None if view_images is None else foreground_weight(view_images)
+            terms["dparity"] = depth_parity_loss(view_depth, fg, c.depth_parity_sigma)
+        else:
+            terms["dparity"] = zero
+        weights = {"rgb": c.w_rgb, "ssim": c.w_ssim, "perc": c.w_perc if self.perceptual_enabled else 0.0, "sil": c.w_sil, "geo": c.w_geo, "dsmooth": c.w_depth_smooth, "dparity": c.w_depth_parity}
         terms["total"] = sum(weights[k] * terms[k] for k in LOSS_TERMS)
         return terms
