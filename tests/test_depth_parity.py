@@ -213,12 +213,16 @@ def test_depth_parity_loss_matches_a_plain_loop_and_is_blind_to_smooth_maps():
     assert float(depth_parity_loss(bowl)) < 0.005 * float(depth_parity_loss(bowl + 0.003 * _alternating(h, w)[None]))
     assert float(depth_parity_loss(0.003 * _alternating(h, w)[None])) == pytest.approx(0.003, rel=1e-9)
     assert float(depth_parity_loss(0.003 * _alternating(w, h).T[None])) == pytest.approx(0.003, rel=1e-9)  # columns alike
+    # Huber: |c| - delta / 2 above delta, c^2 / (2 delta) below
+    assert float(depth_parity_loss(0.003 * _alternating(h, w)[None], None, 2.0, 0.001)) == pytest.approx(0.0025, rel=1e-9)
+    assert float(depth_parity_loss(0.0004 * _alternating(h, w)[None], None, 2.0, 0.001)) == pytest.approx(0.0004**2 / 0.002, rel=1e-9)
     z = depth_parity_loss(bowl.clone().requires_grad_(True), torch.zeros(1, h, w))
     assert float(z.detach()) == 0.0 and z.requires_grad
     # away from |.|'s kink: both alternations present, plus noise
     wiggle = 0.003 * _alternating(7, 6) + 0.002 * _alternating(6, 7).T + 0.0005 * torch.rand(7, 6, generator=g, dtype=torch.float64)
     dd = (bowl[:, :7, :6] + wiggle).requires_grad_(True)
     assert torch.autograd.gradcheck(lambda z: depth_parity_loss(z, None, 1.0), (dd,))
+    assert torch.autograd.gradcheck(lambda z: depth_parity_loss(z, None, 1.0, 0.0025), (dd,))
 
 
 def test_loss_module_adds_the_weighted_parity_term():
@@ -229,7 +233,7 @@ def test_loss_module_adds_the_weighted_parity_term():
     view_images = torch.rand(2, 3, 8, 8, generator=g) * 0.5
     base = FastGHALoss(LossConfig())(rgb, ones, ones, rgb, ones, ones, view_depth=view_depth, view_images=view_images)
     terms = FastGHALoss(LossConfig(w_depth_parity=2.0))(rgb, ones, ones, rgb, ones, ones, view_depth=view_depth, view_images=view_images)
-    expect = depth_parity_loss(view_depth, None, LossConfig().depth_parity_sigma)
+    expect = depth_parity_loss(view_depth, None, LossConfig().depth_parity_sigma, LossConfig().depth_parity_delta)
     assert float(base["dparity"]) == 0.0 and float(expect) > 0.0015
     assert_close(terms["dparity"], expect)
     assert_close(terms["total"], base["total"] + 2.0 * expect)

@@ -17,8 +17,8 @@ ray of its Gaussian, ``FastGHAOutput.view_depth``). Why: the shipped decoder lea
 that alternate row by row, which draws bands on forehead and hair in novel views
 (docs/model-card.md, "The sample's artifacts"):
 
-- ``L_dparity`` (``w_depth_parity``): the mean amplitude of the row- and column-alternating parts
-  (``depth_parity_loss``); nothing else of the map is penalised;
+- ``L_dparity`` (``w_depth_parity``): the mean (Huber) amplitude of the row- and column-alternating
+  parts (``depth_parity_loss``); nothing else of the map is penalised;
 - ``L_dsmooth`` (``w_depth_smooth``): an edge-aware second-order smoothness, rows and columns alike
   (``depth_smoothness_loss``). Measured: it flattens the whole head, not only the alternation
   (docs/model-card.md).
@@ -68,6 +68,7 @@ class LossConfig:
     w_depth_smooth: float = 0.0  # L_dsmooth: second-order smoothness of each input view's depth map (metres; 0 = off, not in the paper)
     w_depth_parity: float = 0.0  # L_dparity: amplitude of the row/column alternation of each input view's depth map (metres; 0 = off, not in the paper)
     depth_parity_sigma: float = 2.0  # L_dparity: pixels over which the alternation's amplitude is averaged (model/gaussian_head.py row_parity)
+    depth_parity_delta: float = 0.0005  # L_dparity: metres below which the penalty is quadratic (Huber), so its gradient fades once the alternation is gone
     depth_smooth_edge: float = 5.0  # L_dsmooth's edge awareness: a pixel's weight is exp(-this * the input's colour change across it)
 
 
@@ -152,15 +153,23 @@ def depth_smoothness_loss(depth: Tensor, images: Tensor | None = None, mask: Ten
     return total / count if count else total
 
 
-def depth_parity_loss(depth: Tensor, mask: Tensor | None = None, sigma: float = 2.0) -> Tensor:
-    """Mean amplitude of the row- and column-alternating parts of per-view depth maps.
+def _huber(x: Tensor, delta: float) -> Tensor:
+    a = x.abs()
+    return torch.where(a < delta, 0.5 * a * a / delta, a - 0.5 * delta) if delta > 0 else a
+
+
+def depth_parity_loss(depth: Tensor, mask: Tensor | None = None, sigma: float = 2.0, delta: float = 0.0) -> Tensor:
+    """Mean Huber amplitude of the row- and column-alternating parts of per-view depth maps.
 
     ``depth [N, H, W]`` (metres), ``mask [N, H, W]`` (bool or [0, 1], > 0.5 counts; None = everywhere).
-    ``mean |row_parity(depth)| + mean |row_parity(depth^T)|`` over the mask's pixels
+    ``mean huber(row_parity(depth)) + mean huber(row_parity(depth^T))`` over the mask's pixels
     (``model.gaussian_head.row_parity``: the local amplitude ``c`` of a ``c * (-1)**y`` component, and
-    the same along x); a map without alternation (linear in y, or in x, or any smooth map) costs
-    (almost) 0, a pure ``c * (-1)**y`` pattern costs ``|c|``. With no mask pixel it is an exact zero
-    that still belongs to the graph. Raises ``ValueError`` on shapes other than the above.
+    the same along x), ``huber(c) = c^2 / (2 delta)`` below ``delta`` metres, ``|c| - delta / 2`` above
+    (``delta`` 0: ``|c|``). A map without alternation (linear in y, or in x, or any smooth map) costs
+    (almost) 0, a pure ``c * (-1)**y`` pattern costs ``huber(c)``. With no mask pixel it is an exact
+    zero that still belongs to the graph. Raises ``ValueError`` on shapes other than the above.
+    Why Huber: an L1 penalty keeps a full-size gradient of random sign once the alternation is gone,
+    which under Adam walks the shared decoder off (measured, docs/model-card.md).
     """
     from ..model.gaussian_head import row_parity
 
@@ -172,8 +181,8 @@ def depth_parity_loss(depth: Tensor, mask: Tensor | None = None, sigma: float = 
     n = m.sum()
     if float(n) == 0:
         return depth.sum() * 0.0
-    rows = row_parity(depth, m, sigma).abs()
-    cols = row_parity(depth.transpose(-1, -2), m.transpose(-1, -2), sigma).abs().transpose(-1, -2)
+    rows = _huber(row_parity(depth, m, sigma), delta)
+    cols = _huber(row_parity(depth.transpose(-1, -2), m.transpose(-1, -2), sigma), delta).transpose(-1, -2)
     return ((rows + cols) * m).sum() / n
 
 
@@ -244,7 +253,7 @@ class FastGHALoss(nn.Module):
             from ..model.gaussian_head import foreground_weight
 
             fg = None if view_images is None else foreground_weight(view_images)
-            terms["dparity"] = depth_parity_loss(view_depth, fg, c.depth_parity_sigma)
+            terms["dparity"] = depth_parity_loss(view_depth, fg, c.depth_parity_sigma, c.depth_parity_delta)
         else:
             terms["dparity"] = zero
         weights = {"rgb": c.w_rgb, "ssim": c.w_ssim, "perc": c.w_perc if self.perceptual_enabled else 0.0, "sil": c.w_sil, "geo": c.w_geo, "dsmooth": c.w_depth_smooth, "dparity": c.w_depth_parity}
