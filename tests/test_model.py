@@ -458,6 +458,30 @@ def test_animate_matches_training_forward():
     assert_close(bf.means, g.means, atol=2e-3, rtol=0)
 
 
+def test_training_forward_with_the_prior_reaches_the_reconstruction_network():
+    """With the expression prior, the rendered Gaussians keep the decoder's graph (build_prior used to
+    run under no_grad, so only the deformation MLP trained) and equal the no-grad forward's."""
+    torch.manual_seed(0)
+    cfg = toy_config()
+    cfg = cfg.copy(deform=DeformConfig(hidden_size=16, num_layers=2, pe_freqs=2, prior=True))
+    model = FastGHA(cfg).train()
+    imgs, K, w2c = toy_inputs(2, b=1)
+    expr = torch.zeros(1, 53)
+    inp = torch.zeros(1, 2, 53)
+    inp[0, 1, 0] = 0.5  # one photo with an expression: its displacement is undone
+    out = model(imgs, K, w2c, expr, input_expressions=inp)
+    g = out.gaussians[0]
+    n_rec = 2 * S * S
+    assert len(g) > n_rec  # the shell / mouth interior appended
+    loss = g.means.sum() + g.colors.sum() + g.opacities.sum() + g.scales.sum()
+    (grad,) = torch.autograd.grad(loss, [model.decoder.decoder.conv_out.weight])
+    assert grad.abs().sum() > 0
+    with torch.no_grad():
+        ref = model(imgs, K, w2c, expr, input_expressions=inp).gaussians[0]
+    assert_close(g.means.detach(), ref.means)
+    assert_close(g.opacities.detach(), ref.opacities)
+
+
 def test_avatar_save_load_round_trip(toy_model, tmp_path):
     imgs, cams = toy_inputs(1)
     avatar = toy_model.reconstruct(imgs, cams)
