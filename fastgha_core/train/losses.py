@@ -20,8 +20,8 @@ that alternate row by row, which draws bands on forehead and hair in novel views
 - ``L_dparity`` (``w_depth_parity``): the mean (Huber) amplitude of the row- and column-alternating
   parts (``depth_parity_loss``); nothing else of the map is penalised;
 - ``L_dsmooth`` (``w_depth_smooth``): an edge-aware second-order smoothness, rows and columns alike
-  (``depth_smoothness_loss``). Measured: it flattens the whole head, not only the alternation
-  (docs/model-card.md).
+  (``depth_smoothness_loss``); it also penalises real depth steps (silhouette, nose), which
+  ``L_dparity`` leaves alone.
 """
 
 from __future__ import annotations
@@ -168,8 +168,7 @@ def depth_parity_loss(depth: Tensor, mask: Tensor | None = None, sigma: float = 
     (``delta`` 0: ``|c|``). A map without alternation (linear in y, or in x, or any smooth map) costs
     (almost) 0, a pure ``c * (-1)**y`` pattern costs ``huber(c)``. With no mask pixel it is an exact
     zero that still belongs to the graph. Raises ``ValueError`` on shapes other than the above.
-    Why Huber: an L1 penalty keeps a full-size gradient of random sign once the alternation is gone,
-    which under Adam walks the shared decoder off (measured, docs/model-card.md).
+    Why Huber: an L1 penalty keeps a full-size gradient of random sign once the alternation is gone.
     """
     from ..model.gaussian_head import row_parity
 
