@@ -160,8 +160,8 @@ def row_parity(depth: Tensor, mask: Tensor | None = None, sigma: float = 2.0) ->
     linear ``s``), averaged by a normalised Gaussian blur of ``sigma`` pixels (both axes) over the
     pixels whose row and both vertical neighbours lie in ``mask`` (bool or [0, 1] ``[..., H, W]``;
     everything when None); the first and last rows count as outside. Units are those of ``depth``.
-    Why: the shipped decoder's depth maps alternate row by row (docs/model-card.md, "The sample's
-    artifacts"). Raises ``ValueError`` for fewer than 2 dims, a mask of another shape or ``sigma <= 0``.
+    Why: the shipped decoder's depth maps alternate row by row (docs/model-card.md, "The
+    row-alternating depth"). Raises ``ValueError`` for fewer than 2 dims, a mask of another shape or ``sigma <= 0``.
     """
     if depth.ndim < 2:
         raise ValueError(f"row_parity: depth must have shape [..., H, W], got {list(depth.shape)}")
@@ -187,7 +187,7 @@ def remove_row_parity(depth: Tensor, mask: Tensor | None = None, sigma: float = 
     A notch at the vertical Nyquist frequency: a pure ``c * (-1)**y`` pattern on a linear ramp goes
     exactly, a map that is linear in ``y`` stays exactly, and a vertical frequency ``w`` (radians per
     row) keeps ``1 - sin(w/2)**2 * exp(-sigma**2 (pi - w)**2 / 2)`` of its amplitude (away from the
-    mask's edges): rows of period 4 keep 99.7% at ``sigma`` 2, unlike a 3-tap vertical blur that keeps
+    mask's edges): rows of period 4 keep 99.6% at ``sigma`` 2, unlike a 3-tap vertical blur that keeps
     50%. Differentiable. Arguments as ``row_parity``.
     """
     h = depth.shape[-2] if depth.ndim >= 2 else 0
