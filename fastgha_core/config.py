@@ -107,6 +107,7 @@ class GaussianHeadConfig:
     min_scale_px: float = 0.25  # smallest scale, in pixel footprints at the Gaussian's depth
     max_scale_px: float = 16.0  # largest scale, in pixel footprints at the Gaussian's depth
     prune_opacity: float = 0.005  # reconstruct() drops Gaussians less opaque than this (0 = keep all)
+    depth_parity_sigma: float = 0.0  # > 0: take the row-alternating (Nyquist in y) part out of each view's predicted depth, its amplitude averaged over this many pixels (model/gaussian_head.py remove_row_parity; 0 = off; docs/model-card.md "The row-alternating depth")
     rgb_residual: bool = False  # colour = sigmoid(raw + logit(input pixel)): predict a residual on the pixel's own colour
     foreground_opacity: bool = False  # opacity *= foreground of the (matted) input pixel: background pixels make no Gaussians
     edge_margin_px: float = 3.0  # reconstruct(): Gaussians of input pixels within this many pixels of their view's background are treated by edge_mode (0 = off; model/gaussian_head.py edge_weight)

@@ -111,6 +111,11 @@ def test_training_forward_batch(toy_model):
     assert len(out.gaussians) == len(out.canonical) == 2
     # both samples hold identical inputs
     assert_close(out.canonical[0].means, out.canonical[1].means)
+    # each input pixel's depth along its ray (LossConfig.w_depth_smooth): its Gaussian's distance from the camera
+    assert out.view_depth.shape == (2, 2, S, S)
+    centres = torch.linalg.inv(w2c[0])[:, :3, 3]
+    ref = (out.canonical[0].means[: 2 * S * S].view(2, S, S, 3) - centres[:, None, None]).norm(dim=-1)
+    assert_close(out.view_depth[0], ref)
     with pytest.raises(ValueError, match="expression must have shape"):
         toy_model(imgs, K, w2c, torch.zeros(2, 52))
 
@@ -451,6 +456,30 @@ def test_animate_matches_training_forward():
     assert_close(g.colors, out.gaussians[0].colors)
     bf = model.animate(avatar, expr, bf16=True)
     assert_close(bf.means, g.means, atol=2e-3, rtol=0)
+
+
+def test_training_forward_with_the_prior_reaches_the_reconstruction_network():
+    """With the expression prior, the rendered Gaussians keep the decoder's graph (build_prior used to
+    run under no_grad, so only the deformation MLP trained) and equal the no-grad forward's."""
+    torch.manual_seed(0)
+    cfg = toy_config()
+    cfg = cfg.copy(deform=DeformConfig(hidden_size=16, num_layers=2, pe_freqs=2, prior=True))
+    model = FastGHA(cfg).train()
+    imgs, K, w2c = toy_inputs(2, b=1)
+    expr = torch.zeros(1, 53)
+    inp = torch.zeros(1, 2, 53)
+    inp[0, 1, 0] = 0.5  # one photo with an expression: its displacement is undone
+    out = model(imgs, K, w2c, expr, input_expressions=inp)
+    g = out.gaussians[0]
+    n_rec = 2 * S * S
+    assert len(g) > n_rec  # the shell / mouth interior appended
+    loss = g.means.sum() + g.colors.sum() + g.opacities.sum() + g.scales.sum()
+    (grad,) = torch.autograd.grad(loss, [model.decoder.decoder.conv_out.weight])
+    assert grad.abs().sum() > 0
+    with torch.no_grad():
+        ref = model(imgs, K, w2c, expr, input_expressions=inp).gaussians[0]
+    assert_close(g.means.detach(), ref.means)
+    assert_close(g.opacities.detach(), ref.opacities)
 
 
 def test_avatar_save_load_round_trip(toy_model, tmp_path):

@@ -58,10 +58,13 @@ class FastGHAOutput:
     Attributes:
         gaussians: deformed Gaussians (target expression applied, features kept), ready to render.
         canonical: the canonical Gaussians before deformation.
+        view_depth: ``[B, V, H, W]`` each input pixel's Gaussian's distance (metres) from its view's
+            camera centre, i.e. the depth along the pixel's ray (for ``LossConfig.w_depth_smooth``).
     """
 
     gaussians: list[Gaussians]
     canonical: list[Gaussians]
+    view_depth: Tensor | None = None
 
 
 def _apply_deformation(g: Gaussians, dxyz: Tensor, drgb: Tensor) -> Gaussians:
@@ -251,8 +254,10 @@ class FastGHA(nn.Module):
             raise ValueError(f"expression must have shape [B={b}, E={e}], got {list(expression.shape)}")
         cams = Cameras(K, w2c, images.shape[-1], images.shape[-2])
         canonical = self.forward_gaussians(images, cams)
-        deformed = []
         v = images.shape[1]
+        h, w = images.shape[-2:]
+        view_depth = torch.stack([(g.means.view(v, h, w, 3) - cams.centers[i].to(g.means)[:, None, None]).norm(dim=-1) for i, g in enumerate(canonical)])
+        deformed = []
         for i, (g, z) in enumerate(zip(canonical, expression)):
             if self.config.deform.prior:
                 if input_expressions is not None:
@@ -270,7 +275,7 @@ class FastGHA(nn.Module):
             else:
                 dxyz, drgb = self.deform(g.features, g.means, z)
                 deformed.append(_apply_deformation(g, dxyz, drgb))
-        return FastGHAOutput(gaussians=deformed, canonical=canonical)
+        return FastGHAOutput(gaussians=deformed, canonical=canonical, view_depth=view_depth)
 
     # ------------------------------------------------------------ expression prior (issue 16)
     def head_basis(self):
@@ -299,7 +304,6 @@ class FastGHA(nn.Module):
 
         return opacity_factors(z, rt.basis, rt.group_index) if rt.gated else None
 
-    @torch.no_grad()
     def build_prior(self, g: Gaussians, view_index: Tensor | None = None, view_expressions: Tensor | None = None, head_fit=None):
         """Fit the head surface to canonical ``g``, bind every Gaussian, optionally undo the input
         photos' expressions, and append the mouth interior. The fit and the binding use the neutral
@@ -315,10 +319,31 @@ class FastGHA(nn.Module):
                 instead of fitting the head surface to the Gaussians.
         Returns:
             ``(gaussians, binding, num_interior)``; the returned Gaussians keep ``g``'s autograd graph
-            (means are shifted by a constant when neutralising).
+            (means are shifted by a constant when neutralising; the appended shell and interior are
+            constants), so a training forward's losses reach the reconstruction network. (Until
+            2026-11-30 this method ran entirely under ``no_grad``: with the prior on, training updated
+            the deformation MLP only.)
         """
+        with torch.no_grad():
+            fit, binding, means, shift, back = self._prior_binding(g, view_index, view_expressions, head_fit)
+        if shift is not None:
+            g = g.replace(means=g.means - shift.to(g.means.device, g.means.dtype))
+            if back is not None:  # and its surface rotation, so a frame's rotation starts from neutral
+                from .gaussian_head import quaternion_multiply
+
+                g = g.replace(quats=quaternion_multiply(back.to(g.quats.device, g.quats.dtype), g.quats))
+        with torch.no_grad():
+            extra, binding, n_int = self._prior_extras(g, fit, binding, means if shift is None else means - shift)
+        if extra is not None:
+            g = Gaussians.concat([g, extra.to(g.means.device, g.means.dtype)])
+        return g, binding, n_int
+
+    def _prior_binding(self, g: Gaussians, view_index: Tensor | None, view_expressions: Tensor | None, head_fit):
+        """``build_prior``'s fit and binding (no autograd): ``(fit, binding, means, shift, back)``;
+        ``shift [N, 3]`` (None without ``view_expressions``) is subtracted from the means, ``back
+        [N, 4]`` (None unless ``prior_rotate``) pre-multiplies the quaternions."""
         from .lids import show_closed_lids
-        from .prior import PriorBinding, back_shell, back_shell_vertices, bind, fit_head, generic_fit, hide_open_lips, interior_inset, mouth_interior, open_mouth_views
+        from .prior import bind, fit_head, generic_fit, hide_open_lips, open_mouth_views
 
         basis = self.head_basis()
         means = g.means.detach().float().cpu()
@@ -337,8 +362,7 @@ class FastGHA(nn.Module):
             except (ValueError, np.linalg.LinAlgError):  # too few Gaussians or a degenerate cloud: the generic head
                 fit = generic_fit(basis)
         binding = bind(means, fit, basis, tuple(self.config.deform.prior_fade))
-        drawn = means  # where the reconstructed Gaussians are drawn at the neutral expression
-        dev = g.means.device
+        shift = back = None
         if view_expressions is not None:
             if view_index is None or view_index.shape != (len(g),):
                 raise ValueError(f"build_prior: view_index must have shape [{len(g)}] with view_expressions")
@@ -355,35 +379,39 @@ class FastGHA(nn.Module):
                     shift = self._runtime(binding).displacement(ve)[vi, torch.arange(len(g))]
                 except (ValueError, np.linalg.LinAlgError):
                     pass
-            g = g.replace(means=g.means - shift.to(dev, g.means.dtype))
-            if self.config.deform.prior_rotate:  # and its surface rotation, so a frame's rotation starts from neutral
-                from .gaussian_head import quaternion_multiply
-
+            if self.config.deform.prior_rotate:
                 rt = self._runtime(binding)
                 back = rt.rotation(ve)[vi, torch.arange(len(g))] * torch.tensor([1.0, -1.0, -1.0, -1.0])  # [N, 4] inverse
-                g = g.replace(quats=quaternion_multiply(back.to(dev, g.quats.dtype), g.quats))
             # lips of open-mouthed photos (their teeth and gap undone onto the closed lips) fade out as the mouth opens
             binding = hide_open_lips(binding, means - shift, vi, open_mouth_views(ve, basis), basis)
             # closed-eyed photos' lids appear only as the avatar's lids close (model/lids.py)
             binding = show_closed_lids(binding, means, vi, ve, fit, basis)
-            drawn = means - shift
-        binding = binding.to(dev)
-        n_int = 0
+        return fit, binding.to(g.means.device), means, shift, back
+
+    def _prior_extras(self, g: Gaussians, fit, binding, drawn: Tensor):
+        """``build_prior``'s back-of-head shell and mouth interior for the (neutralised) ``g``:
+        ``(extra Gaussians or None, binding, num_interior)``; ``drawn`` is where ``g`` is drawn at the
+        neutral expression."""
+        from .prior import PriorBinding, back_shell, back_shell_vertices, interior_inset, mouth_interior
+
+        basis = self.head_basis()
+        dev = g.means.device
+        g = g.detach()
+        parts, n_int = [], 0
         if self.config.deform.back_shell and len(back_shell_vertices(basis)):
             # ungated, so first: the gated interior after it stays a trailing run that frames trim
             gs, bs = back_shell(fit, basis, g.features.shape[1], avatar=g)
-            g = Gaussians.concat([g, gs.to(dev, g.means.dtype)])
+            parts.append(gs.to(dev, g.means.dtype))
             binding = PriorBinding.concat(binding, bs.to(dev))
             n_int = len(gs)
         if self.config.deform.mouth_interior and len(basis.interior_vertices):
             # the interior behind the avatar's own lips, which sit a few mm behind the fitted ones
-            inset = interior_inset(drawn, fit, basis, g.opacities[: len(drawn)])
-            gi, bi = mouth_interior(fit, basis, g.features.shape[1], avatar=g[: len(g) - n_int], inset=inset, drawn=drawn)
-            gi = gi.to(dev, g.means.dtype)
-            g = Gaussians.concat([g, gi])
+            inset = interior_inset(drawn, fit, basis, g.opacities)
+            gi, bi = mouth_interior(fit, basis, g.features.shape[1], avatar=g, inset=inset, drawn=drawn)
+            parts.append(gi.to(dev, g.means.dtype))
             binding = PriorBinding.concat(binding, bi.to(dev))
             n_int += len(gi)
-        return g, binding, n_int
+        return (Gaussians.concat(parts) if parts else None), binding, n_int
 
     @torch.inference_mode()
     def static_gaussians(self, avatar: CanonicalAvatar) -> Gaussians:

@@ -4,7 +4,8 @@ This is the one place where raw channels are sliced (``GaussianLayout``). Per pi
 map ``[12+F, H, W]``:
 
 - depth 1: distance along the pixel's ray, ``t = |c| + depth_range * tanh(raw)`` where ``|c|`` is the
-  camera's distance to the world origin (the head centre). Zero raw output puts the point on the
+  camera's distance to the world origin (the head centre), with ``depth_parity_sigma > 0`` less its
+  row-alternating part (``remove_row_parity`` over the input's foreground). Zero raw output puts the point on the
   sphere around the camera through the origin, and the parameterisation works for any camera
   distance. The Gaussian centre is ``origin + t * direction`` (``Cameras.pixel_rays``). A given
   ``ray_depth [B, V, H, W]`` replaces ``t`` (the tracked head surface, ``model/surface.py``).
@@ -39,7 +40,17 @@ from ..config import GaussianHeadConfig
 from ..constants import BACKGROUND_RGB
 from ..gaussians import Gaussians
 
-__all__ = ["GaussianLayout", "GaussianHead", "edge_source_index", "edge_weight", "foreground_weight", "matrix_to_quaternion", "quaternion_multiply"]
+__all__ = [
+    "GaussianLayout",
+    "GaussianHead",
+    "edge_source_index",
+    "edge_weight",
+    "foreground_weight",
+    "matrix_to_quaternion",
+    "quaternion_multiply",
+    "remove_row_parity",
+    "row_parity",
+]
 
 FOREGROUND_SOFTNESS = 0.03  # colour distance from the background at which a pixel counts as fully foreground
 
@@ -122,6 +133,67 @@ def _background_distances(images: Tensor) -> list[np.ndarray | None]:
     h, w = images.shape[-2:]
     bg = (foreground_weight(images.detach().float()) < 0.5).reshape(-1, h, w).cpu().numpy()
     return [ndimage.distance_transform_edt(~b) if b.any() else None for b in bg]
+
+
+def _gaussian_blur_masked(x: Tensor, weight: Tensor, sigma: float) -> Tensor:
+    """Normalised convolution: ``blur(x * weight) / blur(weight)`` over the last two dims ``[..., H, W]``
+    with a separable Gaussian of ``sigma`` pixels (radius ``ceil(3 sigma)``, zero padding); 0 where
+    no weight is within reach."""
+    r = max(1, int(math.ceil(3.0 * sigma)))
+    k = torch.arange(-r, r + 1, device=x.device, dtype=x.dtype)
+    k = torch.exp(-(k**2) / (2.0 * sigma**2))
+    k = k / k.sum()
+    h, w = x.shape[-2:]
+    num = torch.stack([x * weight, weight.expand_as(x)]).reshape(-1, 1, h, w)
+    num = F.conv2d(F.pad(num, (0, 0, r, r)), k.view(1, 1, -1, 1))
+    num = F.conv2d(F.pad(num, (r, r, 0, 0)), k.view(1, 1, 1, -1))
+    num = num.reshape(2, *x.shape)
+    return num[0] / num[1].clamp_min(1e-6) * (num[1] > 1e-6).to(x.dtype)
+
+
+def row_parity(depth: Tensor, mask: Tensor | None = None, sigma: float = 2.0) -> Tensor:
+    """Local amplitude ``c [..., H, W]`` of the row-alternating (Nyquist in y) part of ``depth [..., H, W]``.
+
+    Model: ``depth[y, x] = s[y, x] + c[y, x] * (-1)**y`` with ``s`` and ``c`` smooth. Each pixel's
+    estimate is half its vertical second difference, demodulated:
+    ``(-1)**y * (depth[y] - (depth[y-1] + depth[y+1]) / 2) / 2`` (exact for a constant ``c`` on a
+    linear ``s``), averaged by a normalised Gaussian blur of ``sigma`` pixels (both axes) over the
+    pixels whose row and both vertical neighbours lie in ``mask`` (bool or [0, 1] ``[..., H, W]``;
+    everything when None); the first and last rows count as outside. Units are those of ``depth``.
+    Why: the shipped decoder's depth maps alternate row by row (docs/model-card.md, "The
+    row-alternating depth"). Raises ``ValueError`` for fewer than 2 dims, a mask of another shape or ``sigma <= 0``.
+    """
+    if depth.ndim < 2:
+        raise ValueError(f"row_parity: depth must have shape [..., H, W], got {list(depth.shape)}")
+    if mask is not None and tuple(mask.shape) != tuple(depth.shape):
+        raise ValueError(f"row_parity: mask must have the depth's shape {list(depth.shape)}, got {list(mask.shape)}")
+    if not sigma > 0:
+        raise ValueError(f"row_parity: sigma must be > 0 pixels, got {sigma}")
+    h = depth.shape[-2]
+    m = torch.ones_like(depth) if mask is None else (mask > 0.5).to(depth.dtype)
+    valid = torch.zeros_like(m)
+    if h >= 3:
+        valid[..., 1:-1, :] = m[..., 1:-1, :] * m[..., :-2, :] * m[..., 2:, :]
+    second = torch.zeros_like(depth)
+    second[..., 1:-1, :] = depth[..., 1:-1, :] - 0.5 * (depth[..., :-2, :] + depth[..., 2:, :])
+    sign = 1.0 - 2.0 * (torch.arange(h, device=depth.device) % 2).to(depth.dtype)  # (-1)**y
+    c = 0.5 * sign[:, None] * second
+    return _gaussian_blur_masked(c, valid, float(sigma))
+
+
+def remove_row_parity(depth: Tensor, mask: Tensor | None = None, sigma: float = 2.0) -> Tensor:
+    """``depth - (-1)**y * row_parity(depth, mask, sigma)``: the row alternation taken out, ``[..., H, W]``.
+
+    A notch at the vertical Nyquist frequency: a pure ``c * (-1)**y`` pattern on a linear ramp goes
+    exactly, a map that is linear in ``y`` stays exactly, and a vertical frequency ``w`` (radians per
+    row) keeps ``1 - sin(w/2)**2 * exp(-sigma**2 (pi - w)**2 / 2)`` of its amplitude (away from the
+    mask's edges): rows of period 4 keep 99.6% at ``sigma`` 2, unlike a 3-tap vertical blur that keeps
+    50%. Differentiable. Arguments as ``row_parity``.
+    """
+    h = depth.shape[-2] if depth.ndim >= 2 else 0
+    c = row_parity(depth, mask, sigma)
+    sign = 1.0 - 2.0 * (torch.arange(h, device=depth.device) % 2).to(depth.dtype)
+    return depth - sign[:, None] * c
 
 
 @dataclass(frozen=True)
@@ -211,6 +283,9 @@ class GaussianHead:
         dist = cams.centers.norm(dim=-1)[..., None, None, None]  # [B, V, 1, 1, 1]
         if ray_depth is None or callable(ray_depth):
             t = dist + self.cfg.depth_range * torch.tanh(x[..., lay.depth])  # [B, V, H, W, 1]
+            if self.cfg.depth_parity_sigma > 0:  # the decoder's row alternation taken out (docs/model-card.md)
+                fg = None if images is None or tuple(images.shape) != (b, v, 3, h, w) else foreground_weight(images.float())
+                t = remove_row_parity(t[..., 0], fg, self.cfg.depth_parity_sigma)[..., None]
             if ray_depth is not None:  # a function of the predicted depth (model/surface.py: blend)
                 t = ray_depth(t[..., 0]).to(maps)[..., None]
         else:

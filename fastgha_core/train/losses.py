@@ -11,6 +11,17 @@
   is > 0 and the ground-truth mask is > 0.5.
 
 Default weights are the paper's: λ_SSIM 1, λ_perc 0.5, λ_sil 1, λ_geo 0.5.
+
+Not in the paper, off by default, on each *input view's* depth map (the depth along each pixel's
+ray of its Gaussian, ``FastGHAOutput.view_depth``). Why: the shipped decoder learned depth maps
+that alternate row by row, which draws bands on forehead and hair in novel views
+(docs/model-card.md, "The row-alternating depth"):
+
+- ``L_dparity`` (``w_depth_parity``): the mean (Huber) amplitude of the row- and column-alternating
+  parts (``depth_parity_loss``); nothing else of the map is penalised;
+- ``L_dsmooth`` (``w_depth_smooth``): an edge-aware second-order smoothness, rows and columns alike
+  (``depth_smoothness_loss``); it also penalises real depth steps (silhouette, nose), which
+  ``L_dparity`` leaves alone.
 """
 
 from __future__ import annotations
@@ -31,12 +42,14 @@ __all__ = [
     "silhouette_loss",
     "geometry_loss",
     "perceptual_loss",
+    "depth_smoothness_loss",
+    "depth_parity_loss",
     "LOSS_TERMS",
 ]
 
 log = logging.getLogger(__name__)
 
-LOSS_TERMS = ("rgb", "ssim", "perc", "sil", "geo")
+LOSS_TERMS = ("rgb", "ssim", "perc", "sil", "geo", "dsmooth", "dparity")
 
 
 @dataclass
@@ -52,6 +65,11 @@ class LossConfig:
     perc_layers: tuple[int, ...] = LPIPS_LAYERS  # VGG16 ``features`` indices used by L_perc
     perc_max_size: int = 256  # images larger than this are downsampled before VGG (cost); 0 = never
     geo_mask_threshold: float = 0.5  # ground-truth mask value above which the depth prior counts
+    w_depth_smooth: float = 0.0  # L_dsmooth: second-order smoothness of each input view's depth map (metres; 0 = off, not in the paper)
+    w_depth_parity: float = 0.0  # L_dparity: amplitude of the row/column alternation of each input view's depth map (metres; 0 = off, not in the paper)
+    depth_parity_sigma: float = 2.0  # L_dparity: pixels over which the alternation's amplitude is averaged (model/gaussian_head.py row_parity)
+    depth_parity_delta: float = 0.0005  # L_dparity: metres below which the penalty is quadratic (Huber), so its gradient fades once the alternation is gone
+    depth_smooth_edge: float = 5.0  # L_dsmooth's edge awareness: a pixel's weight is exp(-this * the input's colour change across it)
 
 
 def _check_pair(name: str, a: Tensor, b: Tensor, channels: int | None = None) -> None:
@@ -98,6 +116,75 @@ def geometry_loss(depth: Tensor, prior: Tensor, mask: Tensor | None = None, mask
     return diff.sum() / n.to(depth.dtype)
 
 
+def depth_smoothness_loss(depth: Tensor, images: Tensor | None = None, mask: Tensor | None = None, edge: float = 5.0) -> Tensor:
+    """Edge-aware second-order smoothness of per-view depth maps, rows and columns alike.
+
+    ``depth [N, H, W]`` (metres along each pixel's ray), ``images [N, 3, H, W]`` in [0, 1] (the input
+    views the maps belong to; None = no edge weighting), ``mask [N, H, W]`` (bool or [0, 1], > 0.5
+    counts; None = everywhere). For each interior pixel and each axis, the second difference
+    ``|d[i-1] - 2 d[i] + d[i+1]|`` weighted by ``exp(-edge * mean_c |I[i+1] - I[i-1]| / 2)`` (weaker
+    where the image has an edge across the pixel: depth may step there), over the triples whose three
+    pixels lie in the mask; the loss is the weighted sum divided by the number of such triples of
+    both axes (metres). With no such triple it is an exact zero that still belongs to the graph.
+    A map that is linear in x and y costs 0; a row-alternating ``c * (-1)**y`` pattern costs ``4|c|``
+    per vertical triple. Raises ``ValueError`` on shapes other than the above.
+    """
+    if depth.ndim != 3:
+        raise ValueError(f"depth_smoothness_loss: depth must have shape [N, H, W], got {list(depth.shape)}")
+    n, h, w = depth.shape
+    if images is not None and tuple(images.shape) != (n, 3, h, w):
+        raise ValueError(f"depth_smoothness_loss: images must have shape [{n}, 3, {h}, {w}], got {list(images.shape)}")
+    if mask is not None and tuple(mask.shape) != (n, h, w):
+        raise ValueError(f"depth_smoothness_loss: mask must have shape [{n}, {h}, {w}], got {list(mask.shape)}")
+    m = torch.ones_like(depth) if mask is None else (mask > 0.5).to(depth.dtype)
+    total = depth.sum() * 0.0
+    count = 0
+    for dim in (-2, -1):  # rows (y), then columns (x)
+        if depth.shape[dim] < 3:
+            continue
+        lo, mid, hi = (depth.narrow(dim, k, depth.shape[dim] - 2) for k in (0, 1, 2))
+        valid = m.narrow(dim, 0, depth.shape[dim] - 2) * m.narrow(dim, 1, depth.shape[dim] - 2) * m.narrow(dim, 2, depth.shape[dim] - 2)
+        weight = valid
+        if images is not None and edge > 0:
+            change = (images.narrow(dim, 2, depth.shape[dim] - 2) - images.narrow(dim, 0, depth.shape[dim] - 2)).abs().mean(dim=1) * 0.5
+            weight = valid * torch.exp(-edge * change.to(depth.dtype))
+        total = total + ((lo - 2.0 * mid + hi).abs() * weight).sum()
+        count += int(valid.sum())
+    return total / count if count else total
+
+
+def _huber(x: Tensor, delta: float) -> Tensor:
+    a = x.abs()
+    return torch.where(a < delta, 0.5 * a * a / delta, a - 0.5 * delta) if delta > 0 else a
+
+
+def depth_parity_loss(depth: Tensor, mask: Tensor | None = None, sigma: float = 2.0, delta: float = 0.0) -> Tensor:
+    """Mean Huber amplitude of the row- and column-alternating parts of per-view depth maps.
+
+    ``depth [N, H, W]`` (metres), ``mask [N, H, W]`` (bool or [0, 1], > 0.5 counts; None = everywhere).
+    ``mean huber(row_parity(depth)) + mean huber(row_parity(depth^T))`` over the mask's pixels
+    (``model.gaussian_head.row_parity``: the local amplitude ``c`` of a ``c * (-1)**y`` component, and
+    the same along x), ``huber(c) = c^2 / (2 delta)`` below ``delta`` metres, ``|c| - delta / 2`` above
+    (``delta`` 0: ``|c|``). A map without alternation (linear in y, or in x, or any smooth map) costs
+    (almost) 0, a pure ``c * (-1)**y`` pattern costs ``huber(c)``. With no mask pixel it is an exact
+    zero that still belongs to the graph. Raises ``ValueError`` on shapes other than the above.
+    Why Huber: an L1 penalty keeps a full-size gradient of random sign once the alternation is gone.
+    """
+    from ..model.gaussian_head import row_parity
+
+    if depth.ndim != 3:
+        raise ValueError(f"depth_parity_loss: depth must have shape [N, H, W], got {list(depth.shape)}")
+    if mask is not None and tuple(mask.shape) != tuple(depth.shape):
+        raise ValueError(f"depth_parity_loss: mask must have shape {list(depth.shape)}, got {list(mask.shape)}")
+    m = torch.ones_like(depth) if mask is None else (mask > 0.5).to(depth.dtype)
+    n = m.sum()
+    if float(n) == 0:
+        return depth.sum() * 0.0
+    rows = _huber(row_parity(depth, m, sigma), delta)
+    cols = _huber(row_parity(depth.transpose(-1, -2), m.transpose(-1, -2), sigma), delta).transpose(-1, -2)
+    return ((rows + cols) * m).sum() / n
+
+
 def perceptual_loss(vgg: VGG16Features, pred: Tensor, target: Tensor, layers=LPIPS_LAYERS, max_size: int = 0) -> Tensor:
     """Mean over ``layers`` of the mean |Δ| between VGG16 features of ``pred`` and ``target``."""
     _check_pair("perceptual_loss", pred, target, channels=3)
@@ -116,8 +203,11 @@ class FastGHALoss(nn.Module):
     """The weighted sum of the paper's terms.
 
     ``forward(rgb, alpha, depth, target_rgb, target_mask, target_depth)`` with ``[N, 3|1, H, W]``
-    tensors returns ``{"rgb", "ssim", "perc", "sil", "geo", "total"}`` (scalars; ``perc`` is 0
-    when it is off). Terms with weight 0 are not computed.
+    tensors returns ``{"rgb", "ssim", "perc", "sil", "geo", "dsmooth", "dparity", "total"}`` (scalars;
+    ``perc`` is 0 when it is off). Terms with weight 0 are not computed. ``dsmooth`` and ``dparity``
+    need ``view_depth [M, H', W']`` (the input views' depth maps, ``FastGHAOutput.view_depth``
+    flattened) and take their mask (``foreground_weight > 0.5``; ``dsmooth`` also its edges) from
+    ``view_images [M, 3, H', W']``; they are 0 without ``view_depth``.
     """
 
     def __init__(self, config: LossConfig | None = None, vgg: VGG16Features | None = None) -> None:
@@ -139,6 +229,8 @@ class FastGHALoss(nn.Module):
         target_rgb: Tensor,  # [N, 3, H, W]
         target_mask: Tensor,  # [N, 1, H, W]
         target_depth: Tensor,  # [N, 1, H, W] depth prior, 0 = no value
+        view_depth: Tensor | None = None,  # [M, H', W'] the input views' depth maps (metres along the rays)
+        view_images: Tensor | None = None,  # [M, 3, H', W'] the input views (edges and foreground of L_dsmooth)
     ) -> dict[str, Tensor]:
         c = self.config
         _check_pair("FastGHALoss rgb", rgb, target_rgb, channels=3)
@@ -149,6 +241,20 @@ class FastGHALoss(nn.Module):
         terms["perc"] = perceptual_loss(self.vgg, rgb, target_rgb, c.perc_layers, c.perc_max_size) if self.perceptual_enabled else zero
         terms["sil"] = silhouette_loss(alpha, target_mask) if c.w_sil else zero
         terms["geo"] = geometry_loss(depth, target_depth, target_mask, c.geo_mask_threshold) if c.w_geo else zero
-        weights = {"rgb": c.w_rgb, "ssim": c.w_ssim, "perc": c.w_perc if self.perceptual_enabled else 0.0, "sil": c.w_sil, "geo": c.w_geo}
+        if c.w_depth_smooth and view_depth is not None:
+            from ..model.gaussian_head import foreground_weight
+
+            fg = None if view_images is None else foreground_weight(view_images)
+            terms["dsmooth"] = depth_smoothness_loss(view_depth, view_images, fg, c.depth_smooth_edge)
+        else:
+            terms["dsmooth"] = zero
+        if c.w_depth_parity and view_depth is not None:
+            from ..model.gaussian_head import foreground_weight
+
+            fg = None if view_images is None else foreground_weight(view_images)
+            terms["dparity"] = depth_parity_loss(view_depth, fg, c.depth_parity_sigma, c.depth_parity_delta)
+        else:
+            terms["dparity"] = zero
+        weights = {"rgb": c.w_rgb, "ssim": c.w_ssim, "perc": c.w_perc if self.perceptual_enabled else 0.0, "sil": c.w_sil, "geo": c.w_geo, "dsmooth": c.w_depth_smooth, "dparity": c.w_depth_parity}
         terms["total"] = sum(weights[k] * terms[k] for k in LOSS_TERMS)
         return terms

@@ -506,6 +506,8 @@ class Trainer:
             batch.target_images.flatten(0, 1).float(),
             batch.target_masks.flatten(0, 1).float(),
             batch.target_depths.flatten(0, 1).float(),
+            view_depth=None if out.view_depth is None else out.view_depth.flatten(0, 1).float(),
+            view_images=batch.input_images.flatten(0, 1).float(),
         )
         t3 = time.perf_counter()
         return terms, {"t_forward": t1 - t0, "t_render": t2 - t1, "t_loss": t3 - t2}
