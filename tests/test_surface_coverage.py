@@ -113,6 +113,7 @@ def test_reconstruct_on_a_surface_covers_every_input_matte():
     model = load_model("tiny")
     assert model.config.gaussians.coverage_target == pytest.approx(0.9) and model.config.gaussians.coverage_surface_only
     model.config.gaussians.hair_fit = False  # the fill alone (the hair thickness has its own tests)
+    model.config.gaussians.mirror_views = False  # ... and not the turned views' mirror images, which cover too (tests/test_mirror.py)
     s = model.config.input_size
     cams = _cameras([0.0, 40.0, -40.0], size=s)
     surface = HeadSurface(np.zeros(100, np.float32), np.zeros((3, 53), np.float32))

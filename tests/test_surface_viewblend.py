@@ -162,7 +162,9 @@ def test_avatar_files_keep_the_view_data_and_old_files_load_without_it(tmp_path)
 def tiny():
     from fastgha_core.model.fastgha import load_model
 
-    return load_model("tiny")
+    model = load_model("tiny")
+    model.config.gaussians.mirror_views = False  # the photos' own views (mirrored views and their offsets: tests/test_mirror.py)
+    return model
 
 
 def _reconstructed(model, surface=True):
