@@ -76,3 +76,26 @@ def test_list_sets_keeps_folders_with_two_photos(tmp_path):
         (tmp_path / "two" / n).write_bytes(b"x")
     assert [p.name for p in list_sets(tmp_path)] == ["two"]
     assert list_sets(tmp_path / "absent") == []
+
+
+def test_mirror_variant_sets_the_named_fields_and_restores_every_one():
+    """``--mirror`` variants (``refine.realsets.mirror_variant``): the given fields are set, the empty or
+    left-out ones keep the config's value, and all are restored after the block, even on an error."""
+    from fastgha_core.config import GaussianHeadConfig
+    from fastgha_core.refine.realsets import MIRROR_FIELDS, mirror_variant
+
+    g = GaussianHeadConfig()
+    before = {f: getattr(g, f) for f in MIRROR_FIELDS}
+    with mirror_variant(g, "25//5"):
+        assert g.mirror_views and g.mirror_min_yaw_deg == 25.0 and g.mirror_midline_m == 0.005
+        assert g.mirror_drop_seen_deg == before["mirror_drop_seen_deg"] and g.mirror_blend_offset_deg == before["mirror_blend_offset_deg"]
+    assert {f: getattr(g, f) for f in MIRROR_FIELDS} == before
+    with mirror_variant(g, "30///0"):
+        assert g.mirror_blend_offset_deg == 0.0 and g.mirror_min_yaw_deg == 30.0
+    with pytest.raises(RuntimeError):
+        with mirror_variant(g, "off"):
+            assert not g.mirror_views
+            raise RuntimeError("inside")
+    assert {f: getattr(g, f) for f in MIRROR_FIELDS} == before
+    with mirror_variant(g, None):
+        assert {f: getattr(g, f) for f in MIRROR_FIELDS} == before

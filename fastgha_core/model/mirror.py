@@ -170,13 +170,20 @@ def flip_surface_depth(sd):
     return SurfaceDepth(flip_images(sd.t), flip_images(sd.hit), flip_images(sd.beyond_face), None if sd.face_hit is None else flip_images(sd.face_hit))
 
 
+def _to_head(points: Tensor, head_to_world=None) -> Tensor:
+    """``[N, 3]`` world points in the head frame (float64): ``R^T (p - t)`` of ``head_to_world``
+    (None: the world is the head frame)."""
+    p = points.double()
+    if head_to_world is None:
+        return p
+    h = torch.as_tensor(np.asarray(head_to_world), dtype=torch.float64, device=p.device)
+    return (p - h[:3, 3]) @ h[:3, :3]
+
+
 def view_yaw_deg(cameras: Cameras, head_to_world=None) -> Tensor:
     """``[V]`` yaw of each camera around the head, degrees: ``atan2(c_x, c_z)`` of its centre ``c`` in
     the head frame (0 frontal, +90 seeing the subject's left side, -90 the right side)."""
-    c = cameras.flatten().centers.double()  # [V, 3] world
-    if head_to_world is not None:
-        h = torch.as_tensor(np.asarray(head_to_world), dtype=torch.float64)
-        c = (c - h[:3, 3]) @ h[:3, :3]  # R^T (c - t), as rows
+    c = _to_head(cameras.flatten().centers, head_to_world)  # [V, 3]
     return torch.rad2deg(torch.atan2(c[:, 0], c[:, 2]))
 
 
@@ -276,11 +283,7 @@ def near_midline(points: Tensor, width_m: float, head_to_world=None) -> Tensor:
     (``|x| < width_m`` in the head frame; ``head_to_world`` as in ``sagittal_reflection``). There a
     point and its mirror image nearly coincide: a mirrored view adds no side the real views miss,
     only a flipped copy of an asymmetric midline (nose, parting)."""
-    p = points.double()
-    if head_to_world is not None:
-        h = torch.as_tensor(np.asarray(head_to_world), dtype=torch.float64, device=p.device)
-        p = (p - h[:3, 3]) @ h[:3, :3]
-    return p[:, 0].abs() < float(width_m)
+    return _to_head(points, head_to_world)[:, 0].abs() < float(width_m)
 
 
 def thin_mirrored(g, v_real: int, images: Tensor, cameras: Cameras, t: Tensor, config, head_to_world=None):

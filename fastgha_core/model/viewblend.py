@@ -117,10 +117,12 @@ def min_angle_table(angles: Tensor) -> Tensor:
     return torch.where(bits, angles[None].float(), torch.full((), float("inf"), device=angles.device)).amin(dim=1)
 
 
-def angles_deg(directions: Tensor, camera: Cameras) -> Tensor:
-    """``[V]`` angles (degrees) between the input ``directions [V, 3]`` and ``camera``'s direction from the head centre."""
+def angles_deg(directions: Tensor, camera: Cameras, offsets: Tensor | None = None) -> Tensor:
+    """``[V]`` angles (degrees) between the input ``directions [V, 3]`` and ``camera``'s direction from
+    the head centre, plus ``offsets [V]`` degrees when given (mirrored views, ``blend_factors``)."""
     c = view_directions(camera)[0].to(directions)
-    return torch.rad2deg(torch.arccos((directions @ c).clamp(-1.0, 1.0)))
+    ang = torch.rad2deg(torch.arccos((directions @ c).clamp(-1.0, 1.0)))
+    return ang if offsets is None else ang + offsets.to(ang)
 
 
 def blend_factors(source_view: Tensor, mask: Tensor, directions: Tensor, camera: Cameras, tau_deg: float, offsets: Tensor | None = None) -> Tensor:
@@ -133,9 +135,7 @@ def blend_factors(source_view: Tensor, mask: Tensor, directions: Tensor, camera:
     """
     if tau_deg <= 0:
         raise ValueError(f"blend_factors: tau_deg must be > 0, got {tau_deg}")
-    ang = angles_deg(directions, camera)  # [V]
-    if offsets is not None:
-        ang = ang + offsets.to(ang)
+    ang = angles_deg(directions, camera, offsets)  # [V]
     table = min_angle_table(ang)  # [2^V]
     sv = source_view.long()
     own = sv >= 0
@@ -192,9 +192,7 @@ class ViewBlend:
             sv = self.source_view.long()
             key = torch.where(sv >= 0, (self.mask.long() & ((1 << v) - 1)) * v + sv.clamp(min=0), torch.full_like(sv, (1 << v) * v))
             self.__dict__["_key"] = key
-        ang = angles_deg(self.directions, camera)  # [V]
-        if self.offsets is not None:
-            ang = ang + self.offsets.to(ang)
+        ang = angles_deg(self.directions, camera, self.offsets)  # [V]
         table = min_angle_table(ang)  # [2^V]
         f = torch.exp(-(ang[None, :] - table[:, None]).clamp(min=0) / float(tau_deg)).reshape(-1)  # [2^V * V]
         return torch.cat([f, f.new_ones(1)])[key]

@@ -21,7 +21,8 @@ left-out photo's tracked camera with its tracked expression, and compare with th
 
 ``python -m fastgha_core.refine.realsets --refine-steps 0,60 --grid OUT.png`` prints a markdown
 table and writes a grid picture (per set: photo, then one render per step count; with ``--mirror off,30``
-one per mirrored-view variant and step count, ``model/mirror.py``). The sets are not
+one per mirrored-view variant and step count, ``model/mirror.py``; ``--own-cameras`` adds the
+input-view check, the avatar of all of a set's photos at each photo's own camera). The sets are not
 ours to publish: write the grid outside the repository. Sets that fail to track are reported and
 skipped, and a photo the tracker cannot handle is dropped from its set (reported) while at least 3 remain;
 without the folder the script says so and exits 0.
@@ -34,6 +35,7 @@ import json
 import logging
 import os
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -136,7 +138,7 @@ def _identity(faces, img: np.ndarray, box=None):
 
 
 def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, faces=None, refine_cameras: bool = True, surface: bool = True,
-                 photo_align: bool = False, mirror: list[str] | None = None) -> dict:
+                 photo_align: bool = False, mirror: list[str] | None = None, own_cameras: bool = False) -> dict:
     """Leave-one-out over the photos of ``folder`` (see the module docstring); one row per (photo, steps)
     and mirror variant.
 
@@ -148,7 +150,8 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
     ``mirror_midline_m`` in millimetres) or ``"YAW/DROP/MM/OFFSET"`` (and ``mirror_blend_offset_deg``;
     an empty field keeps the config's value); rows
     then carry a ``"mirror"`` key and ``renders`` is keyed by ``(variant, steps)``. None: the
-    model's config as it is, rows without that key, ``renders`` keyed by steps."""
+    model's config as it is, rows without that key, ``renders`` keyed by steps.
+    ``own_cameras``: also the input-view check (``own_camera_rows``), returned as ``own_camera_rows``."""
     from ..model.surface import HeadSurface
     from ..refine import RefineConfig, refine_avatar
     from ..render import render
@@ -181,25 +184,15 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
     v = len(names)
     variants = [None] if mirror is None else list(mirror)
     rows, renders = [], {(s if mv is None else (mv, s)): [] for mv in variants for s in steps_list}
-    gcfg = model.config.gaussians
-    saved = (gcfg.mirror_views, gcfg.mirror_min_yaw_deg, gcfg.mirror_drop_seen_deg, gcfg.mirror_midline_m, gcfg.mirror_blend_offset_deg)
+    if own_cameras:
+        own_rows = own_camera_rows(model, folder.name, tr, matted, masks, names, faces, variants, surface)
     for k, mv in ((k, mv) for k in range(v) for mv in variants):
         keep = [i for i in range(v) if i != k][: model.config.max_views]
         imgs, in_cams = model.prepare(matted[keep], cams[keep])
         head = HeadSurface.from_tracking(tr).subset(keep) if surface else None
-        if mv is not None:
-            gcfg.mirror_views = mv != "off"
-            if mv not in ("on", "off"):
-                parts = mv.split("/")
-                gcfg.mirror_min_yaw_deg = float(parts[0])
-                gcfg.mirror_drop_seen_deg = float(parts[1]) if len(parts) > 1 and parts[1] else saved[2]
-                gcfg.mirror_midline_m = float(parts[2]) / 1000 if len(parts) > 2 and parts[2] else saved[3]
-                gcfg.mirror_blend_offset_deg = float(parts[3]) if len(parts) > 3 else saved[4]
         t1 = time.perf_counter()
-        try:
+        with mirror_variant(model.config.gaussians, mv):
             avatar0 = model.reconstruct(imgs, in_cams, expressions=expr[keep], surface=head)
-        finally:
-            gcfg.mirror_views, gcfg.mirror_min_yaw_deg, gcfg.mirror_drop_seen_deg, gcfg.mirror_midline_m, gcfg.mirror_blend_offset_deg = saved
         t_rec = time.perf_counter() - t1
         target = matted[k : k + 1]
         m = (masks[k : k + 1] > 0.5).float()
@@ -244,7 +237,66 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
                     row["identity_distance"] = float(np.linalg.norm(p_desc - t_desc))
             rows.append(row)
             renders[steps if mv is None else (mv, steps)].append(pred[0])
-    return {"set": folder.name, "track_s": round(t_track, 1), "dropped": dropped, "rows": rows, "targets": list(matted.unbind(0)), "renders": renders}
+    out = {"set": folder.name, "track_s": round(t_track, 1), "dropped": dropped, "rows": rows, "targets": list(matted.unbind(0)), "renders": renders}
+    if own_cameras:
+        out["own_camera_rows"] = own_rows
+    return out
+
+
+MIRROR_FIELDS = ("mirror_views", "mirror_min_yaw_deg", "mirror_drop_seen_deg", "mirror_midline_m", "mirror_blend_offset_deg")
+
+
+@contextmanager
+def mirror_variant(gcfg, mv: str | None):
+    """Set a ``GaussianHeadConfig``'s mirrored-view fields to the variant ``mv`` (``evaluate_set``'s
+    ``mirror``; None: as they are) for the ``with`` block, then restore them."""
+    saved = {f: getattr(gcfg, f) for f in MIRROR_FIELDS}
+    try:
+        if mv is not None:
+            gcfg.mirror_views = mv != "off"
+            if mv not in ("on", "off"):
+                parts = mv.split("/")
+                gcfg.mirror_min_yaw_deg = float(parts[0])
+                if len(parts) > 1 and parts[1]:
+                    gcfg.mirror_drop_seen_deg = float(parts[1])
+                if len(parts) > 2 and parts[2]:
+                    gcfg.mirror_midline_m = float(parts[2]) / 1000
+                if len(parts) > 3 and parts[3]:
+                    gcfg.mirror_blend_offset_deg = float(parts[3])
+        yield gcfg
+    finally:
+        for f, x in saved.items():
+            setattr(gcfg, f, x)
+
+
+def own_camera_rows(model, set_name: str, tr, matted, masks, names, faces, variants, surface: bool = True) -> list[dict]:
+    """The input-view check: the avatar of all of a set's photos (at most ``max_views``), rendered
+    at each of those photos' own tracked camera with its tracked expression, per mirror variant;
+    one row per (variant, photo) with ``masked_psnr`` and ``identity_distance`` (as the leave-one-out rows)."""
+    from ..model.surface import HeadSurface
+    from ..render import render
+    from ..train.faces import to_uint8_hwc
+
+    cams, expr = tr.cameras, torch.from_numpy(tr.expressions).float()
+    keep = list(range(len(names)))[: model.config.max_views]
+    imgs, in_cams = model.prepare(matted[keep], cams[keep])
+    head = HeadSurface.from_tracking(tr).subset(keep) if surface else None
+    rows = []
+    for mv in variants:
+        with mirror_variant(model.config.gaussians, mv):
+            av = model.reconstruct(imgs, in_cams, expressions=expr[keep], surface=head)
+        for k in keep:
+            pred = render(model.animate(av, expr[k], camera=cams[k : k + 1]), cams[k : k + 1], background=BACKGROUND_RGB).rgb.clamp(0, 1)
+            m, target = (masks[k : k + 1] > 0.5).float(), matted[k : k + 1]
+            mse = ((pred - target) ** 2 * m).sum() / (3 * m.sum()).clamp_min(1)
+            row = {"set": set_name, "photo": names[k], "mirror": mv, "masked_psnr": float(-10 * torch.log10(mse.clamp_min(1e-10))), "identity_distance": None}
+            if faces is not None:
+                t_desc, _, box = _identity(faces, to_uint8_hwc(target[0]))
+                p_desc, _, _ = _identity(faces, to_uint8_hwc(pred[0]), box)
+                if t_desc is not None and p_desc is not None:
+                    row["identity_distance"] = float(np.linalg.norm(p_desc - t_desc))
+            rows.append(row)
+    return rows
 
 
 def _mean(vals):
@@ -306,6 +358,8 @@ def main(argv=None) -> int:
     ap.add_argument("--mirror", default=None,
                     help="comma-separated mirrored-view variants to compare on the same tracking (model/mirror.py): off, on (the config's thresholds), "
                     "a yaw threshold in degrees or YAW/DROP/MM/OFFSET, trailing fields optional (mirror_min_yaw_deg / mirror_drop_seen_deg / mirror_midline_m in mm / mirror_blend_offset_deg), e.g. off,30,30/60,30/0/20,30///20 (default: the model's config)")
+    ap.add_argument("--own-cameras", action="store_true",
+                    help="also render the avatar of all of a set's photos at each photo's own camera (the input-view check; per --mirror variant)")
     ap.add_argument("--json", default=None, help="write all rows here")
     ap.add_argument("--grid", default=None, help="write a grid picture here (NOT inside the repository)")
     args = ap.parse_args(argv)
@@ -338,11 +392,11 @@ def main(argv=None) -> int:
                 except ValueError:
                     ap.error(f"--mirror: each variant must be off, on or YAW[/DROP[/MM[/OFFSET]]] (numbers), got {x!r}")
     cols = steps_list if mirror is None else [(mv, s) for mv in mirror for s in steps_list]
-    all_rows, grid = [], []
+    all_rows, own_rows, grid = [], [], []
     for folder in sets:
         try:
             out = evaluate_set(model, folder, steps_list, args.size, faces, refine_cameras=not args.no_refine_cameras, surface=not args.no_surface,
-                               photo_align=args.photo_align, mirror=mirror)
+                               photo_align=args.photo_align, mirror=mirror, own_cameras=args.own_cameras)
         except (ValueError, ImportError) as e:
             print(f"{folder.name}: skipped ({e})")
             continue
@@ -352,9 +406,15 @@ def main(argv=None) -> int:
         print(f"{folder.name}: tracked in {out['track_s']} s; photos dropped (tracking failed): {out['dropped'] or 'none'}", flush=True)
         for r in out["rows"]:
             print(json.dumps(r), flush=True)
+        for mv in dict.fromkeys(r["mirror"] for r in out.get("own_camera_rows", [])):
+            rs = [r for r in out["own_camera_rows"] if r["mirror"] == mv]
+            idd = _mean([r["identity_distance"] for r in rs])
+            print(f"{folder.name}: avatar of all photos at their own cameras, mirror {mv or 'as configured'}: masked PSNR {_mean([r['masked_psnr'] for r in rs]):.2f} dB "
+                  f"({' / '.join(format(r['masked_psnr'], '.2f') for r in rs)}), identity {_fmt(idd, '.3f')}", flush=True)
+        own_rows += out.get("own_camera_rows", [])
     print(summary_table(all_rows))
     if args.json:
-        Path(args.json).write_text(json.dumps(all_rows, indent=1))
+        Path(args.json).write_text(json.dumps(all_rows + [dict(r, check="own_camera") for r in own_rows], indent=1))
     if args.grid and grid:
         from ..train.visualize import save_grid
 
