@@ -74,6 +74,13 @@ ARKIT52_NAMES: tuple[str, ...] = (
 # Live Link Face's head and eye rotations (its CSV and stream carry them beside the 52 shapes), lower case.
 _POSE_NAMES = frozenset(f"{part}{axis}".lower() for part in ("Head", "LeftEye", "RightEye") for axis in ("Yaw", "Pitch", "Roll"))
 
+
+def _fold(name: str) -> str:
+    """``name`` without case, ``_``, ``-`` and spaces (``jaw_open`` and ``JawOpen`` -> ``jawopen``):
+    how a misspelt expression name is matched to an accepted one in error messages."""
+    return name.lower().replace("_", "").replace("-", "").replace(" ", "")
+
+
 # ARKit / MediaPipe names with no ict53 counterpart: accepted and ignored.
 _ICT53_IGNORED = frozenset({"tongueOut", "_neutral"})
 
@@ -205,11 +212,34 @@ class ExpressionSpace:
             sided = {k: s for k in unknown[:8] if (s := self._sided(str(k)))}
             if sided:  # "eyeBlink", "mouthSmile": the shapes come per side
                 hint += "; " + ", ".join(f"{k!r} comes per side: {' and '.join(map(repr, s))}" for k, s in sided.items())
+            close = {k: m for k in unknown[:8] if k not in sided and str(k).lower() not in _POSE_NAMES and (m := self._closest(str(k)))}
+            if close:  # "jawOpne", "jaw_open": a typo of an accepted name (still refused: nothing is guessed on the wire)
+                hint += "; " + ", ".join(f"did you mean {m!r} for {k!r}?" for k, m in close.items())
             raise ValueError(
                 f"expression space {self.name!r}: unknown name(s) {unknown[:8]}{'...' if len(unknown) > 8 else ''}; "
                 f"expected names like {list(index)[:3]}{hint}"
             )
         return torch.tensor(out, dtype=torch.float32)
+
+    def _folded(self) -> dict[str, str]:
+        """Accepted names (the space's, then its aliases such as ARKit's) by their folded form
+        (:func:`_fold`); the first name of a form wins."""
+        out: dict[str, str] = {}
+        for n in (*self._names, *self._aliases):
+            out.setdefault(_fold(n), n)
+        return out
+
+    def _closest(self, key: str) -> str | None:
+        """The accepted name that ``key`` most likely misspells, or None: the same letters up to
+        case, ``_``, ``-`` and spaces first, else the nearest folded form by ``difflib`` similarity
+        (ratio >= 0.8). Only for the error message: an unknown name is refused all the same."""
+        import difflib
+
+        folded, k = self._folded(), _fold(key)
+        if k in folded:
+            return folded[k]
+        hit = difflib.get_close_matches(k, list(folded), n=1, cutoff=0.8)
+        return folded[hit[0]] if hit else None
 
     def _sided(self, key: str) -> tuple[str, str] | None:
         """The left and right names a side-less name stands for (``eyeBlink`` -> ``eyeBlinkLeft``,
@@ -218,6 +248,10 @@ class ExpressionSpace:
             pair = (key + left, key + right)
             if all(self._lookup(n) for n in pair):
                 return pair
+        folded, k = self._folded(), _fold(key)  # "eyeblink", "eye_blink": the same up to case and "_"
+        for left, right in (("left", "right"), ("l", "r")):
+            if k + left in folded and k + right in folded:
+                return folded[k + left], folded[k + right]
         return None
 
     def _parse_vector(self, value: Any) -> Tensor:
