@@ -100,6 +100,23 @@ def key_hint(message: str) -> str:
     return message
 
 
+def unreachable(url: str, error: BaseException | str) -> str:
+    """One line for a server that could not be asked its model (``GET /v1/model``) at ``url``, with
+    what to do for the usual causes: nothing listening yet (``fastgha serve`` opens its port only
+    after its start-up), ``https://`` to the plain-HTTP server, a path such as ``/v1`` in ``--url``."""
+    text = str(error)
+    if "Connection refused" in text or "Errno 111" in text:
+        return (f"cannot reach the server at {url}: {text} (nothing listens there: start one with `fastgha serve`; "
+                "it opens its port only after its start-up, 20-40 s, when its log says 'start-up done')")  # fmt: skip
+    if url.lower().startswith("https://") and ("SSL" in text or "WRONG_VERSION_NUMBER" in text):
+        return (f"cannot reach the server at {url}: {text} (`fastgha serve` speaks plain HTTP: use http://; "
+                "TLS belongs to a reverse proxy in front of it, docs/deploy.md)")  # fmt: skip
+    if "/v1/model -> HTTP 404" in text:  # the rest is that server's 404 page
+        asked = text.split(" -> HTTP 404")[0]
+        return f"{url} answers, but not as a FastGHA server: --url is the server's root, http://host:port, without a path such as /v1 ({asked} -> HTTP 404)"
+    return f"cannot reach the server at {url}: {text}"
+
+
 def _load_sequence(path, dim: int, space: str | None = None) -> list:
     """Frames of ``--expressions`` (``.npy`` ``[T, dim]`` or JSON), checked against the server's
     space ``space`` (when this install knows it) before any avatar is created: an unknown name
@@ -305,7 +322,7 @@ def run(args) -> int:
     try:
         info = client.model_info()
     except Exception as e:
-        raise CLIError(f"cannot reach the server at {args.url}: {e}") from None
+        raise CLIError(unreachable(args.url, e)) from None
     dim = int(info["expression_dim"])
     driver, stop, fps_out = None, threading.Event(), args.fps
     if video:
