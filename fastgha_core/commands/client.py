@@ -11,6 +11,7 @@ HELP = (
     "stream an expression sequence (or expressions and head pose tracked from a video or webcam) from a running server: "
     "create an avatar, save the frames and an MP4, print FPS and latency"
 )
+QUIET_NATIVE_LOGS = True  # MediaPipe's C++ start-up lines are dropped from stderr (fastgha_core/commands/_stderr.py)
 
 
 def add_arguments(parser) -> None:
