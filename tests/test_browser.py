@@ -319,6 +319,26 @@ def test_demo_page_nits(page, server):
     assert page.inner_text("#input-summary").startswith("1 photo(s), 1 camera(s)")
 
 
+def test_drop_hint_shows_the_underscore_of_mask_names(page):
+    """The drop zone tells users to name masks ``*_mask.png``; at 14 px Debian's monospace lost the
+    underscore's pixels, so the page read ``* mask.png``. The second character cell of that code
+    element must hold ink (the underscore's, low in the cell)."""
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    code = page.locator("#drop code", has_text="mask.png")
+    assert code.inner_text() == "*_mask.png"
+    px = np.asarray(Image.open(io.BytesIO(code.screenshot())).convert("L"), dtype=np.int16)
+    pad = page.evaluate("parseFloat(getComputedStyle(document.querySelector('#drop code')).paddingLeft)")
+    cell = (px.shape[1] - 2 * pad) / 10  # ten monospace characters
+    x0, x1 = int(round(pad + cell * 1.15)), int(round(pad + cell * 1.85))  # the "_" cell, without its neighbours' edges
+    background = int(np.median(px))
+    lower = px[px.shape[0] // 2 :, x0:x1]
+    assert (lower - background).max() > 40, f"no underscore in '*_mask.png' (cell max {(lower - background).max()} over the background)"
+
+
 def test_demo_takes_a_whole_tracked_folder(page, server):
     """Dropping everything `fastgha track` wrote (crops, masks, cameras.json, expressions.json,
     head.json) loads the photos, cameras, masks and the tracked expressions as the sequence;
