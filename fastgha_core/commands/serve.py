@@ -173,5 +173,24 @@ def run(args) -> int:
         timeout_graceful_shutdown=10,
         **uvicorn_options(settings),  # connection deadlines and limits (server/security.py)
     )
-    uvicorn.Server(config).run(sockets=[sock])
+    serve_announcing(config, sock, f"http://{host}:{args.port}/", demo=settings.resolved_static_dir() is not None)
     return 0
+
+
+def serve_announcing(config, sock, url: str, demo: bool = True) -> None:
+    """Run uvicorn (``config``) on the bound ``sock`` and log ``ready: URL answers ...`` once it does:
+    uvicorn logs no "running on" line for sockets handed to it (``bind_listening_socket`` binds
+    before the slow start-up), so the log used to end at "Application startup complete." without
+    the address to open. ``demo``: the browser demo is served at ``/``."""
+    import logging
+
+    import uvicorn
+
+    class AnnouncingServer(uvicorn.Server):
+        async def startup(self, sockets=None) -> None:
+            await super().startup(sockets=sockets)
+            if self.started and not self.should_exit:
+                where = "browser demo at /, API docs at /docs" if demo else "API docs at /docs"
+                logging.getLogger("fastgha.serve").info("ready: %s answers (%s); Ctrl-C stops", url, where)
+
+    AnnouncingServer(config).run(sockets=[sock])
