@@ -324,6 +324,10 @@ def run(args) -> int:
         info = client.model_info()
     except Exception as e:
         raise CLIError(unreachable(args.url, e)) from None
+    most = info.get("max_images")
+    if isinstance(most, int) and len(images) > most:  # before any upload, in the folder's terms (not the multipart's)
+        raise CLIError(f"--input {args.input} holds {len(images)} photos; this server takes 1 to {most}: keep the best {most} "
+                       "(different angles of the one face) in a folder of their own")  # fmt: skip
     dim = int(info["expression_dim"])
     driver, stop, fps_out = None, threading.Event(), args.fps
     if video:
