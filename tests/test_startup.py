@@ -177,5 +177,14 @@ def test_serve_says_where_it_answers_once_it_does(tmp_path):
         srv.stop()
     ready = [ln for ln in log.splitlines() if "ready: " in ln]
     assert len(ready) == 1, log[-3000:]
-    assert re.search(rf"ready: http://127\.0\.0\.1:{srv.port}/ answers \(browser demo at /, API docs at /docs\); Ctrl-C stops", ready[0])
+    assert re.search(rf"ready: answering at http://127\.0\.0\.1:{srv.port}/; browser demo at /, API docs at /docs; Ctrl-C stops", ready[0])
     assert log.index("start-up done") < log.index(ready[0])
+
+
+def test_the_ready_line_names_an_address_a_browser_can_open():
+    from fastgha_core.commands.serve import ready_url
+
+    assert ready_url("127.0.0.1", 8000) == "http://127.0.0.1:8000/"
+    assert ready_url("::1", 8001) == "http://[::1]:8001/"
+    assert ready_url("0.0.0.0", 8000) == "http://0.0.0.0:8000/ (every interface; on this machine http://127.0.0.1:8000/)"
+    assert ready_url("::", 8000) == "http://[::]:8000/ (every interface; on this machine http://[::1]:8000/)"
