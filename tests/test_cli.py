@@ -272,3 +272,32 @@ def test_an_unreachable_server_says_what_to_do(command, capsys, tmp_path, not_fa
     assert "speaks plain HTTP: use http://" in said
     said = run(not_fastgha_http + "/v1")
     assert "answers, but not as a FastGHA server" in said and "without a path such as /v1" in said
+
+
+def test_animate_names_the_frame_of_a_bad_expression(tmp_path):
+    """`fastgha animate --expressions seq.json` with one bad frame among many said only 'expected a
+    vector of 53 values, got shape [2]' (or 'unknown name(s)'), not which frame; `fastgha client`
+    already said 'frame N'. Both formats, JSON and .npy, name the file and the frame."""
+    import json
+
+    import numpy as np
+
+    from fastgha_core.commands.animate import load_expressions
+    from fastgha_core.expressions import get_space
+
+    space = get_space("ict53")
+    seq = tmp_path / "seq.json"
+    seq.write_text(json.dumps([{"jawOpen": 0.5}, {"jawOpen": 0.2}, [0.1, 0.2]]))
+    with pytest.raises(ValueError, match=r"seq\.json'?: frame 2: .*expected a vector of 53 values, got shape \[2\]"):
+        load_expressions(seq, space)
+    seq.write_text(json.dumps({"frames": [{"jawOpen": 0.5}, {"jawOpne": 0.2}]}))
+    with pytest.raises(ValueError, match=r"seq\.json'?: frame 1: .*unknown name\(s\) \['jawOpne'\]"):
+        load_expressions(seq, space)
+    arr = np.zeros((3, 53), dtype=np.float32)
+    arr[1, 4] = np.nan
+    np.save(tmp_path / "seq.npy", arr)
+    with pytest.raises(ValueError, match=r"seq\.npy'?: frame 1: .*finite"):
+        load_expressions(tmp_path / "seq.npy", space)
+    seq.write_text(json.dumps([{"jawOpen": 0.5}, [0.0] * 53]))
+    codes = load_expressions(seq, space)
+    assert codes.shape == (2, 53) and codes[0, space.names.index("jawOpen")] == 0.5
