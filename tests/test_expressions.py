@@ -260,3 +260,27 @@ def test_side_less_names_in_other_cases_say_which_sided_names_to_send():
     with pytest.raises(ValueError, match=r"'eyeblink' comes per side: 'eyeBlinkLeft' and 'eyeBlinkRight'.*'mouth_smile' comes per side: 'mouthSmileLeft' and 'mouthSmileRight'") as e:
         get_space("ict53").parse({"eyeblink": 1.0, "mouth_smile": 1.0})
     assert "did you mean" not in str(e.value)
+
+
+def test_refusing_unknown_names_stays_cheap():
+    """The server answers every frame message; one with many unknown (or huge) names must not cost
+    more to refuse because of the suggestion: the lookup (dictionary probes, no pairwise string
+    comparison) runs for the first typo only, once per message, and a name longer than any accepted
+    one is not compared at all. Also: a typo of a name accepted and ignored (tongueOut) is named."""
+    space = get_space("ict53")
+    calls = []
+    real = type(space)._closest
+
+    def counting(self, key):
+        calls.append(key)
+        return real(self, key)
+
+    try:
+        type(space)._closest = counting
+        with pytest.raises(ValueError, match=r"did you mean 'jawOpen' for 'jawOpne'\?$"):
+            space.parse({"jawOpne": 0.1, **{f"eyeBlinkLef{i}": 0.1 for i in range(7)}, "x" * 30_000: 1.0})
+    finally:
+        type(space)._closest = real
+    assert calls == ["jawOpne"]
+    assert space._closest("x" * 30_000) is None
+    assert space._closest("tongueOutt") == "tongueOut"
