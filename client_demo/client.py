@@ -393,8 +393,8 @@ class FastGHAClient:
             try:
                 err = r.json()["error"]
                 msg = f"{err['code']}: {err['message']}"
-            except Exception:
-                msg = r.text[:200]
+            except Exception:  # not the server's JSON error (a proxy's or another server's page): one line of it
+                msg = " ".join(r.text[:200].split())
             raise RuntimeError(f"{r.request.method} {r.request.url.path} -> HTTP {r.status_code} {msg}")
         return r
 
@@ -413,7 +413,7 @@ class FastGHAClient:
             err = r.json()["error"]
             code, msg = str(err["code"]), str(err["message"])
         except Exception:
-            code, msg = "http_error", r.text[:200]
+            code, msg = "http_error", " ".join(r.text[:200].split())  # one line of a page that is not ours
         if r.status_code in (429, 503):
             try:
                 retry = float(r.headers.get("retry-after", "1"))

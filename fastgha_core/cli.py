@@ -7,6 +7,9 @@ Each subcommand is one module in ``fastgha_core/commands/`` that defines::
     def add_arguments(parser): ...  # argparse options
     def run(args) -> int: ...       # heavy imports go inside run()
 
+A module may also set ``QUIET_NATIVE_LOGS = True`` when it runs MediaPipe: its C++ start-up lines are
+then dropped from stderr (``commands/_stderr.py``; ``-v`` keeps them).
+
 Modules are discovered, so adding a command touches no other file. A ``CLIError`` (or a
 ``ValueError``/``FileNotFoundError`` from the library) prints one clear line and exits 2.
 """
@@ -72,7 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
         p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.HELP)
         if hasattr(mod, "add_arguments"):
             mod.add_arguments(p)
-        p.set_defaults(_run=mod.run)
+        p.set_defaults(_run=mod.run, _quiet_native=bool(getattr(mod, "QUIET_NATIVE_LOGS", False)))
     return parser
 
 
@@ -83,8 +86,12 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "_run", None):
         parser.print_help()
         return 0
+    from .commands._stderr import native_stderr_filtered
+
     try:
-        rc = args._run(args)
+        # commands that run MediaPipe (QUIET_NATIVE_LOGS) drop its C++ start-up lines from stderr, unless -v
+        with native_stderr_filtered(args._quiet_native and not args.verbose):
+            rc = args._run(args)
     except (CLIError, ValueError, FileNotFoundError) as e:
         print(f"fastgha {args.command}: error: {e}", file=sys.stderr)
         return 2

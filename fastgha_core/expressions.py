@@ -74,6 +74,16 @@ ARKIT52_NAMES: tuple[str, ...] = (
 # Live Link Face's head and eye rotations (its CSV and stream carry them beside the 52 shapes), lower case.
 _POSE_NAMES = frozenset(f"{part}{axis}".lower() for part in ("Head", "LeftEye", "RightEye") for axis in ("Yaw", "Pitch", "Roll"))
 
+
+def _fold(name: str) -> str:
+    """``name`` without case, ``_``, ``-`` and spaces (``jaw_open`` and ``JawOpen`` -> ``jawopen``):
+    how a misspelt expression name is matched to an accepted one in error messages."""
+    return name.lower().replace("_", "").replace("-", "").replace(" ", "")
+
+
+# Unknown names longer than this get no "did you mean" (the longest accepted name has 19 characters).
+_MAX_SUGGESTED_LEN = 40
+
 # ARKit / MediaPipe names with no ict53 counterpart: accepted and ignored.
 _ICT53_IGNORED = frozenset({"tongueOut", "_neutral"})
 
@@ -205,11 +215,52 @@ class ExpressionSpace:
             sided = {k: s for k in unknown[:8] if (s := self._sided(str(k)))}
             if sided:  # "eyeBlink", "mouthSmile": the shapes come per side
                 hint += "; " + ", ".join(f"{k!r} comes per side: {' and '.join(map(repr, s))}" for k, s in sided.items())
+            # "jawOpne", "jaw_open": a typo of an accepted name (still refused: nothing is guessed on the wire).
+            # Only the first such name is looked up: a stream of unknown names must stay cheap to refuse.
+            typo = next((k for k in unknown if k not in sided and str(k).lower() not in _POSE_NAMES), None)
+            if typo is not None and (meant := self._closest(str(typo))):
+                hint += f"; did you mean {meant!r} for {typo!r}?"
             raise ValueError(
                 f"expression space {self.name!r}: unknown name(s) {unknown[:8]}{'...' if len(unknown) > 8 else ''}; "
                 f"expected names like {list(index)[:3]}{hint}"
             )
         return torch.tensor(out, dtype=torch.float32)
+
+    def _folded(self) -> tuple[dict[str, str], dict[str, list[str]]]:
+        """``(folded, near)``, built once per space: accepted names (the space's, then its aliases such
+        as ARKit's, then those accepted and ignored) by their folded form (:func:`_fold`; the first name of a form wins), and by each
+        folded form with one character deleted (to find one-edit typos with dictionary lookups)."""
+        built = self.__dict__.get("_folded_names")
+        if built is None:
+            folded: dict[str, str] = {}
+            for n in (*self._names, *self._aliases, *sorted(self._ignored)):  # tongueOut: accepted, ignored
+                folded.setdefault(_fold(n), n)
+            near: dict[str, list[str]] = {}
+            for f, n in folded.items():
+                for v in {f[:i] + f[i + 1 :] for i in range(len(f))}:
+                    near.setdefault(v, []).append(n)
+            built = (folded, near)
+            object.__setattr__(self, "_folded_names", built)
+        return built
+
+    def _closest(self, key: str) -> str | None:
+        """The accepted name that ``key`` most likely misspells, or None: the same letters up to
+        case, ``_``, ``-`` and spaces first, else a name one edit away from those folded letters (a
+        letter added, dropped, changed, or two swapped; "symmetric delete" lookups, a few dozen
+        dictionary probes, so refusing a stream of unknown names stays cheap). Only for the error
+        message: an unknown name is refused all the same."""
+        if len(key) > _MAX_SUGGESTED_LEN:  # no accepted name is this long: nothing to compare
+            return None
+        folded, near = self._folded()
+        k = _fold(key)
+        if k in folded:
+            return folded[k]
+        hits: list[str] = []
+        for v in (k, *(k[:i] + k[i + 1 :] for i in range(len(k)))):
+            if v in folded:  # one letter too many
+                hits.append(folded[v])
+            hits.extend(near.get(v, ()))  # one letter dropped (v == k), changed or swapped
+        return min(hits, key=lambda n: (abs(len(_fold(n)) - len(k)), hits.index(n))) if hits else None
 
     def _sided(self, key: str) -> tuple[str, str] | None:
         """The left and right names a side-less name stands for (``eyeBlink`` -> ``eyeBlinkLeft``,
@@ -218,6 +269,12 @@ class ExpressionSpace:
             pair = (key + left, key + right)
             if all(self._lookup(n) for n in pair):
                 return pair
+        if len(key) > _MAX_SUGGESTED_LEN:
+            return None
+        folded, k = self._folded()[0], _fold(key)  # "eyeblink", "eye_blink": the same up to case and "_"
+        for left, right in (("left", "right"), ("l", "r")):
+            if k + left in folded and k + right in folded:
+                return folded[k + left], folded[k + right]
         return None
 
     def _parse_vector(self, value: Any) -> Tensor:

@@ -50,6 +50,9 @@ __all__ = ["create_app"]
 
 log = logging.getLogger(__name__)
 
+# the parts of POST /v1/avatars (docs/protocol.md); a file under any other name is named in the count error
+_CREATION_PARTS = frozenset({"images", "cameras", "masks", "head"})
+
 _STATUS_CODES = {
     400: "bad_request",
     401: "unauthorized",
@@ -503,7 +506,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         max_images = min(s.max_images, int(getattr(ctx.model.config, "max_views", s.max_images)))
         parts = form.getlist("images")
         if not 1 <= len(parts) <= max_images:
-            raise ApiError(400, "invalid_image_count", f"send 1 to {max_images} 'images' parts, got {len(parts)}")
+            msg = f"send 1 to {max_images} 'images' parts, got {len(parts)}"
+            if not parts:  # `curl -F image=@me.jpg`: say which parts did come
+                other = sorted({k for k, v in form.multi_items() if k not in _CREATION_PARTS and not isinstance(v, str)})[:4]
+                if other:
+                    msg += f" (file part(s) named {', '.join(repr(k[:40]) for k in other)}: name each photo's part 'images')"
+            raise ApiError(400, "invalid_image_count", msg)
         cam_field = form.get("cameras")
         cams: list[Cameras] | None = None
         head_field = form.get("head")

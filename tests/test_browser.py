@@ -59,12 +59,13 @@ def page(server):
     yield from _page_of(server)
 
 
-def _page_of(server):
+def _page_of(server, viewport: dict | None = None, **context):
     profile = tempfile.mkdtemp(prefix="fastgha-chromium-")
     errors: list[str] = []
     with sync_api.sync_playwright() as p:
         ctx = p.chromium.launch_persistent_context(
-            profile, executable_path=CHROMIUM, args=ARGS, headless=True, viewport={"width": 1200, "height": 900}, accept_downloads=True,
+            profile, executable_path=CHROMIUM, args=ARGS, headless=True, viewport=viewport or {"width": 1200, "height": 900}, accept_downloads=True,
+            **context,
             bypass_csp=True,  # playwright's wait_for_function evals its predicate; the page under its CSP: test_server_hardening_e2e.py
         )
         try:
@@ -317,6 +318,55 @@ def test_demo_page_nits(page, server):
     page.set_input_files("#file-input", files=[{"name": "me4.jpg", "mimeType": "image/jpeg", "buffer": jpg}])
     page.wait_for_timeout(500)
     assert page.inner_text("#input-summary").startswith("1 photo(s), 1 camera(s)")
+
+
+def test_drop_hint_shows_the_underscore_of_mask_names(page):
+    """The drop zone tells users to name masks ``*_mask.png``; at 14 px Debian's monospace lost the
+    underscore's pixels, so the page read ``* mask.png``. The second character cell of that code
+    element must hold ink (the underscore's, low in the cell)."""
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    code = page.locator("#drop code", has_text="mask.png")
+    assert code.inner_text() == "*_mask.png"
+    px = np.asarray(Image.open(io.BytesIO(code.screenshot())).convert("L"), dtype=np.int16)
+    pad = page.evaluate("parseFloat(getComputedStyle(document.querySelector('#drop code')).paddingLeft)")
+    cell = (px.shape[1] - 2 * pad) / 10  # ten monospace characters
+    x0, x1 = int(round(pad + cell * 1.15)), int(round(pad + cell * 1.85))  # the "_" cell, without its neighbours' edges
+    background = int(np.median(px))
+    lower = px[px.shape[0] // 2 :, x0:x1]
+    assert (lower - background).max() > 40, f"no underscore in '*_mask.png' (cell max {(lower - background).max()} over the background)"
+
+
+def test_on_a_phone_the_avatar_stays_in_view_while_a_slider_moves(server):
+    """At a phone's 390 x 844 the panel and the view stack: the view used to come last, ~1,100 px
+    down, so "Create avatar" seemed to do nothing and no slider could be moved while watching the
+    face. The view now comes first and stays at the top; its stats wrap instead of being cut off."""
+    phone = {"width": 390, "height": 844}
+
+    def inside(box) -> bool:
+        return box["y"] >= -0.5 and box["y"] + box["height"] <= phone["height"] + 0.5
+
+    pages = _page_of(server, viewport=phone, is_mobile=True, has_touch=True)
+    page = next(pages)
+    try:
+        _stream_sample(page, timeout=60_000)
+        assert inside(page.locator("#frame").bounding_box()), page.locator("#frame").bounding_box()
+        assert page.evaluate("(() => { const s = document.getElementById('stats'); return s.scrollWidth <= s.clientWidth; })()")
+        page.locator("#s-jawOpen").scroll_into_view_if_needed()
+        n = page.evaluate("window.fastghaDemo.frames")
+        page.fill("#s-jawOpen", "1")
+        _wait_settled(page, n)
+        slider, frame = page.locator("#s-jawOpen").bounding_box(), page.locator("#frame").bounding_box()
+        assert inside(slider) and inside(frame), (slider, frame)
+        assert slider["y"] >= frame["y"] + frame["height"], "the slider is hidden under the view"
+        page.locator("#create").scroll_into_view_if_needed()  # the photos' controls are reachable too
+        create, frame = page.locator("#create").bounding_box(), page.locator("#frame").bounding_box()
+        assert inside(create) and create["y"] >= frame["y"] + frame["height"], (create, frame)
+    finally:
+        pages.close()
 
 
 def test_demo_takes_a_whole_tracked_folder(page, server):

@@ -218,3 +218,86 @@ def test_a_preset_without_shipped_weights_is_refused_before_it_is_built(argv, ca
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--model 'paper': no shipped weights" in err[0] and "shipped: tiny" in err[0], err
+
+
+@pytest.fixture()
+def not_fastgha_http():
+    """A plain HTTP server on loopback that answers 404 to everything (a server, but not FastGHA's
+    API at the URL given): ``http://127.0.0.1:PORT``."""
+    import http.server
+    import threading
+
+    class NotFound(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):
+            self.send_error(404)
+
+        def log_message(self, *a):
+            pass
+
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), NotFound)
+    t = threading.Thread(target=srv.serve_forever, daemon=True)
+    t.start()
+    yield f"http://127.0.0.1:{srv.server_address[1]}"
+    srv.shutdown()
+    srv.server_close()
+
+
+def _closed_port() -> int:
+    import socket
+
+    with socket.socket() as s:  # a port nothing listens on (as while `fastgha serve` is still starting)
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize("command", ["client", "loadtest"])
+def test_an_unreachable_server_says_what_to_do(command, capsys, tmp_path, not_fastgha_http):
+    """`fastgha serve` opens its port only after a start-up of 20-40 s: a client started at once got
+    'Connection refused' and nothing more. Also https:// to the plain-HTTP server and a path in --url
+    (http://host:port/v1) get the fix in the same line; all exit 2 before creating anything."""
+    from pathlib import Path
+
+    sample = Path(__file__).resolve().parents[1] / "fastgha_core" / "assets" / "samples" / "synth_1000000" / "request"
+    extra = ["--out", str(tmp_path / "x.mp4")] if command == "client" else ["--clients", "1", "--duration", "1"]
+
+    def run(url: str) -> str:
+        assert main([command, "--url", url, "--input", str(sample), *extra]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"fastgha {command}: error: "), err
+        return err[0]
+
+    said = run(f"http://127.0.0.1:{_closed_port()}")
+    assert "Connection refused" in said and "start one with `fastgha serve`" in said and "start-up done" in said
+    said = run(not_fastgha_http.replace("http://", "https://"))
+    assert "speaks plain HTTP: use http://" in said
+    said = run(not_fastgha_http + "/v1")
+    assert "answers, but not as a FastGHA server" in said and "without a path such as /v1" in said
+
+
+def test_animate_names_the_frame_of_a_bad_expression(tmp_path):
+    """`fastgha animate --expressions seq.json` with one bad frame among many said only 'expected a
+    vector of 53 values, got shape [2]' (or 'unknown name(s)'), not which frame; `fastgha client`
+    already said 'frame N'. Both formats, JSON and .npy, name the file and the frame."""
+    import json
+
+    import numpy as np
+
+    from fastgha_core.commands.animate import load_expressions
+    from fastgha_core.expressions import get_space
+
+    space = get_space("ict53")
+    seq = tmp_path / "seq.json"
+    seq.write_text(json.dumps([{"jawOpen": 0.5}, {"jawOpen": 0.2}, [0.1, 0.2]]))
+    with pytest.raises(ValueError, match=r"seq\.json'?: frame 2: .*expected a vector of 53 values, got shape \[2\]"):
+        load_expressions(seq, space)
+    seq.write_text(json.dumps({"frames": [{"jawOpen": 0.5}, {"jawOpne": 0.2}]}))
+    with pytest.raises(ValueError, match=r"seq\.json'?: frame 1: .*unknown name\(s\) \['jawOpne'\]"):
+        load_expressions(seq, space)
+    arr = np.zeros((3, 53), dtype=np.float32)
+    arr[1, 4] = np.nan
+    np.save(tmp_path / "seq.npy", arr)
+    with pytest.raises(ValueError, match=r"seq\.npy'?: frame 1: .*finite"):
+        load_expressions(tmp_path / "seq.npy", space)
+    seq.write_text(json.dumps([{"jawOpen": 0.5}, [0.0] * 53]))
+    codes = load_expressions(seq, space)
+    assert codes.shape == (2, 53) and codes[0, space.names.index("jawOpen")] == 0.5

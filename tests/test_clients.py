@@ -334,3 +334,22 @@ def test_loadtest_says_once_why_the_server_closed_a_stream(server, request_dir, 
     assert len(msgs) == 1 and msgs[0].startswith("closed by the server: 4503 at_capacity: this avatar already has 4 open streams"), msgs
     assert msgs[0].count("4503") == 1 and "FASTGHA_MAX_STREAMS_PER_AVATAR" in msgs[0]
     assert f"error: {msgs[0]}" in out
+
+
+def test_client_command_says_when_the_folder_holds_more_photos_than_the_server_takes(server, request_dir, tmp_path, capsys):
+    """A folder of 9 photos got the server's 'send 1 to 8 'images' parts, got 9', in terms of the
+    multipart request the user never wrote; it is now refused before any upload, in the folder's terms."""
+    import shutil
+
+    max_images = httpx.get(server.base + "/v1/model", timeout=30).json()["max_images"]
+    folder = tmp_path / "many"
+    folder.mkdir()
+    photo = sorted(request_dir.glob("*.jpg"))[0]
+    for i in range(max_images + 1):
+        shutil.copy(photo, folder / f"{i:02d}.jpg")
+    before = _created_total(server)
+    rc = cli_main(["client", "--url", server.base, "--input", str(folder), "--api-key", API_KEY, "--out", str(tmp_path / "c.mp4")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1, err
+    assert f"{folder} holds {max_images + 1} photos; this server takes 1 to {max_images}" in err[0], err
+    assert _created_total(server) == before

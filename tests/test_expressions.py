@@ -225,3 +225,62 @@ def test_side_less_names_say_which_sided_names_to_send():
     with pytest.raises(ValueError) as e:
         get_space("flame120").parse({"eyeBlink": 1.0})
     assert "per side" not in str(e.value)
+
+
+@pytest.mark.parametrize(
+    "typo, meant",
+    [
+        ("jawOpne", "jawOpen"),  # a transposition
+        ("jaw_open", "jawOpen"),  # snake case of an accepted name
+        ("JAWOPEN", "jawOpen"),  # capitals
+        ("eyeBlinkLeftt", "eyeBlinkLeft"),  # an ARKit alias, one letter too many
+        ("mouthSmile_l", "mouthSmile_L"),  # an ict53 name, side in lower case
+    ],
+)
+def test_a_misspelt_name_gets_a_did_you_mean(typo, meant):
+    """A typo in a name (the server's ``unknown_expression_name``, ``fastgha animate``/``client``
+    ``--expressions``, the browser demo's sequences) names the accepted name it is closest to; the
+    name is still refused (no guessing on the wire)."""
+    with pytest.raises(ValueError, match=rf"unknown name\(s\) \[{typo!r}\].*did you mean {meant!r} for {typo!r}"):
+        get_space("ict53").parse({typo: 1.0, "jawLeft": 0.2})
+
+
+def test_names_far_from_any_accepted_one_get_no_guess():
+    with pytest.raises(ValueError) as e:
+        get_space("ict53").parse({"smile": 1.0, "zzz": 0.5})
+    assert "did you mean" not in str(e.value)
+    with pytest.raises(ValueError) as e:  # a pose of Live Link Face and a side-less name keep their own hints only
+        get_space("ict53").parse({"HeadYaw": 0.1, "eyeBlink": 1.0})
+    assert "did you mean" not in str(e.value) and "Live Link" in str(e.value) and "per side" in str(e.value)
+
+
+def test_side_less_names_in_other_cases_say_which_sided_names_to_send():
+    """``eyeblink`` / ``mouth_smile`` (case and ``_`` aside, a side-less name) get the per-side hint,
+    not a guess of one side."""
+    with pytest.raises(ValueError, match=r"'eyeblink' comes per side: 'eyeBlinkLeft' and 'eyeBlinkRight'.*'mouth_smile' comes per side: 'mouthSmileLeft' and 'mouthSmileRight'") as e:
+        get_space("ict53").parse({"eyeblink": 1.0, "mouth_smile": 1.0})
+    assert "did you mean" not in str(e.value)
+
+
+def test_refusing_unknown_names_stays_cheap():
+    """The server answers every frame message; one with many unknown (or huge) names must not cost
+    more to refuse because of the suggestion: the lookup (dictionary probes, no pairwise string
+    comparison) runs for the first typo only, once per message, and a name longer than any accepted
+    one is not compared at all. Also: a typo of a name accepted and ignored (tongueOut) is named."""
+    space = get_space("ict53")
+    calls = []
+    real = type(space)._closest
+
+    def counting(self, key):
+        calls.append(key)
+        return real(self, key)
+
+    try:
+        type(space)._closest = counting
+        with pytest.raises(ValueError, match=r"did you mean 'jawOpen' for 'jawOpne'\?$"):
+            space.parse({"jawOpne": 0.1, **{f"eyeBlinkLef{i}": 0.1 for i in range(7)}, "x" * 30_000: 1.0})
+    finally:
+        type(space)._closest = real
+    assert calls == ["jawOpne"]
+    assert space._closest("x" * 30_000) is None
+    assert space._closest("tongueOutt") == "tongueOut"

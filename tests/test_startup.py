@@ -159,3 +159,32 @@ def test_bind_listening_socket_reports_unresolvable_hosts():
         sock.close()
     with pytest.raises(CLIError, match="does not resolve"):
         bind_listening_socket("no-such-host.invalid", 8000)
+
+
+def test_serve_says_where_it_answers_once_it_does(tmp_path):
+    """`fastgha serve` binds its port before the slow start-up, and uvicorn logs no "running on"
+    line for a socket handed to it: the log ended at "Application startup complete." without the
+    address of the browser demo. Once /healthz answers, the log holds a "ready: URL" line."""
+    import re
+
+    from server_process import ServerProcess, make_model_dir
+
+    srv = ServerProcess(make_model_dir(tmp_path / "model"), tmp_path / "data", None, tmp_path / "server.log",
+                        serve_cli=True, FASTGHA_WARMUP="false")  # fmt: skip
+    try:
+        log = srv.log_path.read_text()
+    finally:
+        srv.stop()
+    ready = [ln for ln in log.splitlines() if "ready: " in ln]
+    assert len(ready) == 1, log[-3000:]
+    assert re.search(rf"ready: answering at http://127\.0\.0\.1:{srv.port}/; browser demo at /, API docs at /docs; Ctrl-C stops", ready[0])
+    assert log.index("start-up done") < log.index(ready[0])
+
+
+def test_the_ready_line_names_an_address_a_browser_can_open():
+    from fastgha_core.commands.serve import ready_url
+
+    assert ready_url("127.0.0.1", 8000) == "http://127.0.0.1:8000/"
+    assert ready_url("::1", 8001) == "http://[::1]:8001/"
+    assert ready_url("0.0.0.0", 8000) == "http://0.0.0.0:8000/ (every interface; on this machine http://127.0.0.1:8000/)"
+    assert ready_url("::", 8000) == "http://[::]:8000/ (every interface; on this machine http://[::1]:8000/)"

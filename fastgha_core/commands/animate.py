@@ -39,8 +39,9 @@ def load_expressions(path, space):
         arr = np.load(path)
         if arr.ndim == 1:
             arr = arr[None]
-        values = torch.from_numpy(np.asarray(arr, dtype=np.float32))
-        return space.parse_batch(values)
+        if arr.ndim != 2:
+            raise ValueError(f"expressions file {str(path)!r}: expected an array [T, {space.dim}], got shape {list(arr.shape)}")
+        return _parse_frames(space, list(torch.from_numpy(np.asarray(arr, dtype=np.float32))), path)
     if path.suffix.lower() == ".json":
         try:
             data = json.loads(path.read_text())
@@ -56,8 +57,24 @@ def load_expressions(path, space):
             data = data[key]
         if not isinstance(data, list) or not data:
             raise ValueError(f"expressions JSON must be a non-empty list of codes, got {type(data).__name__}")
-        return space.parse_batch(data)
+        return _parse_frames(space, data, path)
     raise ValueError(f"expressions must be a .npy or .json file, got {path.name!r}")
+
+
+def _parse_frames(space, frames: list, path):
+    """``[T, E]`` codes of ``frames`` (vectors or name->weight maps); a bad one is named by its index
+    (``expressions file 'seq.json': frame 7: ...``), as ``fastgha client`` does."""
+    import torch
+
+    if not len(frames):
+        raise ValueError(f"expressions file {str(path)!r} holds no frames")
+    out = []
+    for i, frame in enumerate(frames):
+        try:
+            out.append(space.parse(frame))
+        except ValueError as e:
+            raise ValueError(f"expressions file {str(path)!r}: frame {i}: {e}") from None
+    return torch.stack(out)
 
 
 def frame_cameras(spec: str, num_frames: int, size: int, radius: float, fov: float):

@@ -11,6 +11,7 @@ HELP = (
     "stream an expression sequence (or expressions and head pose tracked from a video or webcam) from a running server: "
     "create an avatar, save the frames and an MP4, print FPS and latency"
 )
+QUIET_NATIVE_LOGS = True  # MediaPipe's C++ start-up lines are dropped from stderr (fastgha_core/commands/_stderr.py)
 
 
 def add_arguments(parser) -> None:
@@ -98,6 +99,23 @@ def key_hint(message: str) -> str:
     if "api_key_required" in message or "invalid_api_key" in message:
         return f"{message} (pass --api-key KEY, or set FASTGHA_API_KEY)"
     return message
+
+
+def unreachable(url: str, error: BaseException | str) -> str:
+    """One line for a server that could not be asked its model (``GET /v1/model``) at ``url``, with
+    what to do for the usual causes: nothing listening yet (``fastgha serve`` opens its port only
+    after its start-up), ``https://`` to the plain-HTTP server, a path such as ``/v1`` in ``--url``."""
+    text = str(error)
+    if "Connection refused" in text or "Errno 111" in text:
+        return (f"cannot reach the server at {url}: {text} (nothing listens there: start one with `fastgha serve`; "
+                "it opens its port only after its start-up, 20-40 s, when its log says 'start-up done')")  # fmt: skip
+    if url.lower().startswith("https://") and ("SSL" in text or "WRONG_VERSION_NUMBER" in text):
+        return (f"cannot reach the server at {url}: {text} (`fastgha serve` speaks plain HTTP: use http://; "
+                "TLS belongs to a reverse proxy in front of it, docs/deploy.md)")  # fmt: skip
+    if "/v1/model -> HTTP 404" in text:  # the rest is that server's 404 page
+        asked = text.split(" -> HTTP 404")[0]
+        return f"{url} answers, but not as a FastGHA server: --url is the server's root, http://host:port, without a path such as /v1 ({asked} -> HTTP 404)"
+    return f"cannot reach the server at {url}: {text}"
 
 
 def _load_sequence(path, dim: int, space: str | None = None) -> list:
@@ -305,7 +323,11 @@ def run(args) -> int:
     try:
         info = client.model_info()
     except Exception as e:
-        raise CLIError(f"cannot reach the server at {args.url}: {e}") from None
+        raise CLIError(unreachable(args.url, e)) from None
+    most = info.get("max_images")
+    if isinstance(most, int) and len(images) > most:  # before any upload, in the folder's terms (not the multipart's)
+        raise CLIError(f"--input {args.input} holds {len(images)} photos; this server takes 1 to {most}: keep the best {most} "
+                       "(different angles of the one face) in a folder of their own")  # fmt: skip
     dim = int(info["expression_dim"])
     driver, stop, fps_out = None, threading.Event(), args.fps
     if video:

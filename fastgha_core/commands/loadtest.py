@@ -73,7 +73,7 @@ def run(args) -> int:
     from client_demo.loadtest import LoadTestConfig, plot_report, run_loadtest
 
     from ..cli import CLIError
-    from .client import api_key_from, key_hint
+    from .client import api_key_from, key_hint, unreachable
 
     cfg = LoadTestConfig(
         url=args.url,
@@ -103,9 +103,10 @@ def run(args) -> int:
     try:
         report = run_loadtest(cfg, images, cams, masks, progress=print)
     except (OSError, httpx.HTTPError) as e:
-        raise CLIError(f"cannot reach the server at {args.url}: {e}") from None
-    except RuntimeError as e:  # an HTTP error answer (e.g. a wrong API key), as one line
-        raise CLIError(key_hint(str(e))) from None
+        raise CLIError(unreachable(args.url, e)) from None
+    except RuntimeError as e:  # an HTTP error answer (e.g. a wrong API key, or a path in --url), as one line
+        text = str(e)
+        raise CLIError(unreachable(args.url, text) if "/v1/model -> HTTP 404" in text else key_hint(text)) from None
     report["config"]["input"] = str(req)
     print(_summary(report))
     if args.json:

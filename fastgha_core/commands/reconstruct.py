@@ -2,6 +2,7 @@
 
 NAME = "reconstruct"
 HELP = "reconstruct a canonical Gaussian avatar from a folder of photos + cameras.json"
+QUIET_NATIVE_LOGS = True  # MediaPipe's C++ start-up lines are dropped from stderr (fastgha_core/commands/_stderr.py)
 
 
 def add_arguments(parser) -> None:

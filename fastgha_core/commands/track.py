@@ -1,5 +1,6 @@
 NAME = "track"
 HELP = "track photos of one person (MediaPipe Face Mesh landmarks + one joint ICT head fit) into a request folder: crops, cameras.json, masks, expressions.json, head.json"
+QUIET_NATIVE_LOGS = True  # MediaPipe's C++ start-up lines are dropped from stderr (fastgha_core/commands/_stderr.py)
 
 
 def add_arguments(parser) -> None:
