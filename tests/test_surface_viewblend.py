@@ -220,7 +220,10 @@ def test_frames_with_view_blending_equal_the_plain_reference(tiny, prior):
     want = plain.opacities.clone()
     for i in range(av.num_reconstructed):
         m, s = int(vb.mask[i]), int(vb.source_view[i])
-        want[i] *= math.exp(-(a[s] - min(a[k] for k in range(3) if m >> k & 1)) / 20.0)
+        if vb.sharp is not None and bool(vb.sharp[i]):  # contradicted by a more head-on view: by its own camera's angle alone (viewblend.ViewBlend.sharp)
+            want[i] *= math.exp(-a[s] / (20.0 * vb.sharp_scale))
+        else:
+            want[i] *= math.exp(-(a[s] - min(a[k] for k in range(3) if m >> k & 1)) / 20.0)
     assert torch.allclose(on.opacities, want, rtol=1e-5, atol=1e-7)
     assert not torch.allclose(on.opacities, plain.opacities)
     for name in ("means", "scales", "quats", "colors"):
@@ -234,6 +237,7 @@ def test_the_avatar_budget_counts_the_view_data_a_blended_frame_holds(tiny):
     assert "_key" not in vb.__dict__
     tiny.animate(av, torch.zeros(tiny.config.expression_dim), camera=_cams([10.0], size=64, dist=0.6))  # tau 20 by default
     held = sum(t.untyped_storage().nbytes() for t in (vb.source_view, vb.mask, vb.directions, vb.__dict__["_key"]))
+    held += 0 if vb.sharp is None else vb.sharp.untyped_storage().nbytes()  # the head-on check's flags (gaussians.head_on_colour_tol)
     assert tiny.serving_nbytes(av) - without == held
 
 

@@ -46,6 +46,10 @@ __all__ = ["FastGHA", "FastGHAOutput", "load_model", "ASSET_MODELS_DIR", "CONFIG
 
 log = logging.getLogger(__name__)
 
+HAIR_CARVE_DILATE_PX = 1  # reconstruct(): the hair layer is carved by the inputs' mattes dilated by this many pixels (model/surface.py hair_carve_fractions)
+HAIR_CARVE_MAX_UP = 0.5  # ... only vertices whose outward normal's up component is at most this (the top of the head, normals within 60 deg of up, keeps its fitted thickness: carved by all views, phone-5's pitch-down photo left out lost 12.28 -> 10.85 dB; mattes cut fine hair on top)
+SHELL_CARVE_DILATE_PX = -2  # reconstruct(): the back-of-head shell is carved into the inputs' mattes eroded by 2 pixels: its discs (5.5 mm) reach beyond their centres (model/surface.py carve_into_mattes; video-6 at its own cameras: dilated by 1 23.89 dB, eroded by 1 23.98, by 2 24.02, the bald shell 24.03)
+
 ASSET_MODELS_DIR = Path(__file__).resolve().parent.parent / "assets" / "models"
 CONFIG_NAME = "config.json"
 WEIGHTS_NAME = "model.safetensors"
@@ -304,7 +308,7 @@ class FastGHA(nn.Module):
 
         return opacity_factors(z, rt.basis, rt.group_index) if rt.gated else None
 
-    def build_prior(self, g: Gaussians, view_index: Tensor | None = None, view_expressions: Tensor | None = None, head_fit=None):
+    def build_prior(self, g: Gaussians, view_index: Tensor | None = None, view_expressions: Tensor | None = None, head_fit=None, shell_fit=None):
         """Fit the head surface to canonical ``g``, bind every Gaussian, optionally undo the input
         photos' expressions, and append the mouth interior. The fit and the binding use the neutral
         positions the avatar is drawn at (centres + the deformation MLP's residual at the neutral
@@ -317,6 +321,8 @@ class FastGHA(nn.Module):
                 displacement is subtracted from the Gaussians of that view (a neutral canonical head).
             head_fit: a ``prior.HeadFit`` to bind to (the tracked head, ``HeadSurface.head_fit``)
                 instead of fitting the head surface to the Gaussians.
+            shell_fit: a ``prior.HeadFit`` to lay the back-of-head shell on instead of the one bound to
+                (the tracked head with its scalp laid out by the hair thickness, ``HeadSurface.head_fit(basis, hair_m)``).
         Returns:
             ``(gaussians, binding, num_interior)``; the returned Gaussians keep ``g``'s autograd graph
             (means are shifted by a constant when neutralising; the appended shell and interior are
@@ -333,7 +339,7 @@ class FastGHA(nn.Module):
 
                 g = g.replace(quats=quaternion_multiply(back.to(g.quats.device, g.quats.dtype), g.quats))
         with torch.no_grad():
-            extra, binding, n_int = self._prior_extras(g, fit, binding, means if shift is None else means - shift)
+            extra, binding, n_int = self._prior_extras(g, fit, binding, means if shift is None else means - shift, shell_fit)
         if extra is not None:
             g = Gaussians.concat([g, extra.to(g.means.device, g.means.dtype)])
         return g, binding, n_int
@@ -388,7 +394,7 @@ class FastGHA(nn.Module):
             binding = show_closed_lids(binding, means, vi, ve, fit, basis)
         return fit, binding.to(g.means.device), means, shift, back
 
-    def _prior_extras(self, g: Gaussians, fit, binding, drawn: Tensor):
+    def _prior_extras(self, g: Gaussians, fit, binding, drawn: Tensor, shell_fit=None):
         """``build_prior``'s back-of-head shell and mouth interior for the (neutralised) ``g``:
         ``(extra Gaussians or None, binding, num_interior)``; ``drawn`` is where ``g`` is drawn at the
         neutral expression."""
@@ -400,7 +406,7 @@ class FastGHA(nn.Module):
         parts, n_int = [], 0
         if self.config.deform.back_shell and len(back_shell_vertices(basis)):
             # ungated, so first: the gated interior after it stays a trailing run that frames trim
-            gs, bs = back_shell(fit, basis, g.features.shape[1], avatar=g)
+            gs, bs = back_shell(fit if shell_fit is None else shell_fit, basis, g.features.shape[1], avatar=g)
             parts.append(gs.to(dev, g.means.dtype))
             binding = PriorBinding.concat(binding, bs.to(dev))
             n_int = len(gs)
@@ -525,7 +531,13 @@ class FastGHA(nn.Module):
         point (``avatar.view_blend``, ``model/viewblend.py``) for view-dependent frames. With
         ``config.gaussians.mirror_views`` (on by default), an ict53 model and ``surface_mode="replace"``, the input views turned by
         at least ``mirror_min_yaw_deg`` also add their left-right mirror images as virtual views of the
-        unseen side of the head, after the real views' Gaussians (``model/mirror.py``).
+        unseen side of the head, after the real views' Gaussians (``model/mirror.py``). On a surface in
+        ``"replace"`` mode the fitted hair thickness is thinned per vertex where it would stand out
+        beyond an input's matte (``gaussians.hair_carve``, ``surface.hair_carve_fractions``), the
+        back-of-head shell lies under that hair (``shell_on_hair``) and inside every input's matte
+        (``shell_carve``, ``surface.carve_into_mattes``), and a real view's Gaussians whose colour the
+        view that sees their point most head-on contradicts are drawn only near their own camera
+        (``head_on_colour_tol``, ``viewblend.contradicted_by_head_on_view``, ``ViewBlend.sharp``).
         """
         s, vmax = self.config.input_size, self.config.max_views
         hint = "use model.prepare(images, cameras) to crop/resize them"
@@ -551,7 +563,7 @@ class FastGHA(nn.Module):
             expressions = torch.as_tensor(expressions, dtype=torch.float32)
             if tuple(expressions.shape) != (v, self.config.expression_dim):
                 raise ValueError(f"reconstruct: expressions must have shape [{v}, {self.config.expression_dim}], got {list(expressions.shape)}")
-        ray_depth = head_fit = None
+        ray_depth = head_fit = shell_fit = None
         if surface is not None:
             from .surface import surface_ray_depth
 
@@ -565,6 +577,10 @@ class FastGHA(nn.Module):
                 from .surface import fit_hair_thickness
 
                 hair = fit_hair_thickness(surface, cameras, foreground_weight(images.float()))
+                if self.config.gaussians.hair_carve and hair > 0:  # thinner where the photos' outlines say so (model/surface.py)
+                    from .surface import hair_carve_fractions
+
+                    hair = hair * hair_carve_fractions(surface, cameras.to(dtype=torch.float32), foreground_weight(images.float()), hair, HAIR_CARVE_DILATE_PX, HAIR_CARVE_MAX_UP)
             sd = surface_ray_depth(surface, cameras, hair)
             ray_depth = sd.t[None]
             if surface_mode == "blend":
@@ -576,6 +592,8 @@ class FastGHA(nn.Module):
                     expressions = torch.from_numpy(surface.expressions)
                 if self.config.deform.prior:
                     head_fit = surface.head_fit(self.head_basis())
+                    if self.config.gaussians.shell_on_hair and np.any(np.asarray(hair) > 0):  # the back-of-head shell under the hair the Gaussians lie on, not on the bald skull
+                        shell_fit = surface.head_fit(self.head_basis(), hair)
         dev = self.device
         g = self.forward_gaussians(
             images.to(dev, torch.float32)[None], cameras.to(dev, torch.float32)[None], ray_depth if ray_depth is None or callable(ray_depth) else ray_depth.to(dev)
@@ -647,17 +665,48 @@ class FastGHA(nn.Module):
         if blend_data is not None:
             c32, fg, depth = blend_data
             mask = coverage_masks(g.means, c32, fg, depth, view_index)
+            sharp = None
+            tol = self.config.gaussians.head_on_colour_tol
+            if tol > 0 and surface is not None and v_real > 1:  # a view's Gaussians that a more head-on view sees in another colour blend sharply (model/viewblend.py)
+                from .viewblend import contradicted_by_head_on_view
+
+                centre = None if surface.head_to_world is None else torch.as_tensor(np.asarray(surface.head_to_world)[:3, 3], dtype=torch.float32)
+                sharp = contradicted_by_head_on_view(
+                    g.means, g.colors, view_index, mask, c32, images.to(dev, torch.float32), centre, views=v_real,
+                    gain_deg=self.config.gaussians.head_on_gain_deg, colour_tol=tol,
+                )  # fmt: skip
             offsets = None
             if v > v_real and self.config.gaussians.mirror_blend_offset_deg > 0:  # mirrored views count as further from every render camera
                 offsets = torch.zeros(v, device=dev)
                 offsets[v_real:] = float(self.config.gaussians.mirror_blend_offset_deg)
-            blend = ViewBlend(view_index.to(torch.int8), mask, view_directions(c32), offsets)
+            blend = ViewBlend(view_index.to(torch.int8), mask, view_directions(c32), offsets, sharp, self.config.gaussians.head_on_tau_scale)
         prior, n_int = None, 0
         if self.config.deform.prior:
-            g, prior, n_int = self.build_prior(g, view_index if expressions is not None else None, expressions, head_fit=head_fit)
+            n_rec = len(g)
+            g, prior, n_int = self.build_prior(g, view_index if expressions is not None else None, expressions, head_fit=head_fit, shell_fit=shell_fit)
+            if surface is not None and self.config.gaussians.shell_carve and self.config.deform.back_shell and n_int > 0:
+                g = self._carve_shell(g, n_rec, images[:v_real], cameras[:v_real], surface)
         avatar = CanonicalAvatar(g, self.config.name, self.config.expression_space, prior, n_int, blend)
         self._deform_partial(avatar)
         return avatar
+
+    def _carve_shell(self, g: Gaussians, n_rec: int, images: Tensor, cameras: Cameras, surface) -> Gaussians:
+        """``reconstruct``'s back-of-head shell (the ``len(back_shell_vertices)`` Gaussians after the
+        ``n_rec`` reconstructed ones) moved towards the head centre until every real input's matte
+        holds it (``surface.carve_into_mattes``): the fitted head can be wider than the person's, and an
+        opaque shell beyond a photo's outline is drawn as a dark rim beside the hair."""
+        from .gaussian_head import foreground_weight
+        from .prior import back_shell_vertices
+        from .surface import carve_into_mattes
+
+        k = len(back_shell_vertices(self.head_basis()))
+        if k == 0 or len(g) < n_rec + k:
+            return g
+        centre = torch.zeros(3) if surface.head_to_world is None else torch.as_tensor(np.asarray(surface.head_to_world)[:3, 3], dtype=torch.float32)
+        means = g.means.clone()
+        fg = foreground_weight(images.float())
+        means[n_rec : n_rec + k] = carve_into_mattes(means[n_rec : n_rec + k].float().cpu(), cameras.to("cpu", torch.float32), fg.cpu(), centre, dilate_px=SHELL_CARVE_DILATE_PX).to(means)
+        return g.replace(means=means)
 
     def _add_mirrored_views(self, g: Gaussians, images: Tensor, cameras: Cameras, sd, expressions: Tensor | None, surface):
         """``reconstruct``'s mirrored virtual views (``model/mirror.py``): the real views' Gaussians

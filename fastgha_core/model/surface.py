@@ -70,6 +70,8 @@ __all__ = [
     "blend_network_depth",
     "hair_vertex_weight",
     "fit_hair_thickness",
+    "carve_into_mattes",
+    "hair_carve_fractions",
     "surface_steps",
     "stretch_to_patches",
     "behind_occluding_edges",
@@ -168,9 +170,16 @@ class HeadSurface:
             v = (v.astype(np.float64) @ h[:3, :3].T + h[:3, 3]).astype(np.float32)
         return v
 
-    def head_fit(self, basis):
+    def head_fit(self, basis, hair_m=0.0):
         """The ``model.prior.HeadFit`` of this head at the neutral expression (identity truncated to
-        the basis' modes), so the expression prior binds to the tracked surface instead of an ICP fit."""
+        the basis' modes), so the expression prior binds to the tracked surface instead of an ICP fit.
+
+        ``hair_m`` (metres, >= 0; a float or ``[Nv]`` per vertex): the scalp pushed out along the bald mesh's outward normals by this
+        hair thickness (``hair_vertex_weight``, as ``surface_ray_depth`` lays it out for the pixels), so
+        that what is built on the fit -- the back-of-head shell (``prior.back_shell``), the binding --
+        sits on the hair the reconstructed Gaussians lie on, not on the bald skull under it
+        (``FastGHA.reconstruct`` uses it for the shell only; the binding stays on the bald head). Needs an
+        ICT-FaceKit basis (the same vertices as ``HeadModel``); raises ``ValueError`` otherwise."""
         from .prior import HeadFit
 
         k = basis.identity_basis.shape[0]
@@ -180,6 +189,14 @@ class HeadSurface:
         verts = basis.neutral.astype(np.float64) + np.tensordot(ident, basis.identity_basis, axes=1)
         h = np.eye(4) if self.head_to_world is None else self.head_to_world
         verts = verts @ h[:3, :3].T + h[:3, 3]
+        if np.any(np.asarray(hair_m) > 0):
+            from ..data.headmodel import HeadModel
+
+            head = HeadModel.load()
+            if verts.shape[0] != head.num_vertices:
+                raise ValueError(f"head_fit: hair_m needs an ICT-FaceKit basis of {head.num_vertices} vertices, got {verts.shape[0]}")
+            nrm = vertex_normals(verts, head.visible_faces(eyelashes=False))
+            verts = verts + np.asarray(hair_m, dtype=np.float64)[..., None] * hair_vertex_weight(head)[:, None] * nrm
         return HeadFit(identity=ident, transform=h.astype(np.float32), vertices=verts.astype(np.float32), rms=0.0)
 
 
@@ -257,12 +274,13 @@ def _hair_offsets(surface: HeadSurface, i: int, head, faces) -> tuple[np.ndarray
     return vw, hair_vertex_weight(head)[:, None] * vertex_normals(vw, faces)
 
 
-def _view_mesh(surface: HeadSurface, i: int, head, faces, hair_m: float) -> np.ndarray:
-    """World vertices of view ``i``, the scalp pushed out along its normals by ``hair_m`` metres."""
-    if hair_m <= 0:
+def _view_mesh(surface: HeadSurface, i: int, head, faces, hair_m) -> np.ndarray:
+    """World vertices of view ``i``, the scalp pushed out along its normals by ``hair_m`` metres
+    (one thickness, or ``[Nv]`` per vertex: ``hair_carve_fractions``)."""
+    if np.all(np.asarray(hair_m) <= 0):
         return surface.vertices(i, head).astype(np.float64)
     vw, off = _hair_offsets(surface, i, head, faces)
-    return vw + hair_m * off
+    return vw + np.asarray(hair_m, dtype=np.float64)[..., None] * off
 
 
 def fit_hair_thickness(surface: HeadSurface, cameras: Cameras, masks: Tensor, candidates=HAIR_CANDIDATES_M) -> float:
@@ -317,14 +335,15 @@ def fit_hair_thickness(surface: HeadSurface, cameras: Cameras, masks: Tensor, ca
     return cand[int(np.argmax(scores))]  # argmax takes the first of equal scores; candidates sorted by the caller
 
 
-def surface_ray_depth(surface: HeadSurface, cameras: Cameras, hair_m: float = 0.0) -> SurfaceDepth:
+def surface_ray_depth(surface: HeadSurface, cameras: Cameras, hair_m=0.0) -> SurfaceDepth:
     """Ray distances (metres) to the tracked head for every pixel of ``cameras``.
 
     Args:
         surface: ``V`` views of one tracked head.
         cameras: ``Cameras [V]`` of the ``W x H`` input views (world = the head frame).
         hair_m: hair thickness (metres): the scalp is pushed out along its normals by this much
-            (``hair_vertex_weight``; ``fit_hair_thickness`` chooses it from the inputs' mattes).
+            (``hair_vertex_weight``; ``fit_hair_thickness`` chooses it from the inputs' mattes); a
+            float, or ``[Nv]`` per ICT-FaceKit vertex (``hair_carve_fractions`` x the fitted one).
     Returns:
         ``SurfaceDepth``: ``t [V, H, W]`` (hit pixels get their own ray's distance, the others the
         nearest hit pixel's), ``hit`` and ``beyond_face`` (module doc).
@@ -526,3 +545,117 @@ def sample_photo_colours(points: Tensor, cameras: Cameras, photos: Tensor, view_
         col = torch.nn.functional.grid_sample(photos[i : i + 1], grid[None, None], mode="bilinear", padding_mode="border", align_corners=False)
         out[sel] = col[0, :, 0].T
     return out
+
+
+
+def carve_into_mattes(points: Tensor, cameras: Cameras, foreground: Tensor, centre: Tensor | None = None,
+                      step_m: float = 0.005, max_m: float = 0.05, dilate_px: int = 1) -> Tensor:
+    """``points [N, 3]`` (world, metres) each moved towards ``centre`` (default the origin: the
+    tracker's head centre) in steps of ``step_m``, by at most ``max_m``, until it projects onto
+    foreground (> 0.5, the matte dilated by ``dilate_px`` pixels for a pixel of misregistration)
+    in every view whose image it falls inside; a view whose image a point leaves does not judge it.
+    A point that no step brings inside stays where it was.
+
+    Why (issue 17, the real photo sets' orbit renders): the back-of-head shell (``prior.back_shell``)
+    lies on the fitted head, which can be wider or longer than the person's (short hair at the back,
+    a skull fitted a few millimetres wide): from a frontal camera its opaque dark discs then stand
+    out beside the hair as dark rims, and at a profile's own camera beyond the back of the head.
+    Every photo's matte says the head is not there.
+
+    ``cameras [V]`` of size ``W x H`` and ``foreground [V, H, W]`` in [0, 1]
+    (``gaussian_head.foreground_weight`` of the matted inputs). Raises ``ValueError`` on mismatched
+    shapes or a non-positive step.
+    """
+    import torch.nn.functional as F
+
+    cams = cameras.flatten().to(points.device, torch.float32)
+    v, h, w = len(cams.K), cams.height, cams.width
+    if tuple(foreground.shape) != (v, h, w) or points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"carve_into_mattes: expected points [N, 3] and foreground [{v}, {h}, {w}], got {list(points.shape)}, {list(foreground.shape)}")
+    if step_m <= 0 or max_m < 0:
+        raise ValueError(f"carve_into_mattes: step_m must be > 0 and max_m >= 0, got {step_m}, {max_m}")
+    fg = (foreground.detach().float().to(points.device) > 0.5).float()
+    if dilate_px > 0:
+        fg = F.max_pool2d(fg[:, None], 2 * dilate_px + 1, stride=1, padding=dilate_px)[:, 0]
+    elif dilate_px < 0:  # eroded: the point at least this many pixels inside the outline
+        fg = -F.max_pool2d(-fg[:, None], 2 * -dilate_px + 1, stride=1, padding=-dilate_px)[:, 0]
+    fg = fg > 0.5
+    c = torch.zeros(3, device=points.device) if centre is None else torch.as_tensor(centre, dtype=torch.float32, device=points.device)
+    pts = points.detach().float()
+    inward = F.normalize(c - pts, dim=-1)
+    out = pts.clone()
+    todo = torch.ones(len(pts), dtype=torch.bool, device=pts.device)
+    for k in range(round(max_m / step_m) + 1):
+        if not bool(todo.any()):
+            break
+        idx = todo.nonzero()[:, 0]
+        q = pts[idx] + inward[idx] * (k * step_m)
+        ok = torch.ones(len(idx), dtype=torch.bool, device=pts.device)
+        for i in range(v):
+            uv, z = cams[i].project(q)
+            x, y = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+            inside = (x >= 0) & (x < w) & (y >= 0) & (y < h) & (z > 0)
+            ok &= ~inside | fg[i][y.clamp(0, h - 1), x.clamp(0, w - 1)]
+        out[idx[ok]] = q[ok]
+        todo[idx[ok]] = False
+    return out.to(points.dtype)
+
+
+HAIR_CARVE_STEPS = (1.0, 0.75, 0.5, 0.25, 0.0)  # hair_carve_fractions' fractions of the hair thickness, tried in this order
+
+
+def hair_carve_fractions(surface: HeadSurface, cameras: Cameras, foreground: Tensor, hair_m: float, dilate_px: int = 1, max_up: float = 1.0) -> np.ndarray:
+    """``[Nv]`` fraction (one of ``HAIR_CARVE_STEPS``) of the hair thickness ``hair_m`` each ICT-FaceKit
+    vertex keeps: the largest whose laid-out point (``hair_vertex_weight`` x normal, on view 0's
+    tracked head; the scalp does not move with expressions) projects onto foreground (> 0.5, the
+    matte dilated by ``dilate_px`` pixels) in every view whose image it falls inside.
+
+    Why (issue 17, the real photo sets' orbit renders): ``fit_hair_thickness`` chooses one thickness
+    for the whole scalp from how the mattes are filled above the brows, mostly by the hair on top.
+    Where the hair is thinner (at the temples, the back of a short-haired head) the laid-out scalp
+    stands out beyond the photos' outlines, and a turned photo's hair pixels, laid on it, draw dark
+    lobes beside the head in a frontal render ("headphones"). A point inside the head projects onto
+    the person from every direction, so only the outline is carved. Vertices without hair get 1.
+
+    ``cameras [V]`` of size ``W x H``, ``foreground [V, H, W]`` in [0, 1]. Raises ``ValueError`` on
+    mismatched shapes.
+    """
+    import torch.nn.functional as F
+
+    from ..data.headmodel import HeadModel
+
+    cams = cameras.flatten().to("cpu", torch.float32)
+    v, h, w = len(cams.K), cams.height, cams.width
+    if v != len(surface) or tuple(foreground.shape) != (v, h, w):
+        raise ValueError(f"hair_carve_fractions: expected {len(surface)} cameras and foreground [{len(surface)}, {h}, {w}], got {v}, {list(foreground.shape)}")
+    head = HeadModel.load()
+    frac = np.ones(head.num_vertices, np.float32)
+    if hair_m <= 0:
+        return frac
+    fg = (foreground.detach().float().cpu() > 0.5).float()
+    if dilate_px > 0:
+        fg = F.max_pool2d(fg[:, None], 2 * dilate_px + 1, stride=1, padding=dilate_px)[:, 0]
+    fg = fg > 0.5
+    vw, off = _hair_offsets(surface, 0, head, head.visible_faces(eyelashes=False))
+    undecided = np.linalg.norm(off, axis=1) > 0
+    up = np.zeros(3)
+    up[1] = 1.0
+    if surface.head_to_world is not None:
+        up = np.asarray(surface.head_to_world, dtype=np.float64)[:3, :3] @ up
+    nrm = off / np.maximum(np.linalg.norm(off, axis=1, keepdims=True), 1e-12)
+    undecided &= nrm @ up <= max_up  # the top of the head (normals within acos(max_up) of up) keeps its thickness
+    for step in HAIR_CARVE_STEPS:
+        if not undecided.any():
+            break
+        idx = np.nonzero(undecided)[0]
+        pts = torch.from_numpy((vw[idx] + step * hair_m * off[idx]).astype(np.float32))
+        ok = torch.ones(len(idx), dtype=torch.bool)
+        for i in range(v):
+            uv, z = cams[i].project(pts)
+            x, y = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+            inside = (x >= 0) & (x < w) & (y >= 0) & (y < h) & (z > 0)
+            ok &= ~inside | fg[i][y.clamp(0, h - 1), x.clamp(0, w - 1)]
+        good = ok.numpy() | (step == HAIR_CARVE_STEPS[-1])
+        frac[idx[good]] = step
+        undecided[idx[good]] = False
+    return frac

@@ -35,7 +35,7 @@ from torch import Tensor
 
 from ..cameras import Cameras
 
-__all__ = ["ViewBlend", "angles_deg", "blend_factors", "coverage_masks", "min_angle_table", "view_depth_maps", "view_directions", "MAX_BLEND_VIEWS", "COVER_DEPTH_TOL_M"]
+__all__ = ["ViewBlend", "angles_deg", "contradicted_by_head_on_view", "blend_factors", "coverage_masks", "min_angle_table", "view_depth_maps", "view_directions", "MAX_BLEND_VIEWS", "COVER_DEPTH_TOL_M"]
 
 MAX_BLEND_VIEWS = 8  # coverage masks are uint8
 COVER_DEPTH_TOL_M = 0.015  # a point counts as seen by a view if at most this far behind that view's surface (metres)
@@ -156,12 +156,20 @@ class ViewBlend:
         offsets: ``float32 [V]`` degrees added to each view's angle to the render camera (None: 0;
             ``blend_factors``): mirrored virtual views (``model/mirror.py``) count as further away
             than the real photos, so real views keep precedence where both see a point.
+        sharp: ``bool [N]`` (None: none) Gaussians whose factor is ``exp(-a[source] / (tau x
+            sharp_scale))``, by their own camera's angle to the render camera alone: those a more
+            head-on view contradicts (``contradicted_by_head_on_view``), whose colour is right only
+            seen from their own camera (an overhang, hair the head model lacks), drawn fully there
+            and fading fast away from it (the judging view covers their point).
+        sharp_scale: the fall-off factor of the ``sharp`` Gaussians (0 < scale <= 1).
     """
 
     source_view: Tensor
     mask: Tensor
     directions: Tensor
     offsets: Tensor | None = None
+    sharp: Tensor | None = None
+    sharp_scale: float = 0.25
 
     def __post_init__(self) -> None:
         n, v = self.source_view.shape[0], self.directions.shape[0]
@@ -174,6 +182,10 @@ class ViewBlend:
             raise ValueError(f"ViewBlend: source_view must be < {v} (the number of directions), got {int(self.source_view.max())}")
         if self.offsets is not None and (self.offsets.shape != (v,) or not bool(torch.isfinite(self.offsets).all()) or bool((self.offsets < 0).any())):
             raise ValueError(f"ViewBlend: offsets must be [V={v}] finite degrees >= 0, got {self.offsets.tolist()}")
+        if self.sharp is not None and (self.sharp.shape != (n,) or self.sharp.dtype != torch.bool):
+            raise ValueError(f"ViewBlend: sharp must be bool [N={n}], got {self.sharp.dtype} {list(self.sharp.shape)}")
+        if not 0 < float(self.sharp_scale) <= 1:
+            raise ValueError(f"ViewBlend: sharp_scale must be in (0, 1], got {self.sharp_scale}")
 
     def __len__(self) -> int:
         return int(self.source_view.shape[0])
@@ -187,34 +199,46 @@ class ViewBlend:
         if tau_deg <= 0:
             raise ValueError(f"ViewBlend.factors: tau_deg must be > 0, got {tau_deg}")
         v = self.directions.shape[0]
+        pairs = (1 << v) * v
         key = self.__dict__.get("_key")
         if key is None or key.device != self.mask.device:
             sv = self.source_view.long()
-            key = torch.where(sv >= 0, (self.mask.long() & ((1 << v) - 1)) * v + sv.clamp(min=0), torch.full_like(sv, (1 << v) * v))
+            key = torch.where(sv >= 0, (self.mask.long() & ((1 << v) - 1)) * v + sv.clamp(min=0), torch.full_like(sv, 2 * pairs))
+            if self.sharp is not None:  # the sharp Gaussians' pairs in a second table
+                key = torch.where(self.sharp.to(key.device) & (sv >= 0), key + pairs, key)
             self.__dict__["_key"] = key
         ang = angles_deg(self.directions, camera, self.offsets)  # [V]
         table = min_angle_table(ang)  # [2^V]
         f = torch.exp(-(ang[None, :] - table[:, None]).clamp(min=0) / float(tau_deg)).reshape(-1)  # [2^V * V]
-        return torch.cat([f, f.new_ones(1)])[key]
+        # sharp Gaussians: by their own camera's angle alone (1 there, ~0 a few tau_s away, whatever else covers the point)
+        fs = torch.exp(-ang.clamp(min=0) / (float(tau_deg) * float(self.sharp_scale)))[None, :].expand(1 << v, v).reshape(-1)
+        return torch.cat([f, fs, f.new_ones(1)])[key]
 
     @property
     def nbytes(self) -> int:
         """Bytes held once a frame has been drawn: the tensors and the cached int64 pair index."""
         extra = 0 if self.offsets is None else self.offsets.numel() * self.offsets.element_size()
+        extra += 0 if self.sharp is None else self.sharp.numel()
         return sum(t.numel() * t.element_size() for t in (self.source_view, self.mask, self.directions)) + 8 * len(self) + extra
 
     def subset(self, keep: Tensor) -> "ViewBlend":
-        return ViewBlend(self.source_view[keep], self.mask[keep], self.directions, self.offsets)
+        return ViewBlend(self.source_view[keep], self.mask[keep], self.directions, self.offsets, None if self.sharp is None else self.sharp[keep], self.sharp_scale)
 
     def to(self, device) -> "ViewBlend":
         if self.mask.device == torch.device(device):
             return self  # keeps the cached pair index
-        return ViewBlend(self.source_view.to(device), self.mask.to(device), self.directions.to(device), None if self.offsets is None else self.offsets.to(device))
+        return ViewBlend(
+            self.source_view.to(device), self.mask.to(device), self.directions.to(device), None if self.offsets is None else self.offsets.to(device),
+            None if self.sharp is None else self.sharp.to(device), self.sharp_scale,
+        )  # fmt: skip
 
     def tensors(self) -> dict[str, Tensor]:
         out = {"view.source": self.source_view.to(torch.int8), "view.mask": self.mask.to(torch.uint8), "view.dirs": self.directions.float()}
         if self.offsets is not None:
             out["view.offsets"] = self.offsets.float()
+        if self.sharp is not None:
+            out["view.sharp"] = self.sharp.to(torch.uint8)
+            out["view.sharp_scale"] = torch.tensor([float(self.sharp_scale)])
         return out
 
     @staticmethod
@@ -224,7 +248,12 @@ class ViewBlend:
         if not all(k in t for k in keys):
             return None
         off = t.get("view.offsets")  # absent in files without mirrored views' offsets
-        b = ViewBlend(t[keys[0]].to(torch.int8), t[keys[1]].to(torch.uint8), t[keys[2]].float(), None if off is None else off.float())
+        sharp = t.get("view.sharp")  # absent in files without contradicted Gaussians
+        scale = t.get("view.sharp_scale")
+        b = ViewBlend(
+            t[keys[0]].to(torch.int8), t[keys[1]].to(torch.uint8), t[keys[2]].float(), None if off is None else off.float(),
+            None if sharp is None else sharp.bool(), 0.25 if scale is None else float(scale.reshape(-1)[0]),
+        )  # fmt: skip
         if len(b) != n:
             raise ValueError(f"avatar view blend must cover the {n} reconstructed Gaussians, got {len(b)}")
         return b
@@ -244,3 +273,81 @@ def view_depth_maps(means: Tensor, cameras: Cameras, visible: Tensor) -> Tensor:
     z = cameras.flatten().to(pts.device, torch.float32).world_to_camera(pts)[..., 2]  # [V, S*S]
     z = torch.where(visible.reshape(v, -1), z, torch.full_like(z, float("inf")))
     return z.reshape(v, s, cameras.width)
+
+
+def contradicted_by_head_on_view(
+    means: Tensor,
+    colors: Tensor,
+    source_view: Tensor,
+    mask: Tensor,
+    cameras: Cameras,
+    images: Tensor,
+    centre: Tensor | None = None,
+    views: int | None = None,
+    gain_deg: float = 15.0,
+    colour_tol: float = 0.25,
+) -> Tensor:
+    """``bool [N]``: Gaussians whose colour the input view that sees their point most head-on contradicts.
+
+    Why (issue 17, the real photo sets' orbit renders): a view from below (a pitch-up photo) sees the
+    underside of a fringe that overhangs the forehead; the tracked head has no hair there, so those
+    pixels' rays end on the forehead skin and their Gaussians draw a wedge of hair on the forehead
+    wherever that view is about as near the render camera as the frontal photo. The frontal photo
+    sees the same skin head-on and shows skin there: the two views disagree, and the one that sees
+    the point more squarely is the one to believe (a grazing or occluded look at a point is where an
+    unmodelled overhang, hair volume or misregistration puts the wrong colour on it).
+
+    For each Gaussian with a source view ``s`` among the first ``views`` (the real photos; mirrored
+    views are neither judged nor judges), the *judge* is the covering view ``r != s`` among them
+    (``mask`` bit) whose direction from the point is nearest the point's outward direction from
+    ``centre`` (the head centre: a radial normal, the head being round at the scale of a hair
+    overhang). It is contradicted when the judge sees it at least ``gain_deg`` degrees more squarely
+    than its source does, and the judge's image at the point's projection differs from the
+    Gaussian's colour by more than ``colour_tol`` in some channel (0..1, sRGB).
+
+    Args:
+        means ``[N, 3]``, colors ``[N, 3]``: the reconstructed Gaussians (world, metres; RGB in [0, 1]).
+        source_view ``[N]`` int, mask ``[N]`` uint8: as ``ViewBlend`` (``coverage_masks``).
+        cameras ``[V]`` of size ``W x H``, images ``[V, 3, H, W]`` in [0, 1]: the input views.
+        centre ``[3]``: the head centre (world; default the origin, the tracker's head frame).
+        views: how many of the leading views take part (default all ``V``).
+    Raises ``ValueError`` for mismatched shapes.
+    """
+    v = int(cameras.batch_shape.numel())
+    h, w = cameras.height, cameras.width
+    if tuple(images.shape) != (v, 3, h, w):
+        raise ValueError(f"contradicted_by_head_on_view: images must be [{v}, 3, {h}, {w}], got {list(images.shape)}")
+    n = means.shape[0]
+    if colors.shape != (n, 3) or source_view.shape != (n,) or mask.shape != (n,):
+        raise ValueError("contradicted_by_head_on_view: means, colors, source_view and mask must describe the same N Gaussians")
+    nv = v if views is None else int(views)
+    cams = cameras.flatten().to(means.device, torch.float32)
+    pts = means.detach().float()
+    c0 = torch.zeros(3, device=pts.device) if centre is None else torch.as_tensor(centre, dtype=torch.float32, device=pts.device)
+    radial = F.normalize(pts - c0, dim=-1)
+    to_cam = F.normalize(cams.centers.reshape(v, 1, 3)[:nv] - pts[None], dim=-1)  # [nv, N, 3]
+    cosang = (to_cam * radial[None]).sum(-1)  # [nv, N]: larger = more head-on
+    sv = source_view.long().to(pts.device)
+    real = (sv >= 0) & (sv < nv)
+    bits = ((mask.long().to(pts.device)[None] >> torch.arange(nv, device=pts.device)[:, None]) & 1).bool()  # [nv, N]
+    cand = bits & (torch.arange(nv, device=pts.device)[:, None] != sv[None])
+    score = torch.where(cand, cosang, torch.full_like(cosang, -2.0))
+    best, judge = score.max(dim=0)
+    own = cosang.gather(0, sv.clamp(0, nv - 1)[None])[0]
+    gain = torch.rad2deg(torch.arccos(own.clamp(-1, 1))) - torch.rad2deg(torch.arccos(best.clamp(-1, 1)))
+    check = real & (best > -2.0) & (gain >= gain_deg)
+    out = torch.zeros(n, dtype=torch.bool, device=pts.device)
+    idx = check.nonzero()[:, 0]
+    if len(idx) == 0:
+        return out
+    j = judge[idx]
+    seen = torch.empty(len(idx), 3, device=pts.device)
+    for r in range(nv):
+        sel = j == r
+        if not bool(sel.any()):
+            continue
+        uv, _ = cams[r].project(pts[idx[sel]])
+        grid = torch.stack([uv[:, 0] / w * 2 - 1, uv[:, 1] / h * 2 - 1], -1)[None, None]  # align_corners=False: pixel corners at integers
+        seen[sel] = F.grid_sample(images[r : r + 1].to(pts.device, torch.float32), grid, mode="bilinear", align_corners=False, padding_mode="border")[0, :, 0].T
+    out[idx] = (seen - colors[idx].float().to(pts.device)).abs().amax(-1) > colour_tol
+    return out
