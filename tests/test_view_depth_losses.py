@@ -230,3 +230,31 @@ def test_samples_carry_their_input_views_true_depth():
     s0 = ds[0]
     s0.input_depths = None  # a reader that does not fill the field: the batch has none
     assert collate_samples([s0, ds[1]]).input_depths is None
+
+
+def test_depth_parity_bench_truth_stats_read_a_known_offset():
+    """``bench/depth_parity.py --truth``: a model whose maps are the truth moved 2 mm back reads 2 mm."""
+    import importlib.util
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from tests.test_sampling import FakeSource
+
+    spec = importlib.util.spec_from_file_location("depth_parity_bench", Path(__file__).resolve().parents[1] / "bench" / "depth_parity.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    src = FakeSource(depth_cams=tuple(range(12)))
+    batch = collate_samples([TrainingDataset([src], num_inputs=4, num_targets=8, seed=3, length=2)[0]])
+    batch.input_images[:, :, :, 4:12, 5:15] = 0.3  # a foreground patch (the rest is on the background colour)
+    batch.input_images[:, :, :, :4] = 1.0
+    batch.input_images[:, :, :, 12:] = 1.0
+    batch.input_images[:, :, :, :, :5] = 1.0
+    batch.input_images[:, :, :, :, 15:] = 1.0
+
+    def model(images, K, w2c, expression, input_expressions):
+        return SimpleNamespace(view_depth=ray_depth_from_z(batch.input_depths[:, :, 0], K) + 0.002)
+
+    st = bench.truth_stats(model, [batch])
+    assert st["abs_error_mm"][0] == pytest.approx(2.0, abs=1e-3)
+    assert st["signed_error_mm"][0] == pytest.approx(2.0, abs=1e-3)
+    assert st["cross_view_one_sided_mm"][0] >= 0.0
