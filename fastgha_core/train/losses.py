@@ -417,6 +417,7 @@ class FastGHALoss(nn.Module):
             )
         else:
             terms["xview"] = zero
-        weights = {"rgb": c.w_rgb, "ssim": c.w_ssim, "perc": c.w_perc if self.perceptual_enabled else 0.0, "sil": c.w_sil, "geo": c.w_geo, "dsmooth": c.w_depth_smooth, "dparity": c.w_depth_parity, "indepth": c.w_input_depth, "xview": c.w_cross_view}
+        weights = {"rgb": c.w_rgb, "ssim": c.w_ssim, "perc": c.w_perc if self.perceptual_enabled else 0.0, "sil": c.w_sil, "geo": c.w_geo}
+        weights.update(dsmooth=c.w_depth_smooth, dparity=c.w_depth_parity, indepth=c.w_input_depth, xview=c.w_cross_view)
         terms["total"] = sum(weights[k] * terms[k] for k in LOSS_TERMS)
         return terms
