@@ -11,11 +11,17 @@ input view, over the view's foreground (``foreground_weight > 0.5``):
 and the cross-view disagreement: each view's foreground points (opacity > 0.3) projected into each
 other view, the median |distance from that camera - that view's own depth at the pixel| (mm) over
 the points within 3 cm of it (farther ones are taken as occluded), per ordered pair.
+With ``--truth N`` also, on ``N`` training samples drawn from the held-out subjects 1000000–1000003
+(``SyntheticTrainingDataset`` stream 7, one sample per subject block), each input view's depth against
+its true depth (``TrainingSample.input_depths``): mean |depth - truth| and the signed mean (mm,
+positive = behind the surface) over the foreground, and the one-sided cross-view term
+``train.losses.cross_view_depth_loss`` as L1 (mm).
 With ``--picture PNG``: the neutral avatar of every model at yaw -30/0/+30 degrees and 30 degrees
 above/below (256², 18 degree field of view, one row per model), and ``PNG`` with ``_crop`` before
 ``.png``: forehead and eyes at yaw -30 degrees, 30 degrees above and below, enlarged 2x.
 
     python bench/depth_parity.py --model tiny --model RUN/model --picture out/parity.png --json out/parity.json
+    python bench/depth_parity.py --model tiny --truth 3
 """
 
 from __future__ import annotations
@@ -79,6 +85,36 @@ def depth_stats(model, sample) -> dict:
     return {"per_view": per_view, "cross_view_median_mm": pairs, "cross_view_mean_mm": float(np.mean(vals)) if vals else None}
 
 
+def truth_batches(n: int) -> list:
+    """``n`` collated training samples of the held-out subjects 1000000-1000003 (see the module doc)."""
+    from fastgha_core.data.sampling import SyntheticTrainingDataset, collate_samples
+    from fastgha_core.data.synthetic import HELDOUT_SEEDS
+
+    ds = SyntheticTrainingDataset(HELDOUT_SEEDS[:4], resolution=128, timesteps=16, num_cameras=16, seed=7, samples_per_subject=1)
+    return [collate_samples([ds[i]]) for i in range(n)]
+
+
+def truth_stats(model, batches: list) -> dict:
+    """Per sample: mean |depth - truth|, signed mean (mm, > 0 = behind the surface) over the input
+    views' foreground, and the one-sided cross-view term as L1 (mm)."""
+    import torch
+
+    from fastgha_core.model.gaussian_head import foreground_weight
+    from fastgha_core.train.losses import cross_view_depth_loss, input_depth_loss, ray_depth_from_z
+
+    out = {"abs_error_mm": [], "signed_error_mm": [], "cross_view_one_sided_mm": []}
+    for b in batches:
+        truth = ray_depth_from_z(b.input_depths[:, :, 0], b.input_K)  # [1, V, H, W]
+        fg = foreground_weight(b.input_images)
+        with torch.no_grad():
+            depth = model(b.input_images, b.input_K, b.input_w2c, b.expression, b.input_expressions).view_depth
+        m = (fg > 0.5) & (truth > 0)
+        out["abs_error_mm"].append(float(input_depth_loss(depth.flatten(0, 1), truth.flatten(0, 1), fg.flatten(0, 1), 0.0)) * 1e3)
+        out["signed_error_mm"].append(float((depth - truth)[m].mean()) * 1e3)
+        out["cross_view_one_sided_mm"].append(float(cross_view_depth_loss(depth, b.input_K, b.input_w2c, fg, 0.03, 0.0)) * 1e3)
+    return out
+
+
 def render_row(model, sample, label: str):
     import numpy as np
     import torch
@@ -110,6 +146,7 @@ def main(argv=None) -> int:
     ap.add_argument("--sample", default="synth_1000000", help="shipped sample subject (default: the demo's)")
     ap.add_argument("--picture", default=None, help="write the renders here (PNG) and the crops next to it")
     ap.add_argument("--json", default=None, help="write the figures as JSON here")
+    ap.add_argument("--truth", type=int, default=0, help="also compare the input views' depth with the truth on N held-out training samples")
     args = ap.parse_args(argv)
     sys.path.insert(0, str(REPO))
     import numpy as np
@@ -122,6 +159,7 @@ def main(argv=None) -> int:
     torch.manual_seed(0)
     sample = load_sample(args.sample)
     report, rows = {}, []
+    batches = truth_batches(args.truth) if args.truth > 0 else []
     for spec in args.model or ["tiny"]:
         model = load_model(spec).eval()
         st = depth_stats(model, sample)
@@ -131,6 +169,12 @@ def main(argv=None) -> int:
               + " / ".join(f"{x['column_alternation_mm']:.2f}" for x in pv) + " mm; row steps "
               + " / ".join(f"{x['row_step_mm']:.2f}" for x in pv) + " mm, column steps "
               + " / ".join(f"{x['column_step_mm']:.2f}" for x in pv) + f" mm; cross-view {st['cross_view_mean_mm']:.2f} mm")
+        if batches:
+            tr = truth_stats(model, batches)
+            st["truth"] = tr
+            f = lambda xs: " / ".join(f"{x:.2f}" for x in xs)  # noqa: E731
+            print(f"{spec}: depth - truth {f(tr['abs_error_mm'])} mm, signed {f(tr['signed_error_mm'])} mm; "
+                  f"cross-view one-sided {f(tr['cross_view_one_sided_mm'])} mm")
         if args.picture:
             rows.append(render_row(model, sample, Path(spec).name if "/" in spec else spec))
     if args.picture:

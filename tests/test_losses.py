@@ -54,8 +54,8 @@ def test_every_term_finite_with_gradients():
     t_depth = (1 + torch.rand(n, 1, h, w, generator=gen)) * t_mask
     loss_fn = FastGHALoss(LossConfig(), vgg=_random_vgg())
     terms = loss_fn(rgb, alpha, depth, t_rgb, t_mask, t_depth)
-    assert set(terms) == {"rgb", "ssim", "perc", "sil", "geo", "dsmooth", "dparity", "total"}
-    assert terms["dsmooth"].item() == terms["dparity"].item() == 0.0  # off by default (tests/test_depth_parity.py)
+    assert set(terms) == {"rgb", "ssim", "perc", "sil", "geo", "dsmooth", "dparity", "indepth", "xview", "total"}
+    assert terms["dsmooth"].item() == terms["dparity"].item() == terms["indepth"].item() == terms["xview"].item() == 0.0  # off by default (tests/test_depth_parity.py, tests/test_view_depth_losses.py)
     c = loss_fn.config
     expected_total = terms["rgb"] + c.w_ssim * terms["ssim"] + c.w_perc * terms["perc"] + c.w_sil * terms["sil"] + c.w_geo * terms["geo"]
     torch.testing.assert_close(terms["total"], expected_total)

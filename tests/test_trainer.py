@@ -165,3 +165,22 @@ def test_evaluate_renders_view_blended_avatars_per_camera(toy_data):
     sharp = evaluate(model, [seq], cfg, progress=False)["summary"]["psnr"]
     assert flat == pytest.approx(off, abs=1e-4)
     assert abs(sharp - off) > 1e-3
+
+
+def test_input_view_depth_terms_reach_the_network(tmp_path, toy_data):
+    """``w_input_depth`` and ``w_cross_view`` on: the batch's input depths become ray distances, both
+    terms are logged and their gradients reach the reconstruction network (not only the deformation)."""
+    from fastgha_core.train.losses import LossConfig
+
+    loss = LossConfig(w_perc=0.0, w_input_depth=1.0, w_cross_view=1.0)
+    tr = _trainer(tmp_path, toy_data, loss=loss)
+    batch = collate_toy([toy_data[0]])
+    assert batch.input_depths is not None and float(batch.input_depths.max()) > 0
+    terms, _ = tr.compute_losses(batch)
+    core = [p for n, p in tr.model.named_parameters() if p.requires_grad and not n.startswith("deform.")]
+    for name in ("indepth", "xview"):
+        assert torch.isfinite(terms[name]) and float(terms[name].detach()) > 0, name
+        grads = torch.autograd.grad(terms[name], core, retain_graph=True, allow_unused=True)
+        assert any(g is not None and g.abs().sum() > 0 for g in grads), f"{name} does not reach the network"
+    off, _ = _trainer(tmp_path / "off", toy_data).compute_losses(batch)
+    assert float(off["indepth"]) == float(off["xview"]) == 0.0

@@ -67,6 +67,10 @@ class TrainingSample:
     target_w2c: Tensor  # [S, 4, 4]
     expression: Tensor  # [E] expression code of the supervision timestep
     is_input_camera: Tensor  # [S] bool, True for the views whose camera is an input camera
+    # [V, 1, H, W] true camera z (metres) of each *input* view at its own timestep, 0 = no value
+    # (readers without depth); None when the source of the sample does not provide the field.
+    # Supervises the input views' own depth maps (``LossConfig.w_input_depth``); never degraded.
+    input_depths: Tensor | None = None
 
     def input_cameras(self) -> Cameras:
         return Cameras(self.input_K, self.input_w2c, self.input_images.shape[-1], self.input_images.shape[-2])

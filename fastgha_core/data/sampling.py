@@ -19,6 +19,7 @@ adds a leading ``B``)::
     target_K          [S, 3, 3]      target_w2c [S, 4, 4]
     expression        [E]            code of the supervision timestep
     is_input_camera   [S] bool       True for the first V targets (same cameras as the inputs)
+    input_depths      [V, 1, H, W]   true camera z of each input view at its own timestep (0 = none)
 
 Both datasets are map-style and deterministic per ``(seed, index)``, whatever the number of
 DataLoader workers; use ``collate_fn=collate_samples``.
@@ -129,10 +130,11 @@ def build_sample(
             view, cam = _fit_square(view, cam, resolution)
         return view, cam
 
-    in_views, in_cams, in_expr = [], [], []
+    in_views, in_cams, in_expr, in_depth = [], [], [], []
     for t, c in zip(plan.input_timesteps, plan.input_cameras):
         v, cam = get(t, c)
         in_views.append(v.image)
+        in_depth.append(v.depth if v.depth is not None else torch.zeros_like(v.mask))
         in_cams.append(cam)
         in_expr.append(source.expression(t))
     tg_img, tg_mask, tg_depth, tg_cams = [], [], [], []
@@ -158,6 +160,7 @@ def build_sample(
         target_w2c=torch.cat([c.w2c for c in tg_cams]).float(),  # [S, 4, 4]
         expression=source.expression(plan.timestep).float(),  # [E]
         is_input_camera=torch.arange(S) < plan.num_inputs,  # [S]
+        input_depths=torch.stack(in_depth).float(),  # [V, 1, H, W] true camera z, never degraded
     )
 
 
@@ -168,6 +171,9 @@ def collate_samples(samples: Sequence[TrainingSample]) -> TrainingSample:
     out = {}
     for f in fields(TrainingSample):
         vals = [getattr(s, f.name) for s in samples]
+        if any(v is None for v in vals):  # optional fields (input_depths): batched only when every sample has them
+            out[f.name] = None
+            continue
         shapes = {tuple(v.shape) for v in vals}
         if len(shapes) > 1:
             raise ValueError(

@@ -103,6 +103,7 @@ class ToyDataset(torch.utils.data.Dataset):
             target_w2c=self.cams.w2c[cams],
             expression=self.expressions[t],
             is_input_camera=torch.tensor([c in in_cams for c in cams]),
+            input_depths=torch.stack([self.depths[s, c] for s, c in zip(in_ts, in_cams)]),
         )
 
 
@@ -110,7 +111,11 @@ def collate_toy(samples: list[TrainingSample]) -> TrainingSample:
     """Stack every field (adds the leading batch dim)."""
     from dataclasses import fields
 
-    return TrainingSample(**{f.name: torch.stack([getattr(s, f.name) for s in samples]) for f in fields(TrainingSample)})
+    def stack(name: str):
+        vals = [getattr(s, name) for s in samples]
+        return None if any(v is None for v in vals) else torch.stack(vals)
+
+    return TrainingSample(**{f.name: stack(f.name) for f in fields(TrainingSample)})
 
 
 class ToySequence:

@@ -296,6 +296,8 @@ def resize_sample(batch, input_size: int, render_size: int):
     changes: dict[str, Tensor] = {}
     if H != input_size:
         changes["input_images"] = _resize(batch.input_images.flatten(0, 1), input_size, "area").unflatten(0, (B, V))
+        if getattr(batch, "input_depths", None) is not None:
+            changes["input_depths"] = _resize(batch.input_depths.flatten(0, 1), input_size, "nearest").unflatten(0, (B, V))
         changes["input_K"] = _scale_K(batch.input_K, input_size / W, input_size / H)
     if Ht != render_size:
         flat = lambda t: t.flatten(0, 1)  # noqa: E731
@@ -309,7 +311,7 @@ def resize_sample(batch, input_size: int, render_size: int):
 def _to_device(batch, device: torch.device):
     from dataclasses import replace
 
-    return replace(batch, **{f.name: getattr(batch, f.name).to(device, non_blocking=True) for f in fields(batch)})
+    return replace(batch, **{f.name: getattr(batch, f.name).to(device, non_blocking=True) for f in fields(batch) if getattr(batch, f.name) is not None})
 
 
 def _unwrap(model: nn.Module) -> nn.Module:
@@ -508,9 +510,22 @@ class Trainer:
             batch.target_depths.flatten(0, 1).float(),
             view_depth=None if out.view_depth is None else out.view_depth.flatten(0, 1).float(),
             view_images=batch.input_images.flatten(0, 1).float(),
+            view_true_depth=self._input_true_depth(batch),
+            view_K=batch.input_K.float(),
+            view_w2c=batch.input_w2c.float(),
         )
         t3 = time.perf_counter()
         return terms, {"t_forward": t1 - t0, "t_render": t2 - t1, "t_loss": t3 - t2}
+
+    def _input_true_depth(self, batch) -> Tensor | None:
+        """``[B*V, H, W]`` the input views' true depth along their pixel rays (``L_indepth``), or None
+        when the term is off or the batch has none (``TrainingSample.input_depths``)."""
+        from .losses import ray_depth_from_z
+
+        depths = getattr(batch, "input_depths", None)
+        if not self.config.loss.w_input_depth or depths is None:
+            return None
+        return ray_depth_from_z(depths[:, :, 0].float(), batch.input_K.float()).flatten(0, 1)
 
     def train_step(self, batch) -> tuple[dict[str, Tensor], dict[str, float]]:
         batch = _to_device(resize_sample(batch, self.model_config.input_size, self.model_config.render_size), self.device)
