@@ -44,7 +44,7 @@ def test_below_the_chin_off_head_pixels_lie_on_the_neck_cylinder_and_nothing_els
     surface, cams, h2w = case
     head = HeadModel.load()
     off = surface_ray_depth(surface, cams)
-    on = surface_ray_depth(surface, cams, neck=True)
+    on = surface_ray_depth(surface, cams, neck="off_head")
     assert torch.equal(off.hit, on.hit) and torch.equal(off.beyond_face, on.beyond_face)
     assert torch.equal(on.t[on.hit], off.t[off.hit])  # the head's own pixels keep their hits
     moved = on.t != off.t
@@ -76,6 +76,33 @@ def test_the_turned_views_neck_pixels_move_behind_the_jaw(case):
     """The defect it is for: a turned view's neck pixels took the jaw's distance, in front of the neck."""
     surface, cams, _ = case
     off = surface_ray_depth(surface, cams)
-    on = surface_ray_depth(surface, cams, neck=True)
+    on = surface_ray_depth(surface, cams, neck="off_head")
     moved = on.t[1] != off.t[1]
     assert float((on.t[1] - off.t[1])[moved].median()) > 0.0
+
+
+def test_below_ring_also_moves_the_meshs_collar_and_keeps_the_head_above_it(case):
+    surface, cams, h2w = case
+    head = HeadModel.load()
+    off = surface_ray_depth(surface, cams)
+    ring = surface_ray_depth(surface, cams, neck="below_ring")
+    moved = ring.t != off.t
+    assert bool((moved & off.hit).any())  # the collar's own pixels move too
+    origins, dirs = cams.flatten().pixel_rays()
+    up = np.array([0.0, 1.0, 0.0]) if h2w is None else h2w[:3, 1]
+    for v in range(3):
+        vw = surface.vertices(v, head).astype(np.float64)
+        low = float((vw[neck_ring_vertices(head)] @ up).min())
+        m = (moved[v] & off.hit[v]).numpy()
+        p = origins[v].double().numpy()[m] + off.t[v].double().numpy()[m][:, None] * dirs[v].double().numpy()[m]
+        assert (p @ up < low + 1e-4).all()  # only hits below the neck ring
+        chin = vw[head.landmarks68[8]]
+        keep = off.hit[v].numpy() & ~m
+        q = origins[v].double().numpy()[keep] + off.t[v].double().numpy()[keep][:, None] * dirs[v].double().numpy()[keep]
+        assert (q @ up >= (chin @ up) - 0.2).any() and torch.equal(ring.t[v][torch.from_numpy(keep)], off.t[v][torch.from_numpy(keep)])
+
+
+def test_neck_mode_is_checked(case):
+    surface, cams, _ = case
+    with pytest.raises(ValueError, match="neck must be"):
+        surface_ray_depth(surface, cams, neck="yes")

@@ -386,7 +386,7 @@ def neck_cylinder_depth(pts_cam: np.ndarray, ring: np.ndarray, up_cam: np.ndarra
     return np.where(ok & below, t, np.nan)
 
 
-def surface_ray_depth(surface: HeadSurface, cameras: Cameras, hair_m=0.0, neck: bool = False) -> SurfaceDepth:
+def surface_ray_depth(surface: HeadSurface, cameras: Cameras, hair_m=0.0, neck: str = "off") -> SurfaceDepth:
     """Ray distances (metres) to the tracked head for every pixel of ``cameras``.
 
     Args:
@@ -395,9 +395,11 @@ def surface_ray_depth(surface: HeadSurface, cameras: Cameras, hair_m=0.0, neck: 
         hair_m: hair thickness (metres): the scalp is pushed out along its normals by this much
             (``hair_vertex_weight``; ``fit_hair_thickness`` chooses it from the inputs' mattes); a
             float, or ``[Nv]`` per ICT-FaceKit vertex (``hair_carve_fractions`` x the fitted one).
-        neck: off-head pixels whose ray enters the neck cylinder (``neck_cylinder_depth``: the
-            tracked neck ring continued along the head's up axis) below the chin take that distance
-            instead of the nearest hit pixel's (``GaussianHeadConfig.neck_cylinder``; docs/model-card.md).
+        neck: ``"off"``; ``"off_head"``: off-head pixels whose ray enters the neck cylinder
+            (``neck_cylinder_depth``: the tracked neck ring continued along the head's up axis) below
+            the chin take that distance instead of the nearest hit pixel's; ``"below_ring"``: so do
+            the pixels hitting the mesh below the neck ring (ICT's collar, which flares out towards
+            the shoulders) (``GaussianHeadConfig.neck_cylinder``; docs/model-card.md).
     Returns:
         ``SurfaceDepth``: ``t [V, H, W]`` (hit pixels get their own ray's distance, the others the
         nearest hit pixel's), ``hit`` and ``beyond_face`` (module doc).
@@ -409,6 +411,8 @@ def surface_ray_depth(surface: HeadSurface, cameras: Cameras, hair_m=0.0, neck: 
     from ..data.headmodel import HeadModel
     from ..data.meshraster import render_mesh
 
+    if neck not in ("off", "off_head", "below_ring"):
+        raise ValueError(f"surface_ray_depth: neck must be 'off', 'off_head' or 'below_ring', got {neck!r}")
     cams = cameras.flatten()
     v = len(cams.K)
     if v != len(surface):
@@ -435,10 +439,17 @@ def surface_ray_depth(surface: HeadSurface, cameras: Cameras, hair_m=0.0, neck: 
         t = m.depth * np.sqrt(x * x + y * y + 1.0)  # camera z -> distance along the unit ray
         dist, (iy, ix) = distance_transform_edt(~hit, return_indices=True)
         out[i] = t[iy, ix]
-        if neck:
+        if neck != "off":
             up = np.array([0.0, 1.0, 0.0]) if surface.head_to_world is None else surface.head_to_world[:3, 1]
-            tn = neck_cylinder_depth(pts, neck_ring_vertices(head), w2c[:3, :3] @ up, pts[head.landmarks68[8]], K, w, h)
-            take = ~hit & np.isfinite(tn)
+            up_cam = w2c[:3, :3] @ up
+            tn = neck_cylinder_depth(pts, neck_ring_vertices(head), up_cam, pts[head.landmarks68[8]], K, w, h)
+            take = ~hit
+            if neck == "below_ring":  # also the mesh's own pixels below the neck ring (its collar)
+                d = np.stack([x, y, np.ones_like(x)], -1)
+                p_hit = t[..., None] * d / np.linalg.norm(d, axis=-1, keepdims=True)
+                ring_low = float((pts[neck_ring_vertices(head)].astype(np.float64) @ up_cam).min())
+                take = take | (hit & (p_hit @ up_cam < ring_low))
+            take = take & np.isfinite(tn)
             out[i][take] = tn[take]
         hits[i] = hit
         face = m.color[..., 1] > 0.5  # premultiplied by coverage: > 0.5 only on covered face pixels
