@@ -21,6 +21,10 @@ Per pixel of each input view (``surface_ray_depth``):
   (nose, lips, chin, forehead centre): in front of a profile's nose there is only air, and what a matte leaves there
   (wall, shadow) would be laid along the nose as a white streak (seen on the real sets);
   ``beyond_face`` marks them and ``FastGHA.reconstruct`` drops their Gaussians.
+- optionally (``neck``, ``GaussianHeadConfig.neck_cylinder``, off by default), pixels below the
+  chin whose ray enters the tracked neck continued as a cylinder (``neck_cylinder_depth``) lie there
+  instead; tried against phone-5's shoulder smears, it lowered the real-photo means and left the
+  smear: that photo's neck lies on the mesh's own neck and collar, not off it (``docs/model-card.md``).
 
 The head model is bald. ``surface_ray_depth(..., hair_m=...)`` pushes its scalp (``hair_vertex_weight``)
 out along the mesh's normals by a hair thickness, which ``FastGHA.reconstruct`` chooses per avatar
