@@ -581,7 +581,7 @@ class FastGHA(nn.Module):
                     from .surface import hair_carve_fractions
 
                     hair = hair * hair_carve_fractions(surface, cameras.to(dtype=torch.float32), foreground_weight(images.float()), hair, HAIR_CARVE_DILATE_PX, HAIR_CARVE_MAX_UP)
-            sd = surface_ray_depth(surface, cameras, hair)
+            sd = surface_ray_depth(surface, cameras, hair, neck=self.config.gaussians.neck_cylinder if surface_mode == "replace" else "off")
             ray_depth = sd.t[None]
             if surface_mode == "blend":
                 from .surface import blend_network_depth

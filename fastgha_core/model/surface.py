@@ -21,6 +21,10 @@ Per pixel of each input view (``surface_ray_depth``):
   (nose, lips, chin, forehead centre): in front of a profile's nose there is only air, and what a matte leaves there
   (wall, shadow) would be laid along the nose as a white streak (seen on the real sets);
   ``beyond_face`` marks them and ``FastGHA.reconstruct`` drops their Gaussians.
+- optionally (``neck``, ``GaussianHeadConfig.neck_cylinder``, off by default), pixels below the
+  chin whose ray enters the tracked neck continued as a cylinder (``neck_cylinder_depth``) lie there
+  instead; tried against phone-5's shoulder smears, it lowered the real-photo means and left the
+  smear: that photo's neck lies on the mesh's own neck and collar, not off it (``docs/model-card.md``).
 
 The head model is bald. ``surface_ray_depth(..., hair_m=...)`` pushes its scalp (``hair_vertex_weight``)
 out along the mesh's normals by a hair thickness, which ``FastGHA.reconstruct`` chooses per avatar
@@ -335,7 +339,58 @@ def fit_hair_thickness(surface: HeadSurface, cameras: Cameras, masks: Tensor, ca
     return cand[int(np.argmax(scores))]  # argmax takes the first of equal scores; candidates sorted by the caller
 
 
-def surface_ray_depth(surface: HeadSurface, cameras: Cameras, hair_m=0.0) -> SurfaceDepth:
+NECK_RING_Y_M = (-0.15, -0.12)  # head-frame heights (metres) of the ICT neck vertices the neck cylinder is fitted to
+
+
+def neck_ring_vertices(head) -> np.ndarray:
+    """Indices of the ICT-FaceKit skin vertices of the neck between ``NECK_RING_Y_M`` (head frame,
+    neutral identity): 2-5 cm below the chin (chin landmark at y = -0.11 m), above the collar where
+    the mesh flares into the shoulders (y < -0.16 m)."""
+    from ..data.headmodel import HEAD_VERTEX_RANGE
+
+    y = head.neutral[: HEAD_VERTEX_RANGE[1], 1]
+    return np.nonzero((y >= NECK_RING_Y_M[0]) & (y <= NECK_RING_Y_M[1]))[0]
+
+
+def neck_cylinder_depth(pts_cam: np.ndarray, ring: np.ndarray, up_cam: np.ndarray, chin_cam: np.ndarray, K: np.ndarray, w: int, h: int) -> np.ndarray:
+    """Distance along each pixel's unit ray (metres) to where it enters the neck cylinder, below the chin.
+
+    The neck is taken as an infinite cylinder along the head's up axis through the neck ring's
+    vertices (centre their mean, radius the median of their distances from the axis). A pixel gets
+    the distance to its ray's first crossing of it when the ray crosses it in front of the camera at a
+    point lower than the chin (along the up axis); NaN otherwise.
+
+    Args:
+        pts_cam: ``[Nv, 3]`` the view's head vertices in camera coordinates (OpenCV: +z forward).
+        ring: vertex indices of the neck ring (``neck_ring_vertices``).
+        up_cam: ``[3]`` the head's +y axis in camera coordinates (unit).
+        chin_cam: ``[3]`` the chin landmark in camera coordinates.
+        K: ``[3, 3]`` intrinsics; ``w``, ``h``: image size in pixels.
+    Returns:
+        ``[h, w]`` float64 distances, NaN where the ray misses the neck or enters it above the chin.
+    """
+    a = up_cam / np.linalg.norm(up_cam)
+    ring_pts = pts_cam[ring].astype(np.float64)
+    c = ring_pts.mean(0)
+    off = ring_pts - c
+    rho = float(np.median(np.linalg.norm(off - (off @ a)[:, None] * a, axis=1)))
+    u, r = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    d = np.stack([(u - K[0, 2]) / K[0, 0], (r - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    dp = d - (d @ a)[..., None] * a
+    cp = c - (c @ a) * a
+    A = (dp * dp).sum(-1)
+    B = dp @ cp
+    C = float(cp @ cp) - rho * rho
+    disc = B * B - A * C
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = (B - np.sqrt(disc)) / A
+    ok = (disc > 0) & (A > 1e-12) & (t > 0)
+    below = ((t[..., None] * d - chin_cam) @ a) < 0
+    return np.where(ok & below, t, np.nan)
+
+
+def surface_ray_depth(surface: HeadSurface, cameras: Cameras, hair_m=0.0, neck: str = "off") -> SurfaceDepth:
     """Ray distances (metres) to the tracked head for every pixel of ``cameras``.
 
     Args:
@@ -344,6 +399,11 @@ def surface_ray_depth(surface: HeadSurface, cameras: Cameras, hair_m=0.0) -> Sur
         hair_m: hair thickness (metres): the scalp is pushed out along its normals by this much
             (``hair_vertex_weight``; ``fit_hair_thickness`` chooses it from the inputs' mattes); a
             float, or ``[Nv]`` per ICT-FaceKit vertex (``hair_carve_fractions`` x the fitted one).
+        neck: ``"off"``; ``"off_head"``: off-head pixels whose ray enters the neck cylinder
+            (``neck_cylinder_depth``: the tracked neck ring continued along the head's up axis) below
+            the chin take that distance instead of the nearest hit pixel's; ``"below_ring"``: so do
+            the pixels hitting the mesh below the neck ring (ICT's collar, which flares out towards
+            the shoulders) (``GaussianHeadConfig.neck_cylinder``; docs/model-card.md).
     Returns:
         ``SurfaceDepth``: ``t [V, H, W]`` (hit pixels get their own ray's distance, the others the
         nearest hit pixel's), ``hit`` and ``beyond_face`` (module doc).
@@ -355,6 +415,8 @@ def surface_ray_depth(surface: HeadSurface, cameras: Cameras, hair_m=0.0) -> Sur
     from ..data.headmodel import HeadModel
     from ..data.meshraster import render_mesh
 
+    if neck not in ("off", "off_head", "below_ring"):
+        raise ValueError(f"surface_ray_depth: neck must be 'off', 'off_head' or 'below_ring', got {neck!r}")
     cams = cameras.flatten()
     v = len(cams.K)
     if v != len(surface):
@@ -381,6 +443,18 @@ def surface_ray_depth(surface: HeadSurface, cameras: Cameras, hair_m=0.0) -> Sur
         t = m.depth * np.sqrt(x * x + y * y + 1.0)  # camera z -> distance along the unit ray
         dist, (iy, ix) = distance_transform_edt(~hit, return_indices=True)
         out[i] = t[iy, ix]
+        if neck != "off":
+            up = np.array([0.0, 1.0, 0.0]) if surface.head_to_world is None else surface.head_to_world[:3, 1]
+            up_cam = w2c[:3, :3] @ up
+            tn = neck_cylinder_depth(pts, neck_ring_vertices(head), up_cam, pts[head.landmarks68[8]], K, w, h)
+            take = ~hit
+            if neck == "below_ring":  # also the mesh's own pixels below the neck ring (its collar)
+                d = np.stack([x, y, np.ones_like(x)], -1)
+                p_hit = t[..., None] * d / np.linalg.norm(d, axis=-1, keepdims=True)
+                ring_low = float((pts[neck_ring_vertices(head)].astype(np.float64) @ up_cam).min())
+                take = take | (hit & (p_hit @ up_cam < ring_low))
+            take = take & np.isfinite(tn)
+            out[i][take] = tn[take]
         hits[i] = hit
         face = m.color[..., 1] > 0.5  # premultiplied by coverage: > 0.5 only on covered face pixels
         chin = pts[head.landmarks68[8]]  # below the chin the neck and chest continue the head
