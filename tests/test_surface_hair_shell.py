@@ -18,26 +18,14 @@ from fastgha_core.model.surface import (
 )
 from fastgha_core.tracking.camera import pose_to_cameras
 from fastgha_core.tracking.fit import FRONTAL_R, default_intrinsics, rodrigues
+from test_mirror import _with  # the config-override context (one definition for the reconstruct tests)
+from test_surface_coverage import _head_masks  # the fitted head's silhouette per view, as mattes
 
 
 def _cameras(yaws_deg, size=128, dist=0.6):
     R = np.stack([FRONTAL_R @ rodrigues(np.array([0.0, np.radians(y), 0.0])) for y in yaws_deg])
     t = np.tile([0.0, 0.01, dist], (len(yaws_deg), 1))
     return pose_to_cameras(R, t, default_intrinsics(size, size, 30.0), size, size)
-
-
-def _head_masks(surface, cams, hair_m):
-    from fastgha_core.data.meshraster import render_mesh
-    from fastgha_core.model.surface import _view_mesh
-
-    head = HeadModel.load()
-    faces = head.visible_faces(eyelashes=False)
-    out = []
-    for i in range(len(cams.K)):
-        w2c, K = cams.w2c[i].double().numpy(), cams.K[i].double().numpy()
-        pts = _view_mesh(surface, i, head, faces, hair_m) @ w2c[:3, :3].T + w2c[:3, 3]
-        out.append(render_mesh(pts.astype(np.float32), faces, np.ones((len(pts), 1), np.float32), K, cams.width, cams.height, supersample=1).alpha > 0.5)
-    return torch.from_numpy(np.stack(out)).float()
 
 
 @pytest.fixture(scope="module")
@@ -149,22 +137,6 @@ def _shell(model, av):
     k = len(back_shell_vertices(model.head_basis()))
     n = av.num_reconstructed
     return av.gaussians.means[n : n + k]
-
-
-def _with(model, **changes):
-    gc = model.config.gaussians
-    old = {k: getattr(gc, k) for k in changes}
-
-    class _Ctx:
-        def __enter__(self):
-            for k, x in changes.items():
-                setattr(gc, k, x)
-
-        def __exit__(self, *a):
-            for k, x in old.items():
-                setattr(gc, k, x)
-
-    return _Ctx()
 
 
 def test_the_shell_lies_under_the_hair_and_inside_every_matte(tiny):
