@@ -670,9 +670,8 @@ class FastGHA(nn.Module):
             if tol > 0 and surface is not None and v_real > 1:  # a view's Gaussians that a more head-on view sees in another colour blend sharply (model/viewblend.py)
                 from .viewblend import contradicted_by_head_on_view
 
-                centre = None if surface.head_to_world is None else torch.as_tensor(np.asarray(surface.head_to_world)[:3, 3], dtype=torch.float32)
                 sharp = contradicted_by_head_on_view(
-                    g.means, g.colors, view_index, mask, c32, images.to(dev, torch.float32), centre, views=v_real,
+                    g.means, g.colors, view_index, mask, c32, images.to(dev, torch.float32), surface.centre, views=v_real,
                     gain_deg=self.config.gaussians.head_on_gain_deg, colour_tol=tol,
                 )  # fmt: skip
             offsets = None
@@ -702,10 +701,9 @@ class FastGHA(nn.Module):
         k = len(back_shell_vertices(self.head_basis()))
         if k == 0 or len(g) < n_rec + k:
             return g
-        centre = torch.zeros(3) if surface.head_to_world is None else torch.as_tensor(np.asarray(surface.head_to_world)[:3, 3], dtype=torch.float32)
         means = g.means.clone()
         fg = foreground_weight(images.float())
-        means[n_rec : n_rec + k] = carve_into_mattes(means[n_rec : n_rec + k].float().cpu(), cameras.to("cpu", torch.float32), fg.cpu(), centre, dilate_px=SHELL_CARVE_DILATE_PX).to(means)
+        means[n_rec : n_rec + k] = carve_into_mattes(means[n_rec : n_rec + k].float().cpu(), cameras.to("cpu", torch.float32), fg.cpu(), surface.centre, dilate_px=SHELL_CARVE_DILATE_PX).to(means)
         return g.replace(means=means)
 
     def _add_mirrored_views(self, g: Gaussians, images: Tensor, cameras: Cameras, sd, expressions: Tensor | None, surface):

@@ -150,6 +150,14 @@ class HeadSurface:
     def __len__(self) -> int:
         return int(self.expressions.shape[0])
 
+    @property
+    def centre(self) -> torch.Tensor:
+        """``float32 [3]``: the head frame's origin in world coordinates (metres): ``head_to_world``'s
+        translation, or the world origin when the head frame is the world's (the tracker's)."""
+        if self.head_to_world is None:
+            return torch.zeros(3)
+        return torch.as_tensor(np.asarray(self.head_to_world)[:3, 3], dtype=torch.float32)
+
     @staticmethod
     def from_tracking(tracked) -> "HeadSurface":
         """From ``tracking.TrackedPhotos`` (or a ``tracking.fit.FitResult``)."""
@@ -622,6 +630,33 @@ def sample_photo_colours(points: Tensor, cameras: Cameras, photos: Tensor, view_
 
 
 
+def _mattes(foreground: Tensor, dilate_px: int) -> Tensor:
+    """``bool [V, H, W]``: ``foreground [V, H, W] > 0.5``, dilated by ``dilate_px`` pixels (a square
+    window), or eroded by ``-dilate_px`` when it is negative."""
+    import torch.nn.functional as F
+
+    fg = (foreground.detach().float() > 0.5).float()
+    if dilate_px > 0:
+        fg = F.max_pool2d(fg[:, None], 2 * dilate_px + 1, stride=1, padding=dilate_px)[:, 0]
+    elif dilate_px < 0:
+        fg = -F.max_pool2d(-fg[:, None], 2 * -dilate_px + 1, stride=1, padding=-dilate_px)[:, 0]
+    return fg > 0.5
+
+
+def _in_every_matte(points: Tensor, cameras: Cameras, mattes: Tensor) -> Tensor:
+    """``bool [N]``: whether each of ``points [N, 3]`` (world) projects onto ``mattes [V, H, W]``
+    (``_mattes``) in every view of ``cameras [V]`` whose image it falls inside (in front of the
+    camera); a view whose image a point leaves does not judge it."""
+    v, h, w = mattes.shape
+    ok = torch.ones(len(points), dtype=torch.bool, device=points.device)
+    for i in range(v):
+        uv, z = cameras[i].project(points)
+        x, y = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+        inside = (x >= 0) & (x < w) & (y >= 0) & (y < h) & (z > 0)
+        ok &= ~inside | mattes[i][y.clamp(0, h - 1), x.clamp(0, w - 1)]
+    return ok
+
+
 def carve_into_mattes(points: Tensor, cameras: Cameras, foreground: Tensor, centre: Tensor | None = None,
                       step_m: float = 0.005, max_m: float = 0.05, dilate_px: int = 1) -> Tensor:
     """``points [N, 3]`` (world, metres) each moved towards ``centre`` (default the origin: the
@@ -648,12 +683,7 @@ def carve_into_mattes(points: Tensor, cameras: Cameras, foreground: Tensor, cent
         raise ValueError(f"carve_into_mattes: expected points [N, 3] and foreground [{v}, {h}, {w}], got {list(points.shape)}, {list(foreground.shape)}")
     if step_m <= 0 or max_m < 0:
         raise ValueError(f"carve_into_mattes: step_m must be > 0 and max_m >= 0, got {step_m}, {max_m}")
-    fg = (foreground.detach().float().to(points.device) > 0.5).float()
-    if dilate_px > 0:
-        fg = F.max_pool2d(fg[:, None], 2 * dilate_px + 1, stride=1, padding=dilate_px)[:, 0]
-    elif dilate_px < 0:  # eroded: the point at least this many pixels inside the outline
-        fg = -F.max_pool2d(-fg[:, None], 2 * -dilate_px + 1, stride=1, padding=-dilate_px)[:, 0]
-    fg = fg > 0.5
+    fg = _mattes(foreground.to(points.device), dilate_px)  # eroded for dilate_px < 0: the point at least that many pixels inside the outline
     c = torch.zeros(3, device=points.device) if centre is None else torch.as_tensor(centre, dtype=torch.float32, device=points.device)
     pts = points.detach().float()
     inward = F.normalize(c - pts, dim=-1)
@@ -664,12 +694,7 @@ def carve_into_mattes(points: Tensor, cameras: Cameras, foreground: Tensor, cent
             break
         idx = todo.nonzero()[:, 0]
         q = pts[idx] + inward[idx] * (k * step_m)
-        ok = torch.ones(len(idx), dtype=torch.bool, device=pts.device)
-        for i in range(v):
-            uv, z = cams[i].project(q)
-            x, y = uv[:, 0].floor().long(), uv[:, 1].floor().long()
-            inside = (x >= 0) & (x < w) & (y >= 0) & (y < h) & (z > 0)
-            ok &= ~inside | fg[i][y.clamp(0, h - 1), x.clamp(0, w - 1)]
+        ok = _in_every_matte(q, cams, fg)
         out[idx[ok]] = q[ok]
         todo[idx[ok]] = False
     return out.to(points.dtype)
@@ -694,7 +719,6 @@ def hair_carve_fractions(surface: HeadSurface, cameras: Cameras, foreground: Ten
     ``cameras [V]`` of size ``W x H``, ``foreground [V, H, W]`` in [0, 1]. Raises ``ValueError`` on
     mismatched shapes.
     """
-    import torch.nn.functional as F
 
     from ..data.headmodel import HeadModel
 
@@ -706,10 +730,7 @@ def hair_carve_fractions(surface: HeadSurface, cameras: Cameras, foreground: Ten
     frac = np.ones(head.num_vertices, np.float32)
     if hair_m <= 0:
         return frac
-    fg = (foreground.detach().float().cpu() > 0.5).float()
-    if dilate_px > 0:
-        fg = F.max_pool2d(fg[:, None], 2 * dilate_px + 1, stride=1, padding=dilate_px)[:, 0]
-    fg = fg > 0.5
+    fg = _mattes(foreground.cpu(), dilate_px)
     vw, off = _hair_offsets(surface, 0, head, head.visible_faces(eyelashes=False))
     undecided = np.linalg.norm(off, axis=1) > 0
     up = np.zeros(3)
@@ -723,12 +744,7 @@ def hair_carve_fractions(surface: HeadSurface, cameras: Cameras, foreground: Ten
             break
         idx = np.nonzero(undecided)[0]
         pts = torch.from_numpy((vw[idx] + step * hair_m * off[idx]).astype(np.float32))
-        ok = torch.ones(len(idx), dtype=torch.bool)
-        for i in range(v):
-            uv, z = cams[i].project(pts)
-            x, y = uv[:, 0].floor().long(), uv[:, 1].floor().long()
-            inside = (x >= 0) & (x < w) & (y >= 0) & (y < h) & (z > 0)
-            ok &= ~inside | fg[i][y.clamp(0, h - 1), x.clamp(0, w - 1)]
+        ok = _in_every_matte(pts, cams, fg)
         good = ok.numpy() | (step == HAIR_CARVE_STEPS[-1])
         frac[idx[good]] = step
         undecided[idx[good]] = False
