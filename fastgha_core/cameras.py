@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "camera_rays",
     "Cameras",
     "look_at_w2c",
     "plucker_rays",
@@ -207,15 +208,7 @@ class Cameras:
         h = self.height if h is None else h
         w = self.width if w is None else w
         cams = self.resize(w, h) if (h, w) != (self.height, self.width) else self
-        dtype, device = cams.K.dtype, cams.K.device
-        v, u = torch.meshgrid(
-            torch.arange(h, dtype=dtype, device=device) + 0.5,
-            torch.arange(w, dtype=dtype, device=device) + 0.5,
-            indexing="ij",
-        )
-        pix = torch.stack([u, v, torch.ones_like(u)], dim=-1)  # [h, w, 3]
-        Kinv = torch.linalg.inv(cams.K)  # [..., 3, 3]
-        d_cam = torch.einsum("...ij,hwj->...hwi", Kinv, pix)  # [..., h, w, 3]
+        d_cam = camera_rays(cams.K, h, w)  # [..., h, w, 3]
         c2w = cams.c2w
         d_world = torch.einsum("...ij,...hwj->...hwi", c2w[..., :3, :3], d_cam)
         d_world = d_world / d_world.norm(dim=-1, keepdim=True)
@@ -252,6 +245,15 @@ class Cameras:
         return Cameras(
             torch.cat([c.K.reshape(-1, 3, 3) for c in cams]), torch.cat([c.w2c.reshape(-1, 4, 4) for c in cams]), w, h
         )
+
+
+def camera_rays(K: Tensor, h: int, w: int) -> Tensor:
+    """Camera-frame rays ``K^-1 (u + 0.5, v + 0.5, 1)`` through the pixel centres of an ``h x w``
+    image with intrinsics ``K [..., 3, 3]``: ``[..., h, w, 3]``, not normalised (third component 1,
+    so a camera z times the ray's length is the distance along it; OpenCV pinhole, +z forward)."""
+    y, x = torch.meshgrid(torch.arange(h, dtype=K.dtype, device=K.device) + 0.5, torch.arange(w, dtype=K.dtype, device=K.device) + 0.5, indexing="ij")
+    pix = torch.stack([x, y, torch.ones_like(x)], dim=-1)  # [h, w, 3]
+    return torch.einsum("...ij,hwj->...hwi", torch.linalg.inv(K), pix)
 
 
 def look_at_w2c(

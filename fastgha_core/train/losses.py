@@ -217,11 +217,10 @@ def ray_depth_from_z(z: Tensor, K: Tensor) -> Tensor:
     """
     if z.ndim < 2 or K.shape[-2:] != (3, 3):
         raise ValueError(f"ray_depth_from_z: expected z [..., H, W] and K [..., 3, 3], got {list(z.shape)} and {list(K.shape)}")
+    from ..cameras import camera_rays
+
     h, w = z.shape[-2:]
-    y, x = torch.meshgrid(torch.arange(h, dtype=K.dtype, device=K.device) + 0.5, torch.arange(w, dtype=K.dtype, device=K.device) + 0.5, indexing="ij")
-    pix = torch.stack([x, y, torch.ones_like(x)], dim=-1)  # [H, W, 3]
-    rays = torch.einsum("...ij,hwj->...hwi", torch.linalg.inv(K), pix)  # [..., H, W, 3]
-    return z * rays.norm(dim=-1).to(z.dtype)
+    return z * camera_rays(K, h, w).norm(dim=-1).to(z.dtype)
 
 
 def input_depth_loss(view_depth: Tensor, true_depth: Tensor, mask: Tensor | None = None, delta: float = 0.001) -> Tensor:
