@@ -268,7 +268,7 @@ def test_reconstruct_with_the_hull_moves_only_off_head_gaussians(head_case):
     s = model.config.input_size
     assert (cams.width, s) == (128, 128)
     gc = model.config.gaussians
-    assert gc.off_head_hull is False  # off by default (docs/model-card.md)
+    assert gc.off_head_hull == "off"  # off by default (docs/model-card.md)
     imgs = torch.tensor(BACKGROUND_RGB, dtype=torch.float32).view(1, 3, 1, 1).repeat(3, 1, s, s)
     torch.manual_seed(0)
     imgs = torch.where(fg[:, None] > 0.5, torch.rand(3, 3, s, s) * 0.5 + 0.25, imgs)
@@ -276,10 +276,13 @@ def test_reconstruct_with_the_hull_moves_only_off_head_gaussians(head_case):
     gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit = 0.0, False, 0.0, False  # one Gaussian per pixel, on the bald head
     try:
         off = model.reconstruct(imgs, cams, surface=surface)
-        gc.off_head_hull = True
+        gc.off_head_hull = "entry"
         on = model.reconstruct(imgs, cams, surface=surface)
+        gc.off_head_hull = "sideways"
+        with pytest.raises(ValueError, match="mode"):
+            model.reconstruct(imgs, cams, surface=surface)
     finally:
-        gc.off_head_hull = False
+        gc.off_head_hull = "off"
         gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit = saved
     n = on.num_reconstructed
     assert n == off.num_reconstructed == 3 * s * s
@@ -287,7 +290,7 @@ def test_reconstruct_with_the_hull_moves_only_off_head_gaussians(head_case):
     from fastgha_core.model import fastgha as F
     from fastgha_core.model.gaussian_head import foreground_weight
 
-    want = off_head_on_hull(sd, surface, cams, foreground_weight(imgs), F.OFF_HEAD_HULL_MODE, F.OFF_HEAD_HULL_COLLAR, F.OFF_HEAD_HULL_DILATE_PX).t != sd.t
+    want = off_head_on_hull(sd, surface, cams, foreground_weight(imgs), "entry", F.OFF_HEAD_HULL_COLLAR, F.OFF_HEAD_HULL_DILATE_PX, free_tol_m=F.OFF_HEAD_HULL_FREE_TOL_M).t != sd.t
     assert bool(want.any())
     assert torch.equal(diff > 1e-6, want)  # exactly the pixels the hull moves, by their change of distance
     t_on = (on.gaussians.means[:n] - off.gaussians.means[:n]).reshape(3, s, s, 3)

@@ -25,6 +25,12 @@ Per pixel of each input view (``surface_ray_depth``):
   chin whose ray enters the tracked neck continued as a cylinder (``neck_cylinder_depth``) lie there
   instead; tried against phone-5's shoulder smears, it lowered the real-photo means and left the
   smear: that photo's neck lies on the mesh's own neck and collar, not off it (``docs/model-card.md``).
+- optionally (``GaussianHeadConfig.off_head_hull``, off by default), the off-head pixels inside their
+  view's matte move onto the visual hull of the other views' mattes (``off_head_on_hull``,
+  ``hull_ray_depth``): where the ray enters it, or only where the nearest-hit placement falls
+  outside it. Measured on the real photo sets, no variant raised the leave-one-out means: from a
+  few photos the hull is loose, and the nearest-hit placement already lies inside it for nine in ten
+  of those pixels (``docs/model-card.md``).
 
 The head model is bald. ``surface_ray_depth(..., hair_m=...)`` pushes its scalp (``hair_vertex_weight``)
 out along the mesh's normals by a hair thickness, which ``FastGHA.reconstruct`` chooses per avatar
