@@ -525,7 +525,9 @@ class FastGHA(nn.Module):
         (``config.gaussians.coverage_target``, ``model/coverage.py``; with
         ``coverage_surface_only=False`` on the network's depth as well), and with ``"replace"`` the
         scalp is laid out by a hair thickness fitted to the inputs' mattes
-        (``config.gaussians.hair_fit``, ``surface.fit_hair_thickness``); with
+        (``config.gaussians.hair_fit``, ``surface.fit_hair_thickness``), and with
+        ``config.gaussians.off_head_hull`` (off by default) the pixels off the head move onto the
+        visual hull of the other inputs' mattes (``surface.off_head_on_hull``); with
         ``config.gaussians.grazing_stretch > 0`` (off by default) the Gaussians of pixels just behind an
         occluding edge of the head (the far side of the nose ridge), which see it at a grazing angle,
         are lengthened along it to cover their patch of skin (``surface.stretch_to_patches``).

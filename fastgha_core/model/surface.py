@@ -803,8 +803,9 @@ def hull_ray_depth(cameras: Cameras, foreground: Tensor, take: Tensor, centre: T
 
     Beyond an image's border a view judges by its matte's nearest border pixel (``beyond``, the
     default: a torso cut by the bottom edge goes on, the air beside a tight crop stays air; without
-    it a point that leaves the crops of the views that would carve it stays in the hull, and the
-    tight real-set crops let rays enter it 10-15 cm in front of the head). With ``solid`` and
+    it a point that leaves the crops of the views that would carve it stays in the hull: on phone-5's
+    tight crops the entry lay 14 cm nearer the camera than the nearest head pixel's distance on
+    average, 4 cm with it). With ``solid`` and
     ``solid_t`` the space between a view's camera and the surface it is known to see there (the
     tracked head's hit pixels and their distances, ``SurfaceDepth``) is empty too, up to
     ``free_tol_m``.
