@@ -52,6 +52,8 @@ SHELL_CARVE_DILATE_PX = -2  # reconstruct(): the back-of-head shell is carved in
 OFF_HEAD_HULL_COLLAR = False  # reconstruct() with gaussians.off_head_hull: also move the mesh's own pixels below its neck ring whose point is outside the other views' hull (model/surface.py off_head_on_hull)
 OFF_HEAD_HULL_DILATE_PX = 2  # ... the other views' mattes dilated by this many pixels
 OFF_HEAD_HULL_FREE_TOL_M = None  # ... and, when set (metres), the space in front of the head each other view sees is empty (up to this tolerance)
+OFF_HEAD_BEHIND_M = 0.02  # reconstruct() with gaussians.off_head_draw="behind": metres the off-head pixels move back along their ray (model/surface.py off_head_draw_flags)
+OFF_HEAD_COVER_TOL_M = 0.01  # ... "drop" / "cover_sharp": metres in front of another view's head a point must lie to count as a smear
 
 ASSET_MODELS_DIR = Path(__file__).resolve().parent.parent / "assets" / "models"
 CONFIG_NAME = "config.json"
@@ -593,6 +595,11 @@ class FastGHA(nn.Module):
 
                 sd = off_head_on_hull(sd, surface, cameras, foreground_weight(images.float()), self.config.gaussians.off_head_hull, OFF_HEAD_HULL_COLLAR,
                                       OFF_HEAD_HULL_DILATE_PX, free_tol_m=OFF_HEAD_HULL_FREE_TOL_M)
+            if self.config.gaussians.off_head_draw == "behind" and surface_mode == "replace":  # off-head pixels further back (model/surface.py off_head_draw_flags)
+                from .gaussian_head import foreground_weight
+                from .surface import off_head_draw_flags
+
+                sd, _ = off_head_draw_flags(sd, cameras, foreground_weight(images.float()), "behind", behind_m=OFF_HEAD_BEHIND_M)
             ray_depth = sd.t[None]
             if surface_mode == "blend":
                 from .surface import blend_network_depth
@@ -636,6 +643,12 @@ class FastGHA(nn.Module):
                 g = g.replace(colors=g.colors[src])
             else:
                 raise ValueError(f"reconstruct: gaussians.edge_mode must be 'colour' or 'fade', got {mode!r}")
+        off_sharp = None
+        if surface is not None and surface_mode == "replace" and self.config.gaussians.off_head_draw not in ("off", "behind"):  # off-head Gaussians across another view's head (model/surface.py off_head_draw_flags)
+            from .gaussian_head import foreground_weight
+            from .surface import off_head_draw_flags
+
+            sd, off_sharp = off_head_draw_flags(sd, cameras, foreground_weight(images.float()), self.config.gaussians.off_head_draw, v_real, tol_m=OFF_HEAD_COVER_TOL_M)
         if surface is not None:  # off the head next to the face is air: drop what a matte left there
             g = g.replace(opacities=g.opacities * (~sd.beyond_face).reshape(-1).to(dev, g.opacities.dtype))
         cover = self.config.gaussians.coverage_target
@@ -685,6 +698,9 @@ class FastGHA(nn.Module):
                     g.means, g.colors, view_index, mask, c32, images.to(dev, torch.float32), surface.centre, views=v_real,
                     gain_deg=self.config.gaussians.head_on_gain_deg, colour_tol=tol,
                 )  # fmt: skip
+            if off_sharp is not None:  # off-head Gaussians drawn near their own camera only (off_head_draw)
+                os_ = off_sharp.reshape(-1).to(dev)[keep] if thr > 0 else off_sharp.reshape(-1).to(dev)
+                sharp = os_ if sharp is None else sharp | os_
             offsets = None
             if v > v_real and self.config.gaussians.mirror_blend_offset_deg > 0:  # mirrored views count as further from every render camera
                 offsets = torch.zeros(v, device=dev)
