@@ -9,7 +9,7 @@ import torch
 
 from fastgha_core.cameras import Cameras
 from fastgha_core.model.coverage import in_front_of_other_heads
-from fastgha_core.model.surface import HeadSurface, SurfaceDepth, _mattes, off_head_draw_flags, surface_ray_depth
+from fastgha_core.model.surface import HeadSurface, _mattes, off_head_draw_flags, surface_ray_depth
 
 
 def _two_views(size=64):
