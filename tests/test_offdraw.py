@@ -136,7 +136,7 @@ def test_reconstruct_drops_or_sharpens_only_the_off_head_gaussians_in_front_of_a
     gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.head_on_colour_tol = 0.0, False, 0.0, False, 0.0  # one Gaussian per pixel
     out = {}
     try:
-        for mode in ("off", "drop", "cover_sharp", "behind"):
+        for mode in ("off", "drop", "cover_sharp", "behind", "headon_sharp"):
             gc.off_head_draw = mode
             out[mode] = model.reconstruct(imgs, cams, surface=surface)
         gc.off_head_draw = "sideways"
@@ -157,6 +157,10 @@ def test_reconstruct_drops_or_sharpens_only_the_off_head_gaussians_in_front_of_a
     assert torch.equal(sharp, bad)  # drawn near their own camera only
     assert out["off"].view_blend.sharp is None or not bool(out["off"].view_blend.sharp.any())
     assert torch.equal(out["cover_sharp"].gaussians.opacities[:n], o_off)
+    # headon_sharp: off-head Gaussians only, and only those some other view sees more head-on (a 60-degree view beside the frontal one's hair)
+    hs = out["headon_sharp"].view_blend.sharp
+    assert bool(hs.any()) and not bool((hs & ~off.reshape(-1)).any()) and int(hs.sum()) < int(off.sum())
+    assert torch.equal(out["headon_sharp"].gaussians.opacities[:n], o_off)
     # behind: the off-head Gaussians move OFF_HEAD_BEHIND_M back along their own rays, nothing else moves
     dm = out["behind"].gaussians.means[:n] - out["off"].gaussians.means[:n]
     _, d = cams.pixel_rays()

@@ -700,6 +700,11 @@ class FastGHA(nn.Module):
                 )  # fmt: skip
             if off_sharp is not None:  # off-head Gaussians drawn near their own camera only (off_head_draw)
                 os_ = off_sharp.reshape(-1).to(dev)[keep] if thr > 0 else off_sharp.reshape(-1).to(dev)
+                if self.config.gaussians.off_head_draw == "headon_sharp" and v_real > 1:  # ... only where a covering real view sees their point more head-on
+                    from .viewblend import contradicted_by_head_on_view
+
+                    os_ = os_ & contradicted_by_head_on_view(g.means, g.colors, view_index, mask, c32, images.to(dev, torch.float32), surface.centre, views=v_real,
+                                                             gain_deg=self.config.gaussians.head_on_gain_deg, colour_tol=-1.0)
                 sharp = os_ if sharp is None else sharp | os_
             offsets = None
             if v > v_real and self.config.gaussians.mirror_blend_offset_deg > 0:  # mirrored views count as further from every render camera

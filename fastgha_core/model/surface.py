@@ -951,7 +951,7 @@ def off_head_on_hull(sd: SurfaceDepth, surface: HeadSurface, cameras: Cameras, f
     return SurfaceDepth(t.to(sd.t), sd.hit, sd.beyond_face, sd.face_hit)
 
 
-OFF_HEAD_DRAW_MODES = ("off", "behind", "drop", "sharp", "cover_sharp")
+OFF_HEAD_DRAW_MODES = ("off", "behind", "drop", "sharp", "headon_sharp", "cover_sharp")
 
 
 def off_head_draw_flags(sd: SurfaceDepth, cameras: Cameras, foreground: Tensor, mode: str, views: int | None = None,
@@ -971,6 +971,9 @@ def off_head_draw_flags(sd: SurfaceDepth, cameras: Cameras, foreground: Tensor, 
       ``reconstruct`` drops their Gaussians.
     - ``"sharp"``: all of them are returned as the sharp map (drawn near their own camera only,
       ``viewblend.ViewBlend.sharp``).
+    - ``"headon_sharp"``: as ``"sharp"``; ``reconstruct`` keeps only those a covering real view sees
+      at least ``gaussians.head_on_gain_deg`` more head-on (``viewblend.contradicted_by_head_on_view``
+      with any colour counting as a contradiction).
     - ``"cover_sharp"``: those in front of another real view's head are the sharp map.
 
     Args:
@@ -991,7 +994,7 @@ def off_head_draw_flags(sd: SurfaceDepth, cameras: Cameras, foreground: Tensor, 
         t = sd.t.clone()
         t[off.to(t.device)] += float(behind_m)
         return SurfaceDepth(t, sd.hit, sd.beyond_face, sd.face_hit), None
-    if mode == "sharp":
+    if mode in ("sharp", "headon_sharp"):
         return sd, off
     from .coverage import in_front_of_other_heads
 
