@@ -685,7 +685,7 @@ class FastGHA(nn.Module):
         if thr > 0:
             keep = g.opacities >= thr
             g, view_index = g[keep], view_index[keep]
-        blend = None
+        blend = under = None
         if blend_data is not None:
             c32, fg, depth = blend_data
             mask = coverage_masks(g.means, c32, fg, depth, view_index)
@@ -705,12 +705,15 @@ class FastGHA(nn.Module):
 
                     os_ = os_ & contradicted_by_head_on_view(g.means, g.colors, view_index, mask, c32, images.to(dev, torch.float32), surface.centre, views=v_real,
                                                              gain_deg=self.config.gaussians.head_on_gain_deg, colour_tol=-1.0)
-                sharp = os_ if sharp is None else sharp | os_
+                if self.config.gaussians.off_head_draw == "under":  # ... or drawn under the others in every frame instead
+                    under = os_
+                else:
+                    sharp = os_ if sharp is None else sharp | os_
             offsets = None
             if v > v_real and self.config.gaussians.mirror_blend_offset_deg > 0:  # mirrored views count as further from every render camera
                 offsets = torch.zeros(v, device=dev)
                 offsets[v_real:] = float(self.config.gaussians.mirror_blend_offset_deg)
-            blend = ViewBlend(view_index.to(torch.int8), mask, view_directions(c32), offsets, sharp, self.config.gaussians.head_on_tau_scale)
+            blend = ViewBlend(view_index.to(torch.int8), mask, view_directions(c32), offsets, sharp, self.config.gaussians.head_on_tau_scale, under)
         prior, n_int = None, 0
         if self.config.deform.prior:
             n_rec = len(g)
@@ -920,6 +923,13 @@ class FastGHA(nn.Module):
         f = vb.to(g.opacities.device).factors(camera, tau).to(g.opacities.dtype)
         op = g.opacities.clone()
         op[:n] = op[:n] * f
+        if vb.under is not None:  # off-head Gaussians drawn under the others for this camera (model/viewblend.py push_under)
+            from .viewblend import push_under
+
+            sel = torch.zeros(len(g), dtype=torch.bool, device=g.means.device)
+            sel[:n] = vb.under.to(g.means.device)
+            means, scales = push_under(g.means, g.scales, camera, sel)
+            return g.replace(opacities=op, means=means, scales=scales)
         return g.replace(opacities=op)
 
 

@@ -951,7 +951,7 @@ def off_head_on_hull(sd: SurfaceDepth, surface: HeadSurface, cameras: Cameras, f
     return SurfaceDepth(t.to(sd.t), sd.hit, sd.beyond_face, sd.face_hit)
 
 
-OFF_HEAD_DRAW_MODES = ("off", "behind", "drop", "sharp", "headon_sharp", "cover_sharp")
+OFF_HEAD_DRAW_MODES = ("off", "behind", "drop", "sharp", "headon_sharp", "cover_sharp", "under")
 
 
 def off_head_draw_flags(sd: SurfaceDepth, cameras: Cameras, foreground: Tensor, mode: str, views: int | None = None,
@@ -975,6 +975,9 @@ def off_head_draw_flags(sd: SurfaceDepth, cameras: Cameras, foreground: Tensor, 
       at least ``gaussians.head_on_gain_deg`` more head-on (``viewblend.contradicted_by_head_on_view``
       with any colour counting as a contradiction).
     - ``"cover_sharp"``: those in front of another real view's head are the sharp map.
+    - ``"under"``: all of them are returned as the map; ``reconstruct`` records it as
+      ``ViewBlend.under``: in every frame they are drawn under the other Gaussians (where the head
+      leaves the frame uncovered), ``viewblend.push_under``.
 
     Args:
         sd: ``surface_ray_depth`` of ``V`` views at ``cameras [V]`` (``W x H``), mirrored views included.
@@ -994,7 +997,7 @@ def off_head_draw_flags(sd: SurfaceDepth, cameras: Cameras, foreground: Tensor, 
         t = sd.t.clone()
         t[off.to(t.device)] += float(behind_m)
         return SurfaceDepth(t, sd.hit, sd.beyond_face, sd.face_hit), None
-    if mode in ("sharp", "headon_sharp"):
+    if mode in ("sharp", "headon_sharp", "under"):
         return sd, off
     from .coverage import in_front_of_other_heads
 
