@@ -128,7 +128,8 @@ def test_reconstruct_drops_or_sharpens_only_the_off_head_gaussians_in_front_of_a
     model = load_model("tiny")
     s = model.config.input_size
     gc = model.config.gaussians
-    assert gc.off_head_draw == "off"  # off by default (docs/model-card.md)
+    assert gc.off_head_draw == "under"  # the default (docs/model-card.md)
+    default = gc.off_head_draw
     imgs = torch.tensor(BACKGROUND_RGB, dtype=torch.float32).view(1, 3, 1, 1).repeat(3, 1, s, s)
     torch.manual_seed(0)
     imgs = torch.where(fg[:, None] > 0.5, torch.rand(3, 3, s, s) * 0.5 + 0.25, imgs)
@@ -143,7 +144,7 @@ def test_reconstruct_drops_or_sharpens_only_the_off_head_gaussians_in_front_of_a
         with pytest.raises(ValueError, match="mode"):
             model.reconstruct(imgs, cams, surface=surface)
     finally:
-        gc.off_head_draw = "off"
+        gc.off_head_draw = default
         gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.head_on_colour_tol = saved
     n = 3 * s * s
     fw = foreground_weight(imgs)
@@ -230,12 +231,14 @@ def test_under_is_recorded_saved_and_applied_per_frame(head_case, tmp_path):
     imgs = torch.where(fg[:, None] > 0.5, torch.rand(3, 3, s, s) * 0.5 + 0.25, imgs)
     saved = gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit
     gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit = 0.0, False, 0.0, False
+    default = gc.off_head_draw
     try:
+        gc.off_head_draw = "off"
         off = model.reconstruct(imgs, cams, surface=surface)
         gc.off_head_draw = "under"
         on = model.reconstruct(imgs, cams, surface=surface)
     finally:
-        gc.off_head_draw = "off"
+        gc.off_head_draw = default
         gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit = saved
     n = 3 * s * s
     want = (~sd.hit & ~sd.beyond_face & (foreground_weight(imgs) > 0.5)).reshape(-1)

@@ -530,6 +530,9 @@ class FastGHA(nn.Module):
         (``config.gaussians.hair_fit``, ``surface.fit_hair_thickness``), and with
         ``config.gaussians.off_head_hull`` (off by default) the pixels off the head move onto the
         visual hull of the other inputs' mattes (``surface.off_head_on_hull``); with
+        ``config.gaussians.off_head_draw="under"`` (the default) the off-head pixels' Gaussians are
+        recorded (``ViewBlend.under``) and drawn under the others in every frame
+        (``viewblend.push_under``; other modes: ``surface.off_head_draw_flags``); with
         ``config.gaussians.grazing_stretch > 0`` (off by default) the Gaussians of pixels just behind an
         occluding edge of the head (the far side of the nose ridge), which see it at a grazing angle,
         are lengthened along it to cover their patch of skin (``surface.stretch_to_patches``).

@@ -21,6 +21,11 @@ the Gaussian of the closest covering view keeps its opacity.
 Per frame the cost is ``V`` angles, a table of the minimum over the ``2^V <= 256`` masks, and
 two gathers, an ``exp`` and a product over the ``N`` reconstructed Gaussians.
 
+Gaussians flagged ``under`` (the off-head pixels' Gaussians, ``GaussianHeadConfig.off_head_draw``)
+are also moved per frame 1 m deeper along the frame camera's rays and scaled with their distance
+(``push_under``): they look the same, but every other Gaussian is composited over them, so they
+show only where the head leaves the frame uncovered (hair beside the face, not streaked across it).
+
 Conventions: cameras are ``fastgha_core.cameras.Cameras`` (OpenCV, pixel corners at integer
 coordinates); masks are ``uint8`` with bit ``v`` for input view ``v``, so at most 8 views.
 """
