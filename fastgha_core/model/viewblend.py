@@ -397,9 +397,13 @@ def push_under(means: Tensor, scales: Tensor, camera: Cameras, select: Tensor, p
         raise ValueError(f"push_under: push_m must be >= 0, got {push_m}")
     cam = camera.flatten()[0] if camera.batch_shape.numel() == 1 and len(camera.batch_shape) else camera
     cam = cam.to(means.device, means.dtype)
-    z = cam.world_to_camera(means)[..., 2]
-    on = (select.to(means.device) & (z > 0))[:, None]
-    k = ((z + float(push_m)) / z.clamp_min(1e-9))[:, None]
+    idx = select.to(means.device).nonzero()[:, 0]  # only the selected ones are touched (a few thousand per frame)
+    m = means[idx]
+    z = cam.world_to_camera(m)[..., 2]
+    k = torch.where(z > 0, (z + float(push_m)) / z.clamp_min(1e-9), torch.ones_like(z))[:, None]
     c = cam.centers.reshape(3)
-    return torch.where(on, c + k * (means - c), means), torch.where(on, scales * k, scales)
+    out_m, out_s = means.clone(), scales.clone()
+    out_m[idx] = c + k * (m - c)
+    out_s[idx] = scales[idx] * k
+    return out_m, out_s
 
