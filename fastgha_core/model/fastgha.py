@@ -582,6 +582,8 @@ class FastGHA(nn.Module):
 
                     hair = hair * hair_carve_fractions(surface, cameras.to(dtype=torch.float32), foreground_weight(images.float()), hair, HAIR_CARVE_DILATE_PX, HAIR_CARVE_MAX_UP)
             sd = surface_ray_depth(surface, cameras, hair, neck=self.config.gaussians.neck_cylinder if surface_mode == "replace" else "off")
+            if self.config.gaussians.stereo_depth_mm > 0 and surface_mode == "replace" and v > 1:  # the on-head pixels where the photos agree (model/stereo.py)
+                sd = self._stereo_depth(images, cameras, sd)
             ray_depth = sd.t[None]
             if surface_mode == "blend":
                 from .surface import blend_network_depth
@@ -688,6 +690,20 @@ class FastGHA(nn.Module):
         avatar = CanonicalAvatar(g, self.config.name, self.config.expression_space, prior, n_int, blend)
         self._deform_partial(avatar)
         return avatar
+
+    def _stereo_depth(self, images: Tensor, cameras: Cameras, sd):
+        """``reconstruct``'s surface depth ``sd`` with its hit pixels moved along their rays, within
+        ``gaussians.stereo_depth_mm`` of the surface, to where the input photos agree
+        (``model/stereo.py``); the other pixels and masks unchanged."""
+        import dataclasses
+
+        from .gaussian_head import foreground_weight
+        from .stereo import StereoConfig, stereo_ray_depth
+
+        r = self.config.gaussians.stereo_depth_mm * 1e-3
+        cfg = StereoConfig(range_m=r, step_m=min(StereoConfig.step_m, r))
+        st = stereo_ray_depth(images.float().cpu(), cameras.to("cpu", torch.float32), sd.t, sd.hit, foreground_weight(images.float().cpu()), cfg)
+        return dataclasses.replace(sd, t=st.t.to(sd.t))
 
     def _carve_shell(self, g: Gaussians, n_rec: int, images: Tensor, cameras: Cameras, surface) -> Gaussians:
         """``reconstruct``'s back-of-head shell (the ``len(back_shell_vertices)`` Gaussians after the
