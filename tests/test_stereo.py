@@ -6,7 +6,13 @@ import pytest
 import torch
 
 from fastgha_core.cameras import Cameras
-from fastgha_core.model.stereo import StereoConfig, _box, band_pass, ncc_cost_volume, stereo_ray_depth
+from fastgha_core.model.stereo import (
+    StereoConfig,
+    _box,
+    band_pass,
+    ncc_cost_volume,
+    stereo_ray_depth,
+)
 
 RADIUS = 0.09  # a head-sized sphere at the origin (metres)
 
@@ -141,3 +147,15 @@ def test_shape_errors():
         StereoConfig(window=4)
     with pytest.raises(ValueError):
         StereoConfig(range_m=0.001, step_m=0.002)
+
+
+def test_where_limits_the_corrected_pixels():
+    cams = _cameras([0.0, -25.0, 25.0])
+    img, t_true, hit = _render(cams)
+    t_surf = t_true + 0.005 * hit
+    where = torch.zeros_like(hit)
+    where[:, :, :64] = True  # the left half only
+    res = stereo_ray_depth(img, cams, t_surf, hit, hit.float(), where=where)
+    assert torch.equal(res.t[~where], t_surf[~where])
+    m = _inner(hit) & where
+    assert (res.t - t_true)[0][m[0]].abs().mean() < (t_surf - t_true)[0][m[0]].abs().mean() - 0.002

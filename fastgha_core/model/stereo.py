@@ -78,7 +78,7 @@ class StereoConfig:
 
     def offsets(self) -> Tensor:
         """``[K]`` the tested offsets (metres), symmetric about 0 and containing it."""
-        n = int(round(self.range_m / self.step_m))
+        n = round(self.range_m / self.step_m)
         return torch.arange(-n, n + 1, dtype=torch.float32) * self.step_m
 
 
@@ -173,7 +173,9 @@ def _visible_in(j: int, pts: Tensor, cams: Cameras, t: Tensor, hit: Tensor, fg: 
     return ok.reshape(pts.shape[:-1])
 
 
-def stereo_ray_depth(images: Tensor, cameras: Cameras, t: Tensor, hit: Tensor, fg: Tensor | None = None, config: StereoConfig | None = None) -> StereoResult:
+def stereo_ray_depth(
+    images: Tensor, cameras: Cameras, t: Tensor, hit: Tensor, fg: Tensor | None = None, config: StereoConfig | None = None, where: Tensor | None = None
+) -> StereoResult:
     """Move the hit pixels' surface distances along their rays to where the photos agree (module doc).
 
     Args:
@@ -184,6 +186,9 @@ def stereo_ray_depth(images: Tensor, cameras: Cameras, t: Tensor, hit: Tensor, f
             these change.
         fg: ``[V, H, W]`` matte (> 0.5 = the person); default: all foreground.
         config: ``StereoConfig``; default ``StereoConfig()``.
+        where: ``[V, H, W]`` bool, the hit pixels to correct (e.g. ``SurfaceDepth.face_hit``, the
+            bare face); default all of ``hit``. The others keep ``t`` but still count as surface for
+            the other views' visibility test.
     Returns:
         ``StereoResult`` (``t`` on the CPU, float32).
     Raises:
@@ -197,11 +202,12 @@ def stereo_ray_depth(images: Tensor, cameras: Cameras, t: Tensor, hit: Tensor, f
     t = t.detach().float().cpu()
     hit = hit.detach().bool().cpu()
     fg = torch.ones(v, h, w) if fg is None else fg.detach().float().cpu()
+    todo = hit if where is None else (where.detach().bool().cpu() & hit)
     if fg.shape != t.shape:
         raise ValueError(f"stereo_ray_depth: fg must have shape {list(t.shape)}, got {list(fg.shape)}")
     size = max(h, w)
-    win = max(1, int(round(_scaled(cfg.window, size))) | 1)
-    agg = max(1, int(round(_scaled(cfg.aggregate, size))) | 1)
+    win = max(1, round(_scaled(cfg.window, size)) | 1)
+    agg = max(1, round(_scaled(cfg.aggregate, size)) | 1)
     bp = band_pass(images.detach().float().cpu(), _scaled(cfg.blur_px, size), fg)
     offs = cfg.offsets()
     k0 = len(offs) // 2
@@ -211,7 +217,7 @@ def stereo_ray_depth(images: Tensor, cameras: Cameras, t: Tensor, hit: Tensor, f
     seen = torch.zeros(v, h, w, dtype=torch.int32)
     prior = cfg.prior * (offs / cfg.range_m) ** 2
     for i in range(v):
-        if v < 2 or not hit[i].any():
+        if v < 2 or not todo[i].any():
             continue
         surf = o[i] + t[i][..., None] * d[i]  # [H, W, 3]
         pts = o[i][None] + (t[i][None] + offs.view(-1, 1, 1))[..., None] * d[i][None]  # [K, H, W, 3]
@@ -220,7 +226,7 @@ def stereo_ray_depth(images: Tensor, cameras: Cameras, t: Tensor, hit: Tensor, f
         for j in range(v):
             if j == i:
                 continue
-            vis = _visible_in(j, surf, cams, t, hit, fg, cfg.occlusion_m) & hit[i] & (fg[i] > 0.5)  # [H, W]
+            vis = _visible_in(j, surf, cams, t, hit, fg, cfg.occlusion_m) & todo[i] & (fg[i] > 0.5)  # [H, W]
             if not vis.any():
                 continue
             uv, _ = cams[j].project(pts.reshape(-1, 3))
@@ -233,7 +239,7 @@ def stereo_ray_depth(images: Tensor, cameras: Cameras, t: Tensor, hit: Tensor, f
         if not any_view.any():
             continue
         cost = cost_sum / n_views.clamp_min(1)  # [K, H, W], 1 (no evidence) where no view
-        wgt = (hit[i] & any_view).float()
+        wgt = (todo[i] & any_view).float()
         cost = _box(cost * wgt, agg) / _box(wgt[None], agg).clamp_min(1e-6) + prior.view(-1, 1, 1)
         best = cost.argmin(dim=0)  # [H, W]
         c_best = cost.gather(0, best[None])[0]
@@ -244,16 +250,16 @@ def stereo_ray_depth(images: Tensor, cameras: Cameras, t: Tensor, hit: Tensor, f
         frac = torch.where((best > 0) & (best < len(offs) - 1) & (den > 1e-9), 0.5 * (c_lo - c_hi) / den.clamp_min(1e-9), torch.zeros_like(den))
         off = offs[best] + frac.clamp(-0.5, 0.5) * cfg.step_m
         # flat patches: the band-passed standard deviation of view i's own window
-        hw = hit[i].float()
+        hw = todo[i].float()
         m1 = _box((bp[i] * hw)[None], win)[0] / _box(hw[None], win)[0].clamp_min(1e-6)
         m2 = _box((bp[i] ** 2 * hw)[None], win)[0] / _box(hw[None], win)[0].clamp_min(1e-6)
         texture = (m2 - m1 * m1).clamp_min(0).sqrt()
-        ok = hit[i] & any_view & (texture >= cfg.min_texture) & (cost[k0] - c_best >= cfg.min_gain)
+        ok = todo[i] & any_view & (texture >= cfg.min_texture) & (cost[k0] - c_best >= cfg.min_gain)
         accepted[i] = ok
         out_off[i] = torch.where(ok, off, torch.zeros_like(off))
     # final smoothing: the mean of the offsets over a box of hit pixels (fallbacks count as 0)
-    hf = hit.float()
-    sm_px = max(1, int(round(_scaled(cfg.smooth, size))) | 1)
+    hf = todo.float()
+    sm_px = max(1, round(_scaled(cfg.smooth, size)) | 1)
     sm = _box(out_off * hf, sm_px) / _box(hf, sm_px).clamp_min(1e-6)
-    sm = torch.where(hit, sm, torch.zeros_like(sm))
+    sm = torch.where(todo, sm, torch.zeros_like(sm))
     return StereoResult(t=t + sm, offset=sm, accepted=accepted, seen=seen)
