@@ -538,6 +538,9 @@ class FastGHA(nn.Module):
         (``shell_carve``, ``surface.carve_into_mattes``), and a real view's Gaussians whose colour the
         view that sees their point most head-on contradicts are drawn only near their own camera
         (``head_on_colour_tol``, ``viewblend.contradicted_by_head_on_view``, ``ViewBlend.sharp``).
+        With ``config.gaussians.stereo_depth_mm > 0`` (off by default) in ``"replace"`` mode with two or
+        more views, each view's pixels on the tracked head move along their rays, within that many
+        millimetres of the surface, to where the other photos agree with them (``model/stereo.py``).
         """
         s, vmax = self.config.input_size, self.config.max_views
         hint = "use model.prepare(images, cameras) to crop/resize them"
