@@ -144,6 +144,8 @@ def test_shape_errors():
     with pytest.raises(ValueError):
         stereo_ray_depth(img, cams, t[:1], hit)
     with pytest.raises(ValueError):
+        stereo_ray_depth(img, cams, t, hit, where=hit[:1])
+    with pytest.raises(ValueError):
         StereoConfig(window=4)
     with pytest.raises(ValueError):
         StereoConfig(range_m=0.001, step_m=0.002)
@@ -159,3 +161,50 @@ def test_where_limits_the_corrected_pixels():
     assert torch.equal(res.t[~where], t_surf[~where])
     m = _inner(hit) & where
     assert (res.t - t_true)[0][m[0]].abs().mean() < (t_surf - t_true)[0][m[0]].abs().mean() - 0.002
+
+
+def test_reconstruct_moves_only_the_hit_pixels_along_their_rays_when_asked(monkeypatch):
+    """The hook in FastGHA.reconstruct: off by default; on, the real views' hit pixels' Gaussians move
+    along their own rays by what stereo_ray_depth returns, with the configured range, and nothing else."""
+    import numpy as np
+
+    from fastgha_core.constants import BACKGROUND_RGB
+    from fastgha_core.model import stereo
+    from fastgha_core.model.fastgha import load_model
+    from fastgha_core.model.surface import HeadSurface
+    from fastgha_core.tracking.camera import pose_to_cameras
+    from fastgha_core.tracking.fit import FRONTAL_R, default_intrinsics, rodrigues
+
+    model = load_model("tiny")
+    assert model.config.gaussians.stereo_depth_mm == 0.0
+    s = model.config.input_size
+    yaws = [0.0, 30.0]
+    R = np.stack([FRONTAL_R @ rodrigues(np.array([0.0, np.radians(y), 0.0])) for y in yaws])
+    cams = pose_to_cameras(R, np.tile([0.0, 0.01, 0.6], (2, 1)), default_intrinsics(s, s, 30.0), s, s)
+    head = HeadSurface(np.zeros(100, np.float32), np.zeros((2, 53), np.float32))
+    imgs = torch.tensor(BACKGROUND_RGB, dtype=torch.float32).view(1, 3, 1, 1).repeat(2, 1, s, s)
+    imgs[:, :, s // 4 : 3 * s // 4, s // 4 : 3 * s // 4] = torch.rand(2, 3, s // 2, s // 2, generator=torch.Generator().manual_seed(0))
+    seen = {}
+
+    def fake(images, cameras, t, hit, fg=None, config=None, where=None):
+        seen["range"], seen["hit"] = config.range_m, hit.clone()
+        return stereo.StereoResult(t=t + 0.005 * hit, offset=0.005 * hit.float(), accepted=hit.clone(), seen=torch.zeros_like(t, dtype=torch.int32))
+
+    monkeypatch.setattr(stereo, "stereo_ray_depth", fake)
+    gc = model.config.gaussians
+    saved = (gc.mirror_views, gc.prune_opacity, model.config.deform.prior, gc.stereo_depth_mm)
+    try:
+        gc.mirror_views = False  # the photos' own Gaussians only
+        gc.prune_opacity, model.config.deform.prior = 0.0, False  # keep every pixel's Gaussian, in order
+        off = model.reconstruct(imgs, cams, surface=head).gaussians
+        assert not seen  # off by default: not called
+        gc.stereo_depth_mm = 8.0
+        on = model.reconstruct(imgs, cams, surface=head).gaussians
+    finally:
+        gc.mirror_views, gc.prune_opacity, model.config.deform.prior, gc.stereo_depth_mm = saved
+    assert seen["range"] == pytest.approx(0.008)
+    hit = seen["hit"].reshape(-1)
+    o, d = cams.pixel_rays()
+    step = (on.means - off.means).reshape(-1, 3)
+    assert bool(hit.any()) and torch.equal(step[~hit], torch.zeros_like(step[~hit]))
+    assert torch.allclose(step[hit], 0.005 * d.reshape(-1, 3)[hit], atol=1e-5)

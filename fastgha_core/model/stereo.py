@@ -17,8 +17,9 @@ How (``stereo_ray_depth``), per input view ``i``:
   of it, on ``j``'s own head pixels and matte, and within ``occlusion_m`` of ``j``'s own surface
   distance there (else something is in front of it: the nose, the other cheek);
 - for each hypothesis the point ``o + (t + delta_k) d`` is projected into ``j`` and ``j``'s
-  band-passed grey image (luma minus its Gaussian blur: exposure, white balance and slow shading
-  differ between photos) is sampled there; the score is the normalised cross-correlation (NCC)
+  band-passed grey image (luma minus its Gaussian blur taken inside the matte: exposure, white
+  balance and slow shading differ between photos, and a matte's outline is no texture) is sampled
+  there (bilinear); the score is the normalised cross-correlation (NCC)
   between view ``i``'s band-passed image and that warped one over a ``window x window`` patch,
   each pixel weighted by its visibility in ``j`` (fronto-parallel to the surface: neighbours keep
   the same offset, a surface sweep); NCC is unchanged by gain and bias;
@@ -38,7 +39,10 @@ where a photo's mouth or eyes move, the photos disagree at every offset and the 
 the surface. Units: metres along each pixel's unit ray (``Cameras.pixel_rays``, the quantity
 ``GaussianHead`` calls ``t``); the cameras' world is the head frame (``model/surface.py``).
 ``FastGHA.reconstruct`` applies it to the real views' hit pixels when
-``GaussianHeadConfig.stereo_depth_mm > 0`` (off by default; docs/model-card.md for the measurements).
+``GaussianHeadConfig.stereo_depth_mm > 0``. Off by default: on held-out synthetic subjects it
+brings the bare face's depth closer to the truth (mean error 3.70 -> 3.16 mm), but on the real photo
+sets it neither sharpens the eyes nor raises a leave-one-out mean (docs/model-card.md, "Photo-
+consistency depth of the on-head pixels").
 """
 
 from __future__ import annotations
@@ -192,7 +196,7 @@ def stereo_ray_depth(
     Returns:
         ``StereoResult`` (``t`` on the CPU, float32).
     Raises:
-        ValueError: when the shapes disagree with the cameras.
+        ValueError: when a shape disagrees with the cameras' batch and size.
     """
     cfg = config or StereoConfig()
     cams = cameras.flatten().to("cpu", torch.float32)
@@ -202,9 +206,9 @@ def stereo_ray_depth(
     t = t.detach().float().cpu()
     hit = hit.detach().bool().cpu()
     fg = torch.ones(v, h, w) if fg is None else fg.detach().float().cpu()
+    if fg.shape != t.shape or (where is not None and tuple(where.shape) != (v, h, w)):
+        raise ValueError(f"stereo_ray_depth: fg and where must have shape {list(t.shape)}, got {list(fg.shape)} and {None if where is None else list(where.shape)}")
     todo = hit if where is None else (where.detach().bool().cpu() & hit)
-    if fg.shape != t.shape:
-        raise ValueError(f"stereo_ray_depth: fg must have shape {list(t.shape)}, got {list(fg.shape)}")
     size = max(h, w)
     win = max(1, round(_scaled(cfg.window, size)) | 1)
     agg = max(1, round(_scaled(cfg.aggregate, size)) | 1)
