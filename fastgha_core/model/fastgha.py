@@ -49,6 +49,9 @@ log = logging.getLogger(__name__)
 HAIR_CARVE_DILATE_PX = 1  # reconstruct(): the hair layer is carved by the inputs' mattes dilated by this many pixels (model/surface.py hair_carve_fractions)
 HAIR_CARVE_MAX_UP = 0.5  # ... only vertices whose outward normal's up component is at most this (the top of the head, normals within 60 deg of up, keeps its fitted thickness: carved by all views, phone-5's pitch-down photo left out lost 12.28 -> 10.85 dB; mattes cut fine hair on top)
 SHELL_CARVE_DILATE_PX = -2  # reconstruct(): the back-of-head shell is carved into the inputs' mattes eroded by 2 pixels: its discs (5.5 mm) reach beyond their centres (model/surface.py carve_into_mattes; video-6 at its own cameras: dilated by 1 23.89 dB, eroded by 1 23.98, by 2 24.02, the bald shell 24.03)
+OFF_HEAD_HULL_COLLAR = False  # reconstruct() with gaussians.off_head_hull: also move the mesh's own pixels below its neck ring whose point is outside the other views' hull (model/surface.py off_head_on_hull)
+OFF_HEAD_HULL_DILATE_PX = 2  # ... the other views' mattes dilated by this many pixels
+OFF_HEAD_HULL_FREE_TOL_M = None  # ... and, when set (metres), the space in front of the head each other view sees is empty (up to this tolerance)
 
 ASSET_MODELS_DIR = Path(__file__).resolve().parent.parent / "assets" / "models"
 CONFIG_NAME = "config.json"
@@ -522,7 +525,9 @@ class FastGHA(nn.Module):
         (``config.gaussians.coverage_target``, ``model/coverage.py``; with
         ``coverage_surface_only=False`` on the network's depth as well), and with ``"replace"`` the
         scalp is laid out by a hair thickness fitted to the inputs' mattes
-        (``config.gaussians.hair_fit``, ``surface.fit_hair_thickness``); with
+        (``config.gaussians.hair_fit``, ``surface.fit_hair_thickness``), and with
+        ``config.gaussians.off_head_hull`` (off by default) the pixels off the head move onto the
+        visual hull of the other inputs' mattes (``surface.off_head_on_hull``); with
         ``config.gaussians.grazing_stretch > 0`` (off by default) the Gaussians of pixels just behind an
         occluding edge of the head (the far side of the nose ridge), which see it at a grazing angle,
         are lengthened along it to cover their patch of skin (``surface.stretch_to_patches``).
@@ -585,6 +590,12 @@ class FastGHA(nn.Module):
 
                     hair = hair * hair_carve_fractions(surface, cameras.to(dtype=torch.float32), foreground_weight(images.float()), hair, HAIR_CARVE_DILATE_PX, HAIR_CARVE_MAX_UP)
             sd = surface_ray_depth(surface, cameras, hair, neck=self.config.gaussians.neck_cylinder if surface_mode == "replace" else "off")
+            if self.config.gaussians.off_head_hull != "off" and surface_mode == "replace":  # off-head pixels on the photos' visual hull (model/surface.py)
+                from .gaussian_head import foreground_weight
+                from .surface import off_head_on_hull
+
+                sd = off_head_on_hull(sd, surface, cameras, foreground_weight(images.float()), self.config.gaussians.off_head_hull, OFF_HEAD_HULL_COLLAR,
+                                      OFF_HEAD_HULL_DILATE_PX, free_tol_m=OFF_HEAD_HULL_FREE_TOL_M)
             if self.config.gaussians.stereo_depth_mm > 0 and surface_mode == "replace" and v > 1:  # the on-head pixels where the photos agree (model/stereo.py)
                 sd = self._stereo_depth(images, cameras, sd)
             ray_depth = sd.t[None]

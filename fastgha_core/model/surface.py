@@ -25,6 +25,12 @@ Per pixel of each input view (``surface_ray_depth``):
   chin whose ray enters the tracked neck continued as a cylinder (``neck_cylinder_depth``) lie there
   instead; tried against phone-5's shoulder smears, it lowered the real-photo means and left the
   smear: that photo's neck lies on the mesh's own neck and collar, not off it (``docs/model-card.md``).
+- optionally (``GaussianHeadConfig.off_head_hull``, off by default), the off-head pixels inside their
+  view's matte move onto the visual hull of the other views' mattes (``off_head_on_hull``,
+  ``hull_ray_depth``): where the ray enters it, or only where the nearest-hit placement falls
+  outside it. Measured on the real photo sets, no variant raised the leave-one-out means: from a
+  few photos the hull is loose, and the nearest-hit placement already lies inside it for nine in ten
+  of those pixels (``docs/model-card.md``).
 
 The head model is bald. ``surface_ray_depth(..., hair_m=...)`` pushes its scalp (``hair_vertex_weight``)
 out along the mesh's normals by a hair thickness, which ``FastGHA.reconstruct`` chooses per avatar
@@ -80,6 +86,8 @@ __all__ = [
     "stretch_to_patches",
     "behind_occluding_edges",
     "sample_photo_colours",
+    "hull_ray_depth",
+    "off_head_on_hull",
 ]
 
 HAIR_CANDIDATES_M = (0.0, 0.005, 0.01, 0.015, 0.02, 0.025, 0.03)  # fit_hair_thickness' default choices (metres)
@@ -647,14 +655,7 @@ def _in_every_matte(points: Tensor, cameras: Cameras, mattes: Tensor) -> Tensor:
     """``bool [N]``: whether each of ``points [N, 3]`` (world) projects onto ``mattes [V, H, W]``
     (``_mattes``) in every view of ``cameras [V]`` whose image it falls inside (in front of the
     camera); a view whose image a point leaves does not judge it."""
-    v, h, w = mattes.shape
-    ok = torch.ones(len(points), dtype=torch.bool, device=points.device)
-    for i in range(v):
-        uv, z = cameras[i].project(points)
-        x, y = uv[:, 0].floor().long(), uv[:, 1].floor().long()
-        inside = (x >= 0) & (x < w) & (y >= 0) & (y < h) & (z > 0)
-        ok &= ~inside | mattes[i][y.clamp(0, h - 1), x.clamp(0, w - 1)]
-    return ok
+    return _matte_votes(points, cameras, mattes)[0]
 
 
 def carve_into_mattes(points: Tensor, cameras: Cameras, foreground: Tensor, centre: Tensor | None = None,
@@ -749,3 +750,202 @@ def hair_carve_fractions(surface: HeadSurface, cameras: Cameras, foreground: Ten
         frac[idx[good]] = step
         undecided[idx[good]] = False
     return frac
+
+
+HULL_HALF_RANGE_M = 0.3  # hull_ray_depth: rays are marched over the head centre's distance +- this (metres)
+HULL_STEP_M = 0.004  # ... in steps of this (metres)
+
+
+def _matte_votes(points: Tensor, cameras: Cameras, mattes: Tensor, skip: Tensor | None = None, beyond: bool = False,
+                 solid: Tensor | None = None, solid_t: Tensor | None = None, free_tol_m: float = 0.01) -> tuple[Tensor, Tensor]:
+    """``(ok, judged)``, ``bool [N]`` each, for ``points [N, 3]`` (world): ``ok`` when the point
+    projects onto ``mattes [V, H, W]`` in every view of ``cameras [V]`` whose image it falls inside
+    (in front of the camera), ``judged`` when at least one view's image holds it. ``skip [N]``
+    (long, optional): a view index per point that does not judge it (its own view). ``beyond``:
+    a view also judges the points in front of it that project beyond its image, by the matte's
+    nearest border pixel (the matte continued outwards: a torso cut by the bottom edge goes on,
+    air beside a tight crop stays air). ``solid [V, H, W]`` (bool) and ``solid_t [V, H, W]`` (metres
+    along the pixel's unit ray), optional: where a view sees a known surface (the tracked head), the
+    space in front of it is empty: a point projecting onto such a pixel nearer its camera than
+    ``solid_t - free_tol_m`` is not ``ok``."""
+    v, h, w = mattes.shape
+    ok = torch.ones(len(points), dtype=torch.bool, device=points.device)
+    judged = torch.zeros_like(ok)
+    for i in range(v):
+        uv, z = cameras[i].project(points)
+        x, y = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+        inside = (z > 0) if beyond else (x >= 0) & (x < w) & (y >= 0) & (y < h) & (z > 0)
+        if skip is not None:
+            inside &= skip != i
+        yc, xc = y.clamp(0, h - 1), x.clamp(0, w - 1)
+        good = mattes[i][yc, xc]
+        if solid is not None:
+            on = solid[i][yc, xc] & (x >= 0) & (x < w) & (y >= 0) & (y < h)
+            dist = (points - cameras[i].centers).norm(dim=-1)
+            good = good & ~(on & (dist < solid_t[i][yc, xc] - free_tol_m))
+        ok &= ~inside | good
+        judged |= inside
+    return ok, judged
+
+
+def hull_ray_depth(cameras: Cameras, foreground: Tensor, take: Tensor, centre: Tensor | None = None, prefer: Tensor | None = None,
+                   half_m: float = HULL_HALF_RANGE_M, step_m: float = HULL_STEP_M, dilate_px: int = 2, beyond: bool = True,
+                   solid: Tensor | None = None, solid_t: Tensor | None = None, free_tol_m: float = 0.01, middle: bool = False, chunk: int = 2048) -> Tensor:
+    """Distance along each selected pixel's ray to the visual hull of the OTHER views' mattes.
+
+    For every pixel of ``take`` the ray (``Cameras.pixel_rays``) is sampled from ``dc - half_m`` to
+    ``dc + half_m`` in steps of ``step_m``, ``dc`` the distance along the ray to its point nearest
+    ``centre`` (default the origin: the tracker's head centre). A sample is in the hull when it
+    projects onto foreground (> 0.5, dilated by ``dilate_px`` pixels for misregistration) in every
+    other view whose image it falls inside (in front of the camera), and at least one other view's
+    image holds it: a view that does not see the point does not judge it, the pixel's own view never
+    does (its ray lies on its own matte).
+
+    Beyond an image's border a view judges by its matte's nearest border pixel (``beyond``, the
+    default: a torso cut by the bottom edge goes on, the air beside a tight crop stays air; without
+    it a point that leaves the crops of the views that would carve it stays in the hull: on phone-5's
+    tight crops the entry lay 14 cm nearer the camera than the nearest head pixel's distance on
+    average, 4 cm with it). With ``solid`` and
+    ``solid_t`` the space between a view's camera and the surface it is known to see there (the
+    tracked head's hit pixels and their distances, ``SurfaceDepth``) is empty too, up to
+    ``free_tol_m``.
+
+    Without ``prefer`` the pixel gets the first sample in the hull (where its ray enters it); with
+    ``prefer [V, H, W]`` (metres, e.g. ``SurfaceDepth.t``) it keeps ``prefer`` when that point is
+    in the hull and otherwise takes the hull sample nearest it; with ``middle``, halfway between its
+    first and its last sample in the hull.
+
+    Why (issue 17, the real photo sets): pixels that miss the tracked head (long hair beside the
+    face, neck, shoulders) took the nearest head pixel's distance, which the other photos' mattes
+    contradict; the visual hull of the photos is where such a point can be (``docs/model-card.md``
+    "Off-head pixels on the photos' visual hull").
+
+    Args:
+        cameras: ``Cameras [V]`` of the ``W x H`` views.
+        foreground: ``[V, H, W]`` in [0, 1] (``gaussian_head.foreground_weight`` of the matted inputs).
+        take: ``[V, H, W]`` bool, the pixels to place.
+        centre: ``[3]`` world point (metres) the interval is centred on.
+        prefer: optional ``[V, H, W]`` distances (metres).
+        half_m, step_m: the interval's half length and the step (metres, > 0).
+        dilate_px: the mattes dilated by this many pixels (``_mattes``).
+        beyond: judge points beyond a view's image by its border (above).
+        solid, solid_t, free_tol_m: optional ``[V, H, W]`` bool and metres, and a tolerance (metres):
+            the empty space in front of known surfaces (above).
+        middle: the hull's middle along the ray instead of its entry (ignores ``prefer``).
+        chunk: pixels marched at once (memory ``chunk x 2 half_m / step_m`` samples).
+    Returns:
+        ``[V, H, W]`` float32 distances (metres) along each unit ray; NaN where a pixel is not taken,
+        or no sample of its ray is in the hull (no other view judges any, or every one is carved away).
+    Raises:
+        ValueError: on mismatched shapes or a non-positive step or interval.
+    """
+    cams = cameras.flatten().to(foreground.device, torch.float32)
+    v, h, w = len(cams.K), cams.height, cams.width
+    if tuple(foreground.shape) != (v, h, w) or tuple(take.shape) != (v, h, w) or (prefer is not None and tuple(prefer.shape) != (v, h, w)):
+        raise ValueError(f"hull_ray_depth: foreground, take (and prefer) must have shape [{v}, {h}, {w}], got {list(foreground.shape)}, {list(take.shape)}"
+                         + ("" if prefer is None else f", {list(prefer.shape)}"))
+    if step_m <= 0 or half_m <= 0:
+        raise ValueError(f"hull_ray_depth: step_m and half_m must be > 0, got {step_m}, {half_m}")
+    dev = foreground.device
+    out = torch.full((v, h, w), float("nan"), dtype=torch.float32, device=dev)
+    idx = take.to(dev).reshape(-1).nonzero()[:, 0]
+    if len(idx) == 0:
+        return out
+    mattes = _mattes(foreground, dilate_px)
+    o, d = cams.pixel_rays()
+    o, d = o.reshape(-1, 3), d.reshape(-1, 3)
+    c = torch.zeros(3, device=dev) if centre is None else torch.as_tensor(centre, dtype=torch.float32, device=dev)
+    k = torch.arange(round(2 * half_m / step_m) + 1, device=dev, dtype=torch.float32) * step_m - half_m  # [K]
+    pref = None if prefer is None else prefer.to(dev, torch.float32).reshape(-1)
+    flat = out.reshape(-1)
+    for a in range(0, len(idx), chunk):
+        sel = idx[a : a + chunk]
+        oo, dd = o[sel], d[sel]
+        dc = ((c - oo) * dd).sum(-1)  # [P]
+        s = dc[:, None] + k[None]  # [P, K]
+        if pref is not None:
+            s = torch.cat([pref[sel][:, None], s], 1)  # the preferred distance first: kept when in the hull
+        p, n = s.shape
+        pts = (oo[:, None] + s[..., None] * dd[:, None]).reshape(-1, 3)
+        ok, judged = _matte_votes(pts, cams, mattes, (sel // (h * w)).repeat_interleave(n), beyond, solid, solid_t, free_tol_m)
+        good = (ok & judged).reshape(p, n) & (s > 1e-3) & torch.isfinite(s)
+        found = good.any(1)
+        if middle:  # halfway between the first and the last sample in the hull
+            first = good.float().argmax(1)
+            last = n - 1 - good.flip(1).float().argmax(1)
+            t = 0.5 * (s.gather(1, first[:, None])[:, 0] + s.gather(1, last[:, None])[:, 0])
+            flat[sel[found]] = t[found]
+            continue
+        if pref is None:
+            j = good.float().argmax(1)  # the first sample in the hull
+        else:
+            j = torch.where(good, (s - s[:, :1]).abs(), torch.full_like(s, float("inf"))).argmin(1)
+        t = s.gather(1, j[:, None])[:, 0]
+        flat[sel[found]] = t[found]
+    return out
+
+
+def off_head_on_hull(sd: SurfaceDepth, surface: HeadSurface, cameras: Cameras, foreground: Tensor, mode: str = "entry", collar: bool = False,
+                     dilate_px: int = 2, beyond: bool = True, free_tol_m: float | None = None) -> SurfaceDepth:
+    """``sd`` with its off-head pixels moved onto the visual hull of the other views' mattes
+    (``hull_ray_depth``).
+
+    The pixels moved: those of each view's own matte (``foreground > 0.5``) whose ray misses the
+    head (``~sd.hit``, not ``beyond_face``), which ``surface_ray_depth`` gave the nearest head
+    pixel's distance; with ``collar``, also the head pixels below the tracked neck ring
+    (``neck_ring_vertices``: ICT's lower neck and collar) whose point is outside that hull. ``mode``:
+    ``"entry"``, where the pixel's ray enters the hull; ``"nearest"``, the present distance where its
+    point is in the hull, else the hull sample nearest it; ``"middle"``, halfway through the hull
+    (the collar's pixels then take, as with ``"nearest"``, the hull sample nearest the mesh's point). A pixel whose ray no other view judges, or that
+    no sample of its ray puts in the hull, keeps its distance.
+
+    Measured on the real photo sets (``docs/model-card.md`` "Off-head pixels on the photos' visual
+    hull"): no mode raised the leave-one-out means of all three sets; ``GaussianHeadConfig.off_head_hull``
+    is off by default.
+
+    Args:
+        sd: ``surface_ray_depth`` of ``surface`` at ``cameras [V]`` (``W x H``).
+        foreground: ``[V, H, W]`` in [0, 1] (``gaussian_head.foreground_weight``).
+        mode, collar: above.
+        dilate_px, beyond: ``hull_ray_depth``'s.
+        free_tol_m: None, or the other views' head pixels also carve the space in front of them, up
+            to this many metres (``hull_ray_depth``'s ``solid``).
+    Returns:
+        A new ``SurfaceDepth`` (``t`` changed; ``hit``, ``beyond_face``, ``face_hit`` as they were).
+    Raises:
+        ValueError: on an unknown mode or mismatched shapes.
+    """
+    if mode not in ("entry", "nearest", "middle"):
+        raise ValueError(f"off_head_on_hull: mode must be 'entry', 'nearest' or 'middle', got {mode!r}")
+    cams = cameras.flatten().to("cpu", torch.float32)
+    v, h, w = len(cams.K), cams.height, cams.width
+    if tuple(sd.t.shape) != (v, h, w) or tuple(foreground.shape) != (v, h, w) or len(surface) != v:
+        raise ValueError(f"off_head_on_hull: expected {len(surface)} views, sd.t and foreground [{v}, {h}, {w}], got {list(sd.t.shape)}, {list(foreground.shape)}")
+    fg = foreground.detach().float().cpu()
+    t0 = sd.t.float().cpu()
+    centre = surface.centre
+    take = ~sd.hit.cpu() & ~sd.beyond_face.cpu() & (fg > 0.5)
+    t = t0.clone()
+    free = {} if free_tol_m is None else {"solid": sd.hit.cpu(), "solid_t": t0, "free_tol_m": free_tol_m}
+    th = hull_ray_depth(cams, fg, take, centre, prefer=t0 if mode == "nearest" else None, dilate_px=dilate_px, beyond=beyond, middle=mode == "middle", **free)
+    ok = torch.isfinite(th)
+    t[ok] = th[ok]
+    if collar:
+        from ..data.headmodel import HeadModel
+
+        head = HeadModel.load()
+        ring = neck_ring_vertices(head)
+        up = torch.tensor([0.0, 1.0, 0.0]) if surface.head_to_world is None else torch.as_tensor(np.asarray(surface.head_to_world)[:3, 1], dtype=torch.float32)
+        o, d = cams.pixel_rays()
+        low = torch.zeros(v, h, w, dtype=torch.bool)
+        for i in range(v):
+            ring_low = float((torch.from_numpy(surface.vertices(i, head)[ring]).float() @ up).min())
+            low[i] = ((o[i] + t0[i][..., None] * d[i]) @ up) < ring_low
+        cand = sd.hit.cpu() & low & (fg > 0.5)
+        tn = hull_ray_depth(cams, fg, cand, centre, prefer=t0, dilate_px=dilate_px, beyond=beyond, **free)
+        moved = torch.isfinite(tn) & (tn != t0)  # the mesh's point is outside the hull
+        if mode == "entry":
+            tn = hull_ray_depth(cams, fg, moved, centre, dilate_px=dilate_px, beyond=beyond, **free)
+        ok = moved & torch.isfinite(tn)
+        t[ok] = tn[ok]
+    return SurfaceDepth(t.to(sd.t), sd.hit, sd.beyond_face, sd.face_hit)
