@@ -548,6 +548,9 @@ class FastGHA(nn.Module):
         (``shell_carve``, ``surface.carve_into_mattes``), and a real view's Gaussians whose colour the
         view that sees their point most head-on contradicts are drawn only near their own camera
         (``head_on_colour_tol``, ``viewblend.contradicted_by_head_on_view``, ``ViewBlend.sharp``).
+        With ``config.gaussians.stereo_depth_mm > 0`` (off by default) in ``"replace"`` mode with two or
+        more views, each view's pixels on the tracked head move along their rays, within that many
+        millimetres of the surface, to where the other photos agree with them (``model/stereo.py``).
         """
         s, vmax = self.config.input_size, self.config.max_views
         hint = "use model.prepare(images, cameras) to crop/resize them"
@@ -598,6 +601,8 @@ class FastGHA(nn.Module):
 
                 sd = off_head_on_hull(sd, surface, cameras, foreground_weight(images.float()), self.config.gaussians.off_head_hull, OFF_HEAD_HULL_COLLAR,
                                       OFF_HEAD_HULL_DILATE_PX, free_tol_m=OFF_HEAD_HULL_FREE_TOL_M)
+            if self.config.gaussians.stereo_depth_mm > 0 and surface_mode == "replace" and v > 1:  # the on-head pixels where the photos agree (model/stereo.py)
+                sd = self._stereo_depth(images, cameras, sd)
             if self.config.gaussians.off_head_draw == "behind" and surface_mode == "replace":  # off-head pixels further back (model/surface.py off_head_draw_flags)
                 from .gaussian_head import foreground_weight
                 from .surface import off_head_draw_flags
@@ -726,6 +731,20 @@ class FastGHA(nn.Module):
         avatar = CanonicalAvatar(g, self.config.name, self.config.expression_space, prior, n_int, blend)
         self._deform_partial(avatar)
         return avatar
+
+    def _stereo_depth(self, images: Tensor, cameras: Cameras, sd):
+        """``reconstruct``'s surface depth ``sd`` with its hit pixels moved along their rays, within
+        ``gaussians.stereo_depth_mm`` of the surface, to where the input photos agree
+        (``model/stereo.py``); the other pixels and masks unchanged."""
+        import dataclasses
+
+        from .gaussian_head import foreground_weight
+        from .stereo import StereoConfig, stereo_ray_depth
+
+        r = self.config.gaussians.stereo_depth_mm * 1e-3
+        cfg = StereoConfig(range_m=r, step_m=min(StereoConfig.step_m, r))
+        st = stereo_ray_depth(images.float().cpu(), cameras.to("cpu", torch.float32), sd.t, sd.hit, foreground_weight(images.float().cpu()), cfg)
+        return dataclasses.replace(sd, t=st.t.to(sd.t))
 
     def _carve_shell(self, g: Gaussians, n_rec: int, images: Tensor, cameras: Cameras, surface) -> Gaussians:
         """``reconstruct``'s back-of-head shell (the ``len(back_shell_vertices)`` Gaussians after the
