@@ -238,6 +238,7 @@ def test_the_avatar_budget_counts_the_view_data_a_blended_frame_holds(tiny):
     tiny.animate(av, torch.zeros(tiny.config.expression_dim), camera=_cams([10.0], size=64, dist=0.6))  # tau 20 by default
     held = sum(t.untyped_storage().nbytes() for t in (vb.source_view, vb.mask, vb.directions, vb.__dict__["_key"]))
     held += 0 if vb.sharp is None else vb.sharp.untyped_storage().nbytes()  # the head-on check's flags (gaussians.head_on_colour_tol)
+    held += 0 if vb.under is None else vb.under.untyped_storage().nbytes()  # the off-head flags (gaussians.off_head_draw "under")
     assert tiny.serving_nbytes(av) - without == held
 
 

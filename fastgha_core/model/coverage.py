@@ -27,7 +27,7 @@ from torch import Tensor
 from ..cameras import Cameras
 from ..gaussians import Gaussians
 
-__all__ = ["fill_coverage"]
+__all__ = ["fill_coverage", "in_front_of_other_heads"]
 
 
 def fill_coverage(
@@ -72,3 +72,65 @@ def fill_coverage(
     raised = 1.0 - (1.0 - target) * (1.0 - o) / (1.0 - alpha).clamp_min(1.0 - target)
     new = torch.where(need, torch.maximum(o, raised.clamp(max=max_opacity)), o)
     return g.replace(opacities=new.reshape(-1)), alpha
+
+
+def in_front_of_other_heads(t: Tensor, hit: Tensor, take: Tensor, cameras: Cameras, foreground: Tensor, views: int | None = None, tol_m: float = 0.01) -> Tensor:
+    """``bool [V, H, W]``: the ``take`` pixels whose point lies in front of another view's head.
+
+    Why (issue 17, real photos): on a tracked head surface each pixel that misses the head (hair
+    beside the face, neck, shoulders) lies at the nearest head pixel's distance, a guess. Seen from
+    another input camera such a point can fall onto that view's head pixels, between its camera and
+    the head it sees there: that photo shows the head, not hair, at that pixel, so the point is in
+    space the photo sees empty (free-space carving, as in space carving, Kutulakos and Seitz 2000).
+    Drawn there, it streaks hair across the face in renders near that view.
+
+    A pixel ``p`` of view ``s`` (with ``take[s, p]``) is flagged when, for some other view ``r``
+    among the first ``views`` (the real photos; default all), its point ``o_s + t[s, p] d_s``
+    projects inside ``r``'s image onto a pixel ``q`` with ``hit[r, q]`` and ``foreground[r, q] >
+    0.5``, and its camera-space depth in ``r`` is smaller by more than ``tol_m`` than the smallest
+    depth of ``r``'s head points over the 3x3 pixels around ``q`` (the 3x3 minimum forgives a pixel
+    of misregistration at the head's outline).
+
+    Args:
+        t: ``[V, H, W]`` metres along each pixel's unit ray (``surface.SurfaceDepth.t``).
+        hit: ``[V, H, W]`` bool, the pixels on the head (``SurfaceDepth.hit``): the judges' surface.
+        take: ``[V, H, W]`` bool, the pixels to test (e.g. ``~hit`` inside the matte).
+        cameras: ``Cameras [V]`` of size ``W x H`` (OpenCV, ``cameras.py``).
+        foreground: ``[V, H, W]`` in [0, 1] (``gaussian_head.foreground_weight``).
+        views: how many leading views judge (mirrored virtual views after them are judged only).
+        tol_m: metres.
+    Raises:
+        ValueError: on mismatched shapes.
+    """
+    import torch.nn.functional as F
+
+    cams = cameras.flatten().to("cpu", torch.float32)
+    v, h, w = len(cams.K), cams.height, cams.width
+    for name, x in (("t", t), ("hit", hit), ("take", take), ("foreground", foreground)):
+        if tuple(x.shape) != (v, h, w):
+            raise ValueError(f"in_front_of_other_heads: {name} must be [{v}, {h}, {w}], got {list(x.shape)}")
+    nv = v if views is None else int(views)
+    t, hit, take, fg = t.detach().float().cpu(), hit.cpu().bool(), take.cpu().bool(), foreground.detach().float().cpu() > 0.5
+    o, d = cams.pixel_rays()  # [V, H, W, 3]
+    pts = o + t[..., None] * d
+    z = cams.world_to_camera(pts.reshape(v, -1, 3))[..., 2].reshape(v, h, w)  # each view's own depths
+    zh = torch.where(hit & fg, z, torch.full_like(z, float("inf")))
+    zmin = -F.max_pool2d(-zh[:, None], 3, stride=1, padding=1)[:, 0]  # [V, H, W], inf where no head point near
+    out = torch.zeros(v, h, w, dtype=torch.bool)
+    for s in range(v):
+        idx = take[s].reshape(-1).nonzero()[:, 0]
+        if len(idx) == 0:
+            continue
+        p = pts[s].reshape(-1, 3)[idx]
+        bad = torch.zeros(len(idx), dtype=torch.bool)
+        for r in range(nv):
+            if r == s:
+                continue
+            uv, zr = cams[r].project(p)
+            x, y = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+            inside = (x >= 0) & (x < w) & (y >= 0) & (y < h) & (zr > 0)
+            xi, yi = x.clamp(0, w - 1), y.clamp(0, h - 1)
+            on = hit[r, yi, xi] & fg[r, yi, xi]
+            bad |= inside & on & (zr < zmin[r, yi, xi] - tol_m)
+        out[s].view(-1)[idx] = bad
+    return out

@@ -52,6 +52,8 @@ SHELL_CARVE_DILATE_PX = -2  # reconstruct(): the back-of-head shell is carved in
 OFF_HEAD_HULL_COLLAR = False  # reconstruct() with gaussians.off_head_hull: also move the mesh's own pixels below its neck ring whose point is outside the other views' hull (model/surface.py off_head_on_hull)
 OFF_HEAD_HULL_DILATE_PX = 2  # ... the other views' mattes dilated by this many pixels
 OFF_HEAD_HULL_FREE_TOL_M = None  # ... and, when set (metres), the space in front of the head each other view sees is empty (up to this tolerance)
+OFF_HEAD_BEHIND_M = 0.02  # reconstruct() with gaussians.off_head_draw="behind": metres the off-head pixels move back along their ray (model/surface.py off_head_draw_flags)
+OFF_HEAD_COVER_TOL_M = 0.01  # ... "drop" / "cover_sharp": metres in front of another view's head a point must lie to count as a smear
 
 ASSET_MODELS_DIR = Path(__file__).resolve().parent.parent / "assets" / "models"
 CONFIG_NAME = "config.json"
@@ -528,6 +530,9 @@ class FastGHA(nn.Module):
         (``config.gaussians.hair_fit``, ``surface.fit_hair_thickness``), and with
         ``config.gaussians.off_head_hull`` (off by default) the pixels off the head move onto the
         visual hull of the other inputs' mattes (``surface.off_head_on_hull``); with
+        ``config.gaussians.off_head_draw="under"`` (the default) the off-head pixels' Gaussians are
+        recorded (``ViewBlend.under``) and drawn under the others in every frame
+        (``viewblend.push_under``; other modes: ``surface.off_head_draw_flags``); with
         ``config.gaussians.grazing_stretch > 0`` (off by default) the Gaussians of pixels just behind an
         occluding edge of the head (the far side of the nose ridge), which see it at a grazing angle,
         are lengthened along it to cover their patch of skin (``surface.stretch_to_patches``).
@@ -598,6 +603,11 @@ class FastGHA(nn.Module):
                                       OFF_HEAD_HULL_DILATE_PX, free_tol_m=OFF_HEAD_HULL_FREE_TOL_M)
             if self.config.gaussians.stereo_depth_mm > 0 and surface_mode == "replace" and v > 1:  # the on-head pixels where the photos agree (model/stereo.py)
                 sd = self._stereo_depth(images, cameras, sd)
+            if self.config.gaussians.off_head_draw == "behind" and surface_mode == "replace":  # off-head pixels further back (model/surface.py off_head_draw_flags)
+                from .gaussian_head import foreground_weight
+                from .surface import off_head_draw_flags
+
+                sd, _ = off_head_draw_flags(sd, cameras, foreground_weight(images.float()), "behind", behind_m=OFF_HEAD_BEHIND_M)
             ray_depth = sd.t[None]
             if surface_mode == "blend":
                 from .surface import blend_network_depth
@@ -641,6 +651,12 @@ class FastGHA(nn.Module):
                 g = g.replace(colors=g.colors[src])
             else:
                 raise ValueError(f"reconstruct: gaussians.edge_mode must be 'colour' or 'fade', got {mode!r}")
+        off_sharp = None
+        if surface is not None and surface_mode == "replace" and self.config.gaussians.off_head_draw not in ("off", "behind"):  # off-head Gaussians across another view's head (model/surface.py off_head_draw_flags)
+            from .gaussian_head import foreground_weight
+            from .surface import off_head_draw_flags
+
+            sd, off_sharp = off_head_draw_flags(sd, cameras, foreground_weight(images.float()), self.config.gaussians.off_head_draw, v_real, tol_m=OFF_HEAD_COVER_TOL_M)
         if surface is not None:  # off the head next to the face is air: drop what a matte left there
             g = g.replace(opacities=g.opacities * (~sd.beyond_face).reshape(-1).to(dev, g.opacities.dtype))
         cover = self.config.gaussians.coverage_target
@@ -677,7 +693,7 @@ class FastGHA(nn.Module):
         if thr > 0:
             keep = g.opacities >= thr
             g, view_index = g[keep], view_index[keep]
-        blend = None
+        blend = under = None
         if blend_data is not None:
             c32, fg, depth = blend_data
             mask = coverage_masks(g.means, c32, fg, depth, view_index)
@@ -690,11 +706,22 @@ class FastGHA(nn.Module):
                     g.means, g.colors, view_index, mask, c32, images.to(dev, torch.float32), surface.centre, views=v_real,
                     gain_deg=self.config.gaussians.head_on_gain_deg, colour_tol=tol,
                 )  # fmt: skip
+            if off_sharp is not None:  # off-head Gaussians drawn near their own camera only (off_head_draw)
+                os_ = off_sharp.reshape(-1).to(dev)[keep] if thr > 0 else off_sharp.reshape(-1).to(dev)
+                if self.config.gaussians.off_head_draw == "headon_sharp" and v_real > 1:  # ... only where a covering real view sees their point more head-on
+                    from .viewblend import contradicted_by_head_on_view
+
+                    os_ = os_ & contradicted_by_head_on_view(g.means, g.colors, view_index, mask, c32, images.to(dev, torch.float32), surface.centre, views=v_real,
+                                                             gain_deg=self.config.gaussians.head_on_gain_deg, colour_tol=-1.0)
+                if self.config.gaussians.off_head_draw == "under":  # ... or drawn under the others in every frame instead
+                    under = os_
+                else:
+                    sharp = os_ if sharp is None else sharp | os_
             offsets = None
             if v > v_real and self.config.gaussians.mirror_blend_offset_deg > 0:  # mirrored views count as further from every render camera
                 offsets = torch.zeros(v, device=dev)
                 offsets[v_real:] = float(self.config.gaussians.mirror_blend_offset_deg)
-            blend = ViewBlend(view_index.to(torch.int8), mask, view_directions(c32), offsets, sharp, self.config.gaussians.head_on_tau_scale)
+            blend = ViewBlend(view_index.to(torch.int8), mask, view_directions(c32), offsets, sharp, self.config.gaussians.head_on_tau_scale, under)
         prior, n_int = None, 0
         if self.config.deform.prior:
             n_rec = len(g)
@@ -918,6 +945,13 @@ class FastGHA(nn.Module):
         f = vb.to(g.opacities.device).factors(camera, tau).to(g.opacities.dtype)
         op = g.opacities.clone()
         op[:n] = op[:n] * f
+        if vb.under is not None:  # off-head Gaussians drawn under the others for this camera (model/viewblend.py push_under)
+            from .viewblend import push_under
+
+            sel = torch.zeros(len(g), dtype=torch.bool, device=g.means.device)
+            sel[:n] = vb.under.to(g.means.device)
+            means, scales = push_under(g.means, g.scales, camera, sel)
+            return g.replace(opacities=op, means=means, scales=scales)
         return g.replace(opacities=op)
 
 

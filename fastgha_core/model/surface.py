@@ -949,3 +949,59 @@ def off_head_on_hull(sd: SurfaceDepth, surface: HeadSurface, cameras: Cameras, f
         ok = moved & torch.isfinite(tn)
         t[ok] = tn[ok]
     return SurfaceDepth(t.to(sd.t), sd.hit, sd.beyond_face, sd.face_hit)
+
+
+OFF_HEAD_DRAW_MODES = ("off", "behind", "drop", "sharp", "headon_sharp", "cover_sharp", "under")
+
+
+def off_head_draw_flags(sd: SurfaceDepth, cameras: Cameras, foreground: Tensor, mode: str, views: int | None = None,
+                        behind_m: float = 0.02, tol_m: float = 0.01) -> tuple[SurfaceDepth, Tensor | None]:
+    """Where and when the off-head pixels' Gaussians are drawn (``GaussianHeadConfig.off_head_draw``).
+
+    The off-head pixels are those of each view's matte (``foreground > 0.5``) whose ray misses the
+    head (``~sd.hit``, not ``beyond_face``): ``surface_ray_depth`` lays them at the nearest head
+    pixel's distance, and seen from another input camera some of them lie across that view's face
+    (``docs/model-card.md`` "Off-head pixels on the photos' visual hull"). ``mode``:
+
+    - ``"off"``: unchanged (``sd``, None).
+    - ``"behind"``: their distance along their own ray grows by ``behind_m`` metres: their own view
+      sees them where it did, other views see them further back, behind the face's outline.
+    - ``"drop"``: those in front of another real view's head (``coverage.in_front_of_other_heads``,
+      judged by the first ``views`` views, tolerance ``tol_m``) are marked ``beyond_face``, so
+      ``reconstruct`` drops their Gaussians.
+    - ``"sharp"``: all of them are returned as the sharp map (drawn near their own camera only,
+      ``viewblend.ViewBlend.sharp``).
+    - ``"headon_sharp"``: as ``"sharp"``; ``reconstruct`` keeps only those a covering real view sees
+      at least ``gaussians.head_on_gain_deg`` more head-on (``viewblend.contradicted_by_head_on_view``
+      with any colour counting as a contradiction).
+    - ``"cover_sharp"``: those in front of another real view's head are the sharp map.
+    - ``"under"``: all of them are returned as the map; ``reconstruct`` records it as
+      ``ViewBlend.under``: in every frame they are drawn under the other Gaussians (where the head
+      leaves the frame uncovered), ``viewblend.push_under``.
+
+    Args:
+        sd: ``surface_ray_depth`` of ``V`` views at ``cameras [V]`` (``W x H``), mirrored views included.
+        foreground: ``[V, H, W]`` in [0, 1].
+    Returns:
+        ``(sd', sharp)``: the (possibly changed) ``SurfaceDepth`` and a ``bool [V, H, W]`` map of the
+        pixels whose Gaussians are to be drawn sharply, or None.
+    Raises:
+        ValueError: on an unknown mode.
+    """
+    if mode not in OFF_HEAD_DRAW_MODES:
+        raise ValueError(f"off_head_draw_flags: mode must be one of {OFF_HEAD_DRAW_MODES}, got {mode!r}")
+    if mode == "off":
+        return sd, None
+    off = ~sd.hit.cpu() & ~sd.beyond_face.cpu() & (foreground.detach().float().cpu() > 0.5)
+    if mode == "behind":
+        t = sd.t.clone()
+        t[off.to(t.device)] += float(behind_m)
+        return SurfaceDepth(t, sd.hit, sd.beyond_face, sd.face_hit), None
+    if mode in ("sharp", "headon_sharp", "under"):
+        return sd, off
+    from .coverage import in_front_of_other_heads
+
+    bad = in_front_of_other_heads(sd.t, sd.hit, off, cameras, foreground, views, tol_m)
+    if mode == "drop":
+        return SurfaceDepth(sd.t, sd.hit, sd.beyond_face | bad.to(sd.beyond_face.device), sd.face_hit), None
+    return sd, bad

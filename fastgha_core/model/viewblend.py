@@ -21,6 +21,11 @@ the Gaussian of the closest covering view keeps its opacity.
 Per frame the cost is ``V`` angles, a table of the minimum over the ``2^V <= 256`` masks, and
 two gathers, an ``exp`` and a product over the ``N`` reconstructed Gaussians.
 
+Gaussians flagged ``under`` (the off-head pixels' Gaussians, ``GaussianHeadConfig.off_head_draw``)
+are also moved per frame 1 m deeper along the frame camera's rays and scaled with their distance
+(``push_under``): they look the same, but every other Gaussian is composited over them, so they
+show only where the head leaves the frame uncovered (hair beside the face, not streaked across it).
+
 Conventions: cameras are ``fastgha_core.cameras.Cameras`` (OpenCV, pixel corners at integer
 coordinates); masks are ``uint8`` with bit ``v`` for input view ``v``, so at most 8 views.
 """
@@ -35,9 +40,10 @@ from torch import Tensor
 
 from ..cameras import Cameras
 
-__all__ = ["ViewBlend", "angles_deg", "contradicted_by_head_on_view", "blend_factors", "coverage_masks", "min_angle_table", "view_depth_maps", "view_directions", "MAX_BLEND_VIEWS", "COVER_DEPTH_TOL_M"]
+__all__ = ["ViewBlend", "angles_deg", "contradicted_by_head_on_view", "blend_factors", "coverage_masks", "min_angle_table", "view_depth_maps", "view_directions", "MAX_BLEND_VIEWS", "COVER_DEPTH_TOL_M", "UNDER_PUSH_M", "push_under"]
 
 MAX_BLEND_VIEWS = 8  # coverage masks are uint8
+UNDER_PUSH_M = 1.0  # push_under: metres the "under" Gaussians move further from the frame's camera (more than a head's depth)
 COVER_DEPTH_TOL_M = 0.015  # a point counts as seen by a view if at most this far behind that view's surface (metres)
 
 
@@ -162,6 +168,10 @@ class ViewBlend:
             seen from their own camera (an overhang, hair the head model lacks), drawn fully there
             and fading fast away from it (the judging view covers their point).
         sharp_scale: the fall-off factor of the ``sharp`` Gaussians (0 < scale <= 1).
+        under: ``bool [N]`` (None: none) Gaussians drawn *under* the others in every frame: moved
+            ``UNDER_PUSH_M`` further from the frame's camera along its rays and scaled with their
+            distance, so that they look the same but every other Gaussian is composited over them
+            (``push_under``; the off-head pixels' Gaussians, ``GaussianHeadConfig.off_head_draw``).
     """
 
     source_view: Tensor
@@ -170,6 +180,7 @@ class ViewBlend:
     offsets: Tensor | None = None
     sharp: Tensor | None = None
     sharp_scale: float = 0.25
+    under: Tensor | None = None
 
     def __post_init__(self) -> None:
         n, v = self.source_view.shape[0], self.directions.shape[0]
@@ -184,6 +195,8 @@ class ViewBlend:
             raise ValueError(f"ViewBlend: offsets must be [V={v}] finite degrees >= 0, got {self.offsets.tolist()}")
         if self.sharp is not None and (self.sharp.shape != (n,) or self.sharp.dtype != torch.bool):
             raise ValueError(f"ViewBlend: sharp must be bool [N={n}], got {self.sharp.dtype} {list(self.sharp.shape)}")
+        if self.under is not None and (self.under.shape != (n,) or self.under.dtype != torch.bool):
+            raise ValueError(f"ViewBlend: under must be bool [N={n}], got {self.under.dtype} {list(self.under.shape)}")
         if not 0 < float(self.sharp_scale) <= 1:
             raise ValueError(f"ViewBlend: sharp_scale must be in (0, 1], got {self.sharp_scale}")
 
@@ -219,17 +232,19 @@ class ViewBlend:
         """Bytes held once a frame has been drawn: the tensors and the cached int64 pair index."""
         extra = 0 if self.offsets is None else self.offsets.numel() * self.offsets.element_size()
         extra += 0 if self.sharp is None else self.sharp.numel()
+        extra += 0 if self.under is None else self.under.numel()
         return sum(t.numel() * t.element_size() for t in (self.source_view, self.mask, self.directions)) + 8 * len(self) + extra
 
     def subset(self, keep: Tensor) -> "ViewBlend":
-        return ViewBlend(self.source_view[keep], self.mask[keep], self.directions, self.offsets, None if self.sharp is None else self.sharp[keep], self.sharp_scale)
+        return ViewBlend(self.source_view[keep], self.mask[keep], self.directions, self.offsets, None if self.sharp is None else self.sharp[keep], self.sharp_scale,
+                         None if self.under is None else self.under[keep])
 
     def to(self, device) -> "ViewBlend":
         if self.mask.device == torch.device(device):
             return self  # keeps the cached pair index
         return ViewBlend(
             self.source_view.to(device), self.mask.to(device), self.directions.to(device), None if self.offsets is None else self.offsets.to(device),
-            None if self.sharp is None else self.sharp.to(device), self.sharp_scale,
+            None if self.sharp is None else self.sharp.to(device), self.sharp_scale, None if self.under is None else self.under.to(device),
         )  # fmt: skip
 
     def tensors(self) -> dict[str, Tensor]:
@@ -239,6 +254,8 @@ class ViewBlend:
         if self.sharp is not None:
             out["view.sharp"] = self.sharp.to(torch.uint8)
             out["view.sharp_scale"] = torch.tensor([float(self.sharp_scale)])
+        if self.under is not None:
+            out["view.under"] = self.under.to(torch.uint8)
         return out
 
     @staticmethod
@@ -250,9 +267,10 @@ class ViewBlend:
         off = t.get("view.offsets")  # absent in files without mirrored views' offsets
         sharp = t.get("view.sharp")  # absent in files without contradicted Gaussians
         scale = t.get("view.sharp_scale")
+        under = t.get("view.under")  # absent in files without Gaussians drawn under the others
         b = ViewBlend(
             t[keys[0]].to(torch.int8), t[keys[1]].to(torch.uint8), t[keys[2]].float(), None if off is None else off.float(),
-            None if sharp is None else sharp.bool(), 0.25 if scale is None else float(scale.reshape(-1)[0]),
+            None if sharp is None else sharp.bool(), 0.25 if scale is None else float(scale.reshape(-1)[0]), None if under is None else under.bool(),
         )  # fmt: skip
         if len(b) != n:
             raise ValueError(f"avatar view blend must cover the {n} reconstructed Gaussians, got {len(b)}")
@@ -351,3 +369,41 @@ def contradicted_by_head_on_view(
         seen[sel] = F.grid_sample(images[r : r + 1].to(pts.device, torch.float32), grid, mode="bilinear", align_corners=False, padding_mode="border")[0, :, 0].T
     out[idx] = (seen - colors[idx].float().to(pts.device)).abs().amax(-1) > colour_tol
     return out
+
+
+def push_under(means: Tensor, scales: Tensor, camera: Cameras, select: Tensor, push_m: float = UNDER_PUSH_M) -> tuple[Tensor, Tensor]:
+    """The ``select``-ed Gaussians moved ``push_m`` metres deeper along ``camera``'s rays, looking the same.
+
+    Each selected Gaussian is scaled about the camera centre by ``k = (z + push_m) / z`` (``z`` its
+    camera-space depth): its mean goes to ``c + k (mean - c)`` and its scales are multiplied by
+    ``k``. Under a perspective camera its projection is unchanged (the EWA splat's 2D covariance
+    ``J Sigma J^T`` is invariant: ``Sigma`` scales by ``k^2``, the Jacobian ``J`` by ``1/k``), but it is
+    now ``push_m`` deeper, so a depth-sorting rasteriser composites every Gaussian less than
+    ``push_m`` behind its old depth over it: for the frame, it is drawn *under* the others (only
+    where they leave the pixel uncovered). Gaussians behind the camera (``z <= 0``) are not moved.
+
+    Args:
+        means ``[N, 3]``, scales ``[N, 3]``: world / head frame, metres.
+        camera: one camera (batch ``[1]`` or ``[]``; OpenCV, ``cameras.py``).
+        select: ``bool [N]``.
+    Returns:
+        ``(means, scales)``, new tensors.
+    Raises:
+        ValueError: on mismatched shapes or ``push_m < 0``.
+    """
+    if means.shape != scales.shape or means.ndim != 2 or means.shape[-1] != 3 or select.shape != means.shape[:1]:
+        raise ValueError(f"push_under: means, scales [N, 3] and select [N] expected, got {list(means.shape)}, {list(scales.shape)}, {list(select.shape)}")
+    if push_m < 0:
+        raise ValueError(f"push_under: push_m must be >= 0, got {push_m}")
+    cam = camera.flatten()[0] if camera.batch_shape.numel() == 1 and len(camera.batch_shape) else camera
+    cam = cam.to(means.device, means.dtype)
+    idx = select.to(means.device).nonzero()[:, 0]  # only the selected ones are touched (a few thousand per frame)
+    m = means[idx]
+    z = cam.world_to_camera(m)[..., 2]
+    k = torch.where(z > 0, (z + float(push_m)) / z.clamp_min(1e-9), torch.ones_like(z))[:, None]
+    c = cam.centers.reshape(3)
+    out_m, out_s = means.clone(), scales.clone()
+    out_m[idx] = c + k * (m - c)
+    out_s[idx] = scales[idx] * k
+    return out_m, out_s
+
