@@ -3,13 +3,15 @@
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 import torch
 
 from fastgha_core.cameras import Cameras
 from fastgha_core.model.coverage import in_front_of_other_heads
-from fastgha_core.model.surface import HeadSurface, _mattes, off_head_draw_flags, surface_ray_depth
+from fastgha_core.model.surface import off_head_draw_flags
+import test_surface_hull
+
+head_case = test_surface_hull.head_case  # the tracked head seen from 0 / +-60 degrees, its mattes widened by 6 px: one fixture for the off-head tests
 
 
 def _two_views(size=64):
@@ -43,27 +45,6 @@ def test_a_point_in_front_of_another_views_head_is_flagged_one_behind_it_is_not(
     assert not bool(in_front_of_other_heads(t, hit, take, cams, fg2).any())
     with pytest.raises(ValueError, match="take"):
         in_front_of_other_heads(t, hit, take[:1], cams, fg)
-
-
-def _head_cams(yaws_deg, size=128, dist=0.7):
-    from fastgha_core.tracking.camera import pose_to_cameras
-    from fastgha_core.tracking.fit import FRONTAL_R, default_intrinsics, rodrigues
-
-    R = np.stack([FRONTAL_R @ rodrigues(np.array([0.0, np.radians(y), 0.0])) for y in yaws_deg])
-    t = np.tile([0.0, -0.06, dist], (len(yaws_deg), 1))
-    return pose_to_cameras(R, t, default_intrinsics(size, size, 30.0), size, size)
-
-
-@pytest.fixture(scope="module")
-def head_case():
-    rng = np.random.default_rng(3)
-    ident = np.zeros(100, np.float32)
-    ident[:20] = rng.standard_normal(20) * 0.7
-    surface = HeadSurface(ident, np.zeros((3, 53), np.float32))
-    cams = _head_cams([0.0, 60.0, -60.0])
-    sd = surface_ray_depth(surface, cams)
-    fg = _mattes(sd.hit.float(), 6).float()  # the person: the head widened by 6 pixels (hair the mesh lacks)
-    return surface, cams, sd, fg
 
 
 def test_modes_change_only_the_off_head_pixels(head_case):
