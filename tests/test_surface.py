@@ -13,10 +13,11 @@ from fastgha_core.tracking.fit import FRONTAL_R, default_intrinsics, rodrigues
 from extras import needs_faces
 
 
-def _cameras(yaws_deg, size=128, dist=0.6):
-    """Head-centric cameras looking at the head from ``yaws_deg`` (OpenCV, world = head frame)."""
+def _cameras(yaws_deg, size=128, dist=0.6, drop_m=0.01):
+    """Head-centric cameras looking at the head from ``yaws_deg`` (OpenCV, world = head frame), the
+    head ``dist`` metres in front and ``drop_m`` below each camera's optical axis (camera y down)."""
     R = np.stack([FRONTAL_R @ rodrigues(np.array([0.0, np.radians(y), 0.0])) for y in yaws_deg])
-    t = np.tile([0.0, 0.01, dist], (len(yaws_deg), 1))
+    t = np.tile([0.0, drop_m, dist], (len(yaws_deg), 1))
     return pose_to_cameras(R, t, default_intrinsics(size, size, 30.0), size, size)
 
 

@@ -16,16 +16,9 @@ from fastgha_core.model.surface import (
     hair_vertex_weight,
     surface_ray_depth,
 )
-from fastgha_core.tracking.camera import pose_to_cameras
-from fastgha_core.tracking.fit import FRONTAL_R, default_intrinsics, rodrigues
 from test_mirror import _with  # the config-override context (one definition for the reconstruct tests)
+from test_surface import _cameras  # head-centric cameras around the head (one definition for the surface tests)
 from test_surface_coverage import _head_masks  # the fitted head's silhouette per view, as mattes
-
-
-def _cameras(yaws_deg, size=128, dist=0.6):
-    R = np.stack([FRONTAL_R @ rodrigues(np.array([0.0, np.radians(y), 0.0])) for y in yaws_deg])
-    t = np.tile([0.0, 0.01, dist], (len(yaws_deg), 1))
-    return pose_to_cameras(R, t, default_intrinsics(size, size, 30.0), size, size)
 
 
 @pytest.fixture(scope="module")

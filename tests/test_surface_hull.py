@@ -17,6 +17,7 @@ from fastgha_core.model.surface import (
     off_head_on_hull,
     surface_ray_depth,
 )
+from test_surface import _cameras  # head-centric cameras around the head (one definition for the surface tests)
 
 R_SPHERE = 0.1  # metres, at the origin
 
@@ -171,22 +172,13 @@ def test_beyond_the_image_the_matte_continues_from_its_border():
 # ---------------------------------------------------------------- on the tracked head
 
 
-def _head_cams(yaws_deg, size=128, dist=0.7):
-    from fastgha_core.tracking.camera import pose_to_cameras
-    from fastgha_core.tracking.fit import FRONTAL_R, default_intrinsics, rodrigues
-
-    R = np.stack([FRONTAL_R @ rodrigues(np.array([0.0, np.radians(y), 0.0])) for y in yaws_deg])
-    t = np.tile([0.0, -0.06, dist], (len(yaws_deg), 1))
-    return pose_to_cameras(R, t, default_intrinsics(size, size, 30.0), size, size)
-
-
 @pytest.fixture(scope="module")
 def head_case():
     rng = np.random.default_rng(3)
     ident = np.zeros(100, np.float32)
     ident[:20] = rng.standard_normal(20) * 0.7
     surface = HeadSurface(ident, np.zeros((3, 53), np.float32))
-    cams = _head_cams([0.0, 60.0, -60.0])
+    cams = _cameras([0.0, 60.0, -60.0], dist=0.7, drop_m=-0.06)
     sd = surface_ray_depth(surface, cams)
     # the person: the head, widened by 6 pixels (hair, a scarf: what the mesh does not hold), and in
     # the frontal view a strip below the image's middle too wide for any other view to hold
