@@ -229,6 +229,13 @@ class SurfaceDepth:
     beyond_face: Tensor  # [V, H, W] bool: off the head, next to the face's outline (air: no Gaussian)
     face_hit: Tensor | None = None  # [V, H, W] bool: hit pixels on the bare face (front_face_vertex_mask)
 
+    def off_head(self, foreground: Tensor) -> Tensor:
+        """``bool [V, H, W]`` (CPU): the off-head pixels, those inside their view's matte
+        (``foreground [V, H, W] > 0.5``) whose ray misses the head and that are not ``beyond_face``:
+        ``surface_ray_depth`` gives them the nearest head pixel's distance (``off_head_on_hull``,
+        ``off_head_draw_flags``)."""
+        return ~self.hit.cpu() & ~self.beyond_face.cpu() & (foreground.detach().float().cpu() > 0.5)
+
 
 def front_face_vertex_mask(head) -> np.ndarray:
     """``[Nv]`` bool: ICT-FaceKit face-mesh vertices of the bare face: in front of the jaw-line's first
@@ -924,7 +931,7 @@ def off_head_on_hull(sd: SurfaceDepth, surface: HeadSurface, cameras: Cameras, f
     fg = foreground.detach().float().cpu()
     t0 = sd.t.float().cpu()
     centre = surface.centre
-    take = ~sd.hit.cpu() & ~sd.beyond_face.cpu() & (fg > 0.5)
+    take = sd.off_head(fg)
     t = t0.clone()
     free = {} if free_tol_m is None else {"solid": sd.hit.cpu(), "solid_t": t0, "free_tol_m": free_tol_m}
     th = hull_ray_depth(cams, fg, take, centre, prefer=t0 if mode == "nearest" else None, dilate_px=dilate_px, beyond=beyond, middle=mode == "middle", **free)
@@ -992,7 +999,7 @@ def off_head_draw_flags(sd: SurfaceDepth, cameras: Cameras, foreground: Tensor, 
         raise ValueError(f"off_head_draw_flags: mode must be one of {OFF_HEAD_DRAW_MODES}, got {mode!r}")
     if mode == "off":
         return sd, None
-    off = ~sd.hit.cpu() & ~sd.beyond_face.cpu() & (foreground.detach().float().cpu() > 0.5)
+    off = sd.off_head(foreground)
     if mode == "behind":
         t = sd.t.clone()
         t[off.to(t.device)] += float(behind_m)
