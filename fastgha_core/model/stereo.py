@@ -113,18 +113,17 @@ def band_pass(images: Tensor, blur_px: float, mask: Tensor | None = None) -> Ten
     exposure and shading differences between photos. With ``mask [V, H, W]`` (0..1, the matte) the
     blur is a normalised convolution over the masked pixels only and the result is 0 outside, so a
     matte's outline (an occluding contour, different in every view) is not taken for texture."""
-    g = (0.299 * images[:, 0] + 0.587 * images[:, 1] + 0.114 * images[:, 2]).float()
+    from kornia.color import rgb_to_grayscale
+    from kornia.filters import gaussian_blur2d
+
+    g = rgb_to_grayscale(images.float())[:, 0]
     m = torch.ones_like(g) if mask is None else mask.float()
     if blur_px <= 0:
         return (g - (g * m).sum(dim=(-1, -2), keepdim=True) / m.sum(dim=(-1, -2), keepdim=True).clamp_min(1e-6)) * m
     r = max(1, int(3 * blur_px + 0.5))
-    x = torch.arange(-r, r + 1, dtype=torch.float32)
-    k = torch.exp(-0.5 * (x / blur_px) ** 2)
-    k = k / k.sum()
 
     def blur(a: Tensor) -> Tensor:
-        p = F.pad(a[:, None], (r, r, r, r), mode="reflect")
-        return F.conv2d(F.conv2d(p, k.view(1, 1, 1, -1)), k.view(1, 1, -1, 1))[:, 0]
+        return gaussian_blur2d(a[:, None], (2 * r + 1, 2 * r + 1), (blur_px, blur_px), border_type="reflect")[:, 0]
 
     low = blur(g * m) / blur(m).clamp_min(1e-6)
     return (g - low) * (m > 0.5)
