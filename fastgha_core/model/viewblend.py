@@ -276,8 +276,11 @@ class ViewBlend:
         extra += 0 if self.sharp is None else self.sharp.numel()
         extra += 0 if self.under is None else self.under.numel()
         extra += 0 if self.expressions is None else self.expressions.numel() * 4
-        pen = self.__dict__.get("_expr")
-        extra += 0 if pen is None else pen.nbytes
+        pen = self.__dict__.get("_expr")  # the expression penalty's tables: as built, or at most this before the first frame
+        if pen is not None:
+            extra += pen.nbytes
+        elif self.expressions is not None:
+            extra += ExpressionPenalty.estimate_nbytes(len(self), self.directions.shape[0])
         return sum(t.numel() * t.element_size() for t in (self.source_view, self.mask, self.directions)) + 8 * len(self) + extra
 
     def subset(self, keep: Tensor) -> "ViewBlend":
@@ -339,9 +342,9 @@ class ExpressionPenalty:
         dv: ``[3, M, V]`` each view's expression's prior displacement at the Gaussian (metres),
             coordinate-major (three contiguous ``[M, V]`` planes: the per-frame distances without a
             strided ``[M, V, 3]`` reduction).
-        basis: ``[E, Us*3]`` the blendshapes of the ``Us`` head-model vertices these Gaussians are
-            bound to, in the fit's frame; W: ``[M, Us]`` sparse CSR, each row the Gaussian's three
-            barycentric x fade weights (``prior.PriorRuntime``'s layout, restricted to these).
+        basis: ``[E, Uc*4]`` the prior runtime's own compact basis (``PriorRuntime.compact``: per slot
+            the blendshape displacement in the fit's frame and the shading; shared, not copied); W:
+            ``[M, Uc]`` sparse CSR, each row the Gaussian's three barycentric x fade weights on its slots.
         runtime: the ``PriorRuntime`` this was built from (the cache key).
         hide: ``[M, V]`` bool: view ``v``'s Gaussians at this point fade as the mouth opens (the lips of
             an open-mouthed view, ``prior.hide_open_lips``): per frame ``-ln(1 - gate)`` is added to
@@ -389,12 +392,13 @@ class ExpressionPenalty:
         spread = torch.where(bits.T, (dv_all - ds[None]).norm(dim=-1), torch.zeros((), device=dev)).amax(dim=0)  # [N]
         idx = (own & (spread > float(spread_min_m))).nonzero()[:, 0]
         m = len(idx)
-        used, inv = torch.unique(slots_all[idx].reshape(-1), return_inverse=True)
-        basis = (bu.view(e, -1, 3)[:, used.to(bu.device)] @ runtime.M.T).reshape(e, -1).to(dev, torch.float32).contiguous()
+        basis, cslots = runtime.compact  # [E, Uc*4], [N_all, 3]
+        basis = basis.to(dev, torch.float32)
         with warnings.catch_warnings():  # torch marks CSR tensors "beta"; this one is valid by construction
             warnings.simplefilter("ignore", UserWarning)
             W = torch.sparse_csr_tensor(
-                torch.arange(0, 3 * m + 1, 3, dtype=torch.int64, device=dev), inv.reshape(-1).to(dev), coef_all[idx].reshape(-1), size=(m, len(used)), check_invariants=False
+                torch.arange(0, 3 * m + 1, 3, dtype=torch.int64, device=dev), cslots[:n].to(dev).long()[idx].reshape(-1), coef_all[idx].reshape(-1),
+                size=(m, basis.shape[1] // 4), check_invariants=False,
             )  # fmt: skip
         sharp = blend.sharp.to(dev)[idx] if blend.sharp is not None else torch.zeros(m, dtype=torch.bool, device=dev)
         hide = None
@@ -417,14 +421,20 @@ class ExpressionPenalty:
 
     @property
     def nbytes(self) -> int:
+        """Bytes of these tables (the runtime's compact basis not counted: ``PriorRuntime.estimate_nbytes``)."""
         extra = 0 if self.hide is None else self.hide.numel()
-        extra += 12 * len(self) + 8 * (len(self) + 1)  # W: 3 columns (int64) and weights a row, row pointers
-        return extra + sum(t.numel() * t.element_size() for t in (self.idx, self.source, self.cover, self.sharp, self.dv, self.basis))
+        extra += 36 * len(self) + 8 * (len(self) + 1)  # W: 3 columns (int64) and 3 weights a row, row pointers
+        return extra + sum(t.numel() * t.element_size() for t in (self.idx, self.source, self.cover, self.sharp, self.dv))
+
+    @staticmethod
+    def estimate_nbytes(n: int, v: int) -> int:
+        """An upper bound of ``nbytes`` for ``n`` Gaussians and ``v`` views (every Gaussian penalised)."""
+        return n * (8 + 8 + 2 * v + 1 + 12 * v + 36) + 8 * (n + 1)
 
     def frame_displacement(self, expression: Tensor) -> Tensor:
         """``[M, 3]`` the prior displacement ``D_g e`` of ``expression [E]`` at these Gaussians (metres)."""
         z = torch.as_tensor(expression, dtype=torch.float32).to(self.basis.device).reshape(-1)
-        return self.W @ (z @ self.basis).view(-1, 3)  # [Us, 3] -> [M, 3]
+        return self.W @ (z @ self.basis).view(-1, 4)[:, :3].contiguous()  # [Uc, 3] -> [M, 3]
 
     def penalties_mm(self, expression: Tensor) -> Tensor:
         """``[M, V]`` ``|D_g (e_frame - e_v)|`` in millimetres."""
