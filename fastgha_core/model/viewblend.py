@@ -382,7 +382,6 @@ class ExpressionPenalty:
             raise ValueError(f"ExpressionPenalty: the blend's expressions must be [V={v}, E={e}]")
         if runtime.n < n:
             raise ValueError(f"ExpressionPenalty: the prior runtime holds {runtime.n} Gaussians, the blend {n}")
-        slots_all = runtime.local.view(runtime.n, 3)[:n].to(dev)
         coef_all = runtime.coef3[:n].to(dev, torch.float32)
         dv_all = runtime.displacement(blend.expressions.to(bu.device, bu.dtype))[:, :n].to(dev, torch.float32)  # [V, N, 3]
         sv = blend.source_view.to(dev).long()
