@@ -20,8 +20,8 @@ Face Mesh points on the far side of the head get ``occluded_weight`` (``visibili
 
 Stages: a rigid-only fit per photo (pose only) from five yaw guesses (-60 .. +60 degrees) keeps
 the best; the joint fit; for the Face Mesh layout, ``yaw_map_rounds`` rounds that re-tie each
-photo's points to the vertices the detector lands on at its current yaw (``meshmap``'s yaw
-table); for the Face Mesh layout without a warm start, a re-pose (identity and expressions fixed)
+photo's points to the vertices the detector lands on at its current yaw and pitch (``meshmap``'s
+pose table; the pitch clipped to ``[pitch_map_min_deg, pitch_map_max_deg]``); for the Face Mesh layout without a warm start, a re-pose (identity and expressions fixed)
 of the photos turned beyond the fit's saturation towards the yaw regressed from the 2D layout
 (``yawprior.py``, ``FitConfig.yaw_prior``); optionally the outline of a person mask for side
 views (``silhouette.py``).

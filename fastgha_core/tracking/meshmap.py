@@ -17,11 +17,14 @@ point is tied to one ICT vertex, computed once and shipped as
 3. Every Face Mesh point takes the nearest vertex of the fitted ICT face (vertices 0-9408);
    points farther than ``MAX_SNAP_MM`` are left out (none are, with these portraits).
 
-**Yaw-dependent map** (``assets/headmodel/mediapipe_ict_yaw.npz``, ``build_yaw_table``, rebuild
-with ``--yaw``): the Face Mesh squeezes the far half of a turned head onto the visible half, so
-beyond ~40 degrees its points no longer sit on the vertices above. On renders of synthetic ICT
-heads at known yaw (every 15 degrees) each point is tied to the surface point it actually lands
-on; the fitter re-chooses the table's bins by the current yaw (``FitConfig.yaw_map``).
+**Pose-dependent map** (``assets/headmodel/mediapipe_ict_pose.npz``, ``build_pose_table``, rebuild
+with ``--pose``, ~30 s): the Face Mesh squeezes the far half of a turned head onto the visible half,
+so beyond ~40 degrees its points no longer sit on the vertices above; on a pitched head its face
+outline (jaw line, chin) slides 1-2 cm along the surface. On renders of synthetic ICT heads at
+known yaw (every 15 degrees) and pitch (-30 .. +45, every 15) each point is tied to the surface
+point it actually lands on; the fitter re-chooses the table's cells by the current yaw and pitch
+(``FitConfig.yaw_map``, ``FitConfig.pitch_map``). Its pitch-0 row is the earlier yaw-only table
+(``build_yaw_table``, ``load_yaw_table``).
 
 MediaPipe's own depth places the face-outline points (which, in a frontal photo, lie on the
 cheeks' far slope): tying them instead to the ICT vertex seen at their image position under a
@@ -175,17 +178,14 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
 
 
 # ---------------------------------------------------------------------------- yaw-dependent map
 YAW_BINS = (-90.0, -75.0, -60.0, -45.0, -30.0, -15.0, 0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
-YAW_ASSET = MAP_ASSET.with_name("mediapipe_ict_yaw.npz")
 CALIBRATION_SEEDS = tuple(range(1_000_100, 1_000_108))  # synthetic held-out subjects (data/synthetic.py)
 
 
-PITCH_BINS = (-45.0, -30.0, -15.0, 0.0, 15.0, 30.0, 45.0)
+PITCH_BINS = (-30.0, -15.0, 0.0, 15.0, 30.0, 45.0)  # -45: the detector's chin outline lands on the chest, its mean hit is meaningless
 POSE_ASSET = MAP_ASSET.with_name("mediapipe_ict_pose.npz")
 
 
@@ -273,3 +273,7 @@ def build_pose_table(seeds=CALIBRATION_SEEDS, size: int = 512, fov_deg: float = 
     vertex[good] = tree.query(mean)[1]
     return {"yaw": np.array(yaw_bins, dtype=np.float64), "pitch": np.array(pitch_bins, dtype=np.float64), "vertex": vertex,
             "hits": cnt.astype(np.int16)}
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
