@@ -34,6 +34,8 @@ from .fit import FRONTAL_R, FitConfig, LandmarkModel, default_intrinsics, fit_la
 __all__ = ["evaluate", "random_subject", "rotation_error_deg"]
 
 FACE_VERTICES = (0, 9409)  # ICT face region (vertex ids), for the expression geometry error
+# the known expressions of ``evaluate_renders(expressions=...)`` / ``--known-expressions``
+KNOWN_EXPRESSIONS = {"neutral": {}, "smile": {"mouthSmile_L": 0.6, "mouthSmile_R": 0.6}, "jawOpen": {"jawOpen": 0.4}}
 
 
 def rotation_error_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
@@ -145,6 +147,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="instead: render this many synthetic heads at --yaws (default 0,30,60) and track them with MediaPipe")
     p.add_argument("--json", default=None, help="also write the per-render errors here")
     p.add_argument("--photo-align", action="store_true", help="with --through-detector: also register the poses photometrically (photoalign.py)")
+    p.add_argument("--pitches", default=None, help="with --through-detector: also render every yaw at these pitches (comma-separated degrees, + = nose up)")
+    p.add_argument("--known-expressions", action="store_true",
+                   help="with --through-detector: neutral, smile (mouthSmile_L/R 0.6) and jawOpen 0.4 instead of random codes, one joint fit per expression and yaw over the pitches")
+    p.add_argument("--no-pitch-map", action="store_true", help="fit with the pitch-0 row of the pose map only (FitConfig.pitch_map=False)")
+    p.add_argument("--pitch-map-min", type=float, default=None, help="FitConfig.pitch_map_min_deg (default 0: the pitched-down rows unused)")
     a = p.parse_args(argv)
     if a.through_detector:
         yaws = tuple(float(x) for x in (a.yaws or "0,30,60").split(","))
@@ -153,10 +160,19 @@ def main(argv: list[str] | None = None) -> int:
             from .photoalign import PhotoAlignConfig
 
             align = PhotoAlignConfig()
-        r = evaluate_renders(a.through_detector, yaws, a.seed, align=align)
-        print(f"{a.through_detector} synthetic subjects rendered at yaw {yaws}, MediaPipe landmarks, one joint fit per subject"
-              + (", poses registered photometrically" if align else ""))  # fmt: skip
+        pitches = tuple(float(x) for x in a.pitches.split(",")) if a.pitches else (0.0,)
+        cfg = FitConfig(pitch_map=not a.no_pitch_map)
+        if a.pitch_map_min is not None:
+            cfg.pitch_map_min_deg = a.pitch_map_min
+        r = evaluate_renders(a.through_detector, yaws, a.seed, align=align, pitches=pitches, config=cfg,
+                             expressions=KNOWN_EXPRESSIONS if a.known_expressions else None)  # fmt: skip
+        print(f"{a.through_detector} synthetic subjects rendered at yaw {yaws}, pitch {pitches}, MediaPipe landmarks, one joint fit per subject"
+              + (" and expression" if a.known_expressions else "") + (", poses registered photometrically" if align else ""))  # fmt: skip
         print(renders_table(r))
+        if len(pitches) > 1 or a.known_expressions:
+            print(pitch_table(r))
+            print(f"all views: |pitch err| mean {np.abs(r['pitch_err_deg']).mean():.2f}, |yaw err| mean {np.abs(r['yaw_err_deg']).mean():.2f}, "
+                  f"expr geometry {r['expr_geom_mm'].mean():.2f} mm, MAE {r['expr_abs'].mean():.3f}, largest code error mean {r['expr_abs'].max(1).mean():.2f}")
         if align is not None:
             print(alignment_table(r))
         if a.per_shape:
@@ -179,7 +195,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def evaluate_renders(subjects: int = 6, yaws: tuple[float, ...] = (0.0, 30.0, 60.0), seed: int = 0, size: int = 512,
-                     fov_deg: float = 25.0, first_seed: int = 1_000_200, config: FitConfig | None = None, align=None) -> dict:
+                     fov_deg: float = 25.0, first_seed: int = 1_000_200, config: FitConfig | None = None, align=None,
+                     pitches: tuple[float, ...] = (0.0,), expressions: dict | None = None) -> dict:
     """Detector + fitter on rendered synthetic heads with known cameras and expression codes.
 
     Subjects ``first_seed ..`` (held-out synthetic seeds, not the yaw-map calibration ones) are
@@ -188,7 +205,13 @@ def evaluate_renders(subjects: int = 6, yaws: tuple[float, ...] = (0.0, 30.0, 60
     U(0.2, 0.9)); MediaPipe finds the landmarks and one joint fit per subject recovers identity,
     poses and codes with the true ``K``. Returns per view: ``yaw`` (truth), ``rot_deg``,
     ``yaw_err_deg`` (signed, estimate - truth), ``expr_abs [53]``, ``expr_geom_mm`` and the
-    neutral baseline ``expr_geom_neutral_mm``.
+    neutral baseline ``expr_geom_neutral_mm``; also ``pitch`` (truth, degrees, + = nose up),
+    ``pitch_err_deg`` (signed), ``expr_err [53]`` (signed, estimate - truth) and ``expr_name``.
+
+    ``pitches``: every yaw is rendered at each of these pitches too (the camera at elevation
+    ``-pitch``, 1 m from the head origin). ``expressions``: ``{name: {ict53 shape: weight}}``
+    instead of the random codes: each subject is rendered with each of them at every (yaw, pitch),
+    and fitted once per (expression, yaw), jointly over the pitches (a pitched photo set).
 
     ``align``: a ``photoalign.PhotoAlignConfig``: the landmark fit's poses are then registered
     photometrically (``photoalign.register_photos``, as ``track_photos`` does) and the rotation
@@ -196,13 +219,10 @@ def evaluate_renders(subjects: int = 6, yaws: tuple[float, ...] = (0.0, 30.0, 60
     fit's, ``rel_rot_deg`` / ``rel_rot_deg_fit`` the error of the rotation between every pair of
     views of a subject (both always filled), ``align_s`` the registration's seconds per subject.
     """
-    import math as _m
-
-    from ..cameras import Cameras
     from ..data.headmodel import HeadModel
     from ..data.synthetic import SyntheticSubject
+    from ..expressions import ICT53_NAMES
     from .faces import MeshDetector
-    from .realsets import head_angles_deg
 
     head = HeadModel.load()
     det = MeshDetector(min_face_px=1.0)
@@ -211,17 +231,44 @@ def evaluate_renders(subjects: int = 6, yaws: tuple[float, ...] = (0.0, 30.0, 60
     nf = Bf.shape[0] // 3
     rng = np.random.default_rng(seed)
     out = {k: [] for k in ("yaw", "rot_deg", "yaw_err_deg", "expr_abs", "expr_geom_mm", "expr_geom_neutral_mm", "rot_deg_fit",
-                           "yaw_err_deg_fit", "rel_rot_deg", "rel_rot_deg_fit", "align_s")}  # fmt: skip
+                           "yaw_err_deg_fit", "rel_rot_deg", "rel_rot_deg_fit", "align_s", "pitch", "pitch_err_deg", "expr_err",
+                           "expr_name")}  # fmt: skip
+    groups = [(None, tuple(yaws))] if expressions is None else [(n, (y,)) for n in expressions for y in yaws]
     for s in range(subjects):
         sub = SyntheticSubject(first_seed + s)
-        lms, Ks, Rt, Et, ims = [], [], [], [], []
-        for yaw in yaws:
-            e = np.zeros(53)
-            k = rng.integers(3, 6)
-            e[rng.choice(53, k, replace=False)] = rng.uniform(0.2, 0.9, k)
-            a = -_m.radians(yaw)
-            cam = Cameras.look_at([_m.sin(a), 0.0, _m.cos(a)], fov_deg=fov_deg, width=size, height=size).flatten()
-            img = (sub.render(sub.frame(e.astype(np.float32)), cam)[0].image.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+        for name, group_yaws in groups:
+            _renders_group(sub, name, None if name is None else expressions[name], group_yaws, pitches, rng, det, size, fov_deg,
+                           model, config, align, Bf, nf, out, ICT53_NAMES)  # fmt: skip
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def _renders_group(sub, name, codes, yaws, pitches, rng, det, size, fov_deg, model, config, align, Bf, nf, out, names) -> None:
+    """One joint fit of ``sub`` rendered at every (yaw, pitch) (``evaluate_renders``); appends to ``out``."""
+    import math as _m
+
+    from ..cameras import Cameras
+    from .realsets import head_angles_deg
+
+    lms, Ks, Rt, Et, ims = [], [], [], [], []
+    frame = None
+    if codes is not None:
+        e_fixed = np.zeros(53)
+        for k, v in codes.items():
+            e_fixed[names.index(k)] = v
+        frame = sub.frame(e_fixed.astype(np.float32))
+    for yaw in yaws:
+        for pitch in pitches:
+            if codes is None:
+                e = np.zeros(53)
+                k = rng.integers(3, 6)
+                e[rng.choice(53, k, replace=False)] = rng.uniform(0.2, 0.9, k)
+            else:
+                e = e_fixed
+            a, b = -_m.radians(yaw), _m.radians(pitch)
+            eye = [_m.sin(a) * _m.cos(b), -_m.sin(b), _m.cos(a) * _m.cos(b)]  # below the head: nose up
+            cam = Cameras.look_at(eye, fov_deg=fov_deg, width=size, height=size).flatten()
+            fr = frame if frame is not None else sub.frame(e.astype(np.float32))
+            img = (sub.render(fr, cam)[0].image.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
             faces = det.detect_all(img)
             if not faces:
                 continue
@@ -230,34 +277,37 @@ def evaluate_renders(subjects: int = 6, yaws: tuple[float, ...] = (0.0, 30.0, 60
             Ks.append(cam.K[0].double().numpy())
             Rt.append(cam.w2c[0, :3, :3].double().numpy())
             Et.append((yaw, e))
-        if not lms:
-            continue
-        res = fit_landmarks(np.stack(lms), np.stack(Ks), config or FitConfig(), model)
-        Rfit = res.rotations.copy()
-        if align is not None and len(lms) > 1:
-            from .fit import landmark_models
-            from .photoalign import register_photos
+    if not lms:
+        return
+    res = fit_landmarks(np.stack(lms), np.stack(Ks), config or FitConfig(), model)
+    Rfit = res.rotations.copy()
+    if align is not None and len(lms) > 1:
+        from .fit import landmark_models
+        from .photoalign import register_photos
 
-            al = register_photos(ims, res.identity, res.expressions, res.rotations, res.translations, res.K, align, landmarks=lms,
-                                 landmark_model=landmark_models(model, res.rotations, config or FitConfig()))  # fmt: skip
-            res.rotations, res.translations = al.rotations, al.translations
-            out["align_s"].append(al.seconds)
-        for a in range(len(Et)):
-            for b in range(a + 1, len(Et)):
-                truth = Rt[b] @ Rt[a].T
-                out["rel_rot_deg"].append(rotation_error_deg(res.rotations[b] @ res.rotations[a].T, truth))
-                out["rel_rot_deg_fit"].append(rotation_error_deg(Rfit[b] @ Rfit[a].T, truth))
-        for v, (yaw, e) in enumerate(Et):
-            d = res.expressions[v] - e
-            out["yaw"].append(yaw)
-            out["rot_deg"].append(rotation_error_deg(res.rotations[v], Rt[v]))
-            out["yaw_err_deg"].append(head_angles_deg(res.rotations[v])[0] - head_angles_deg(Rt[v])[0])
-            out["rot_deg_fit"].append(rotation_error_deg(Rfit[v], Rt[v]))
-            out["yaw_err_deg_fit"].append(head_angles_deg(Rfit[v])[0] - head_angles_deg(Rt[v])[0])
-            out["expr_abs"].append(np.abs(d))
-            out["expr_geom_mm"].append(1000.0 * float(np.sqrt(((Bf @ d) ** 2).sum() / nf)))
-            out["expr_geom_neutral_mm"].append(1000.0 * float(np.sqrt(((Bf @ e) ** 2).sum() / nf)))
-    return {k: np.asarray(v) for k, v in out.items()}
+        al = register_photos(ims, res.identity, res.expressions, res.rotations, res.translations, res.K, align, landmarks=lms,
+                             landmark_model=landmark_models(model, res.rotations, config or FitConfig()))  # fmt: skip
+        res.rotations, res.translations = al.rotations, al.translations
+        out["align_s"].append(al.seconds)
+    for a in range(len(Et)):
+        for b in range(a + 1, len(Et)):
+            truth = Rt[b] @ Rt[a].T
+            out["rel_rot_deg"].append(rotation_error_deg(res.rotations[b] @ res.rotations[a].T, truth))
+            out["rel_rot_deg_fit"].append(rotation_error_deg(Rfit[b] @ Rfit[a].T, truth))
+    for v, (yaw, e) in enumerate(Et):
+        d = res.expressions[v] - e
+        out["yaw"].append(yaw)
+        out["pitch"].append(head_angles_deg(Rt[v])[1])
+        out["pitch_err_deg"].append(head_angles_deg(res.rotations[v])[1] - head_angles_deg(Rt[v])[1])
+        out["expr_err"].append(d)
+        out["expr_name"].append(name or "random")
+        out["rot_deg"].append(rotation_error_deg(res.rotations[v], Rt[v]))
+        out["yaw_err_deg"].append(head_angles_deg(res.rotations[v])[0] - head_angles_deg(Rt[v])[0])
+        out["rot_deg_fit"].append(rotation_error_deg(Rfit[v], Rt[v]))
+        out["yaw_err_deg_fit"].append(head_angles_deg(Rfit[v])[0] - head_angles_deg(Rt[v])[0])
+        out["expr_abs"].append(np.abs(d))
+        out["expr_geom_mm"].append(1000.0 * float(np.sqrt(((Bf @ d) ** 2).sum() / nf)))
+        out["expr_geom_neutral_mm"].append(1000.0 * float(np.sqrt(((Bf @ e) ** 2).sum() / nf)))
 
 
 def renders_table(r: dict) -> str:
@@ -272,6 +322,27 @@ def renders_table(r: dict) -> str:
         worst = ", ".join(f"{ICT53_NAMES[i]} {ea[i]:.2f}" for i in np.argsort(-ea)[:5])
         rows.append(f"| {y:.0f} | {k.sum()} | {np.median(r['rot_deg'][k]):.2f} | {r['yaw_err_deg'][k].mean():+.2f} | "
                     f"{r['expr_geom_mm'][k].mean():.2f} ({r['expr_geom_neutral_mm'][k].mean():.2f}) | {r['expr_abs'][k].mean():.3f} | {worst} |")  # fmt: skip
+    return "\n".join(rows)
+
+
+def pitch_table(r: dict) -> str:
+    """Per expression, yaw and pitch (``evaluate_renders(pitches=...)``): the signed pitch error, the
+    expression geometry error and the 4 shapes with the largest mean signed code error."""
+    from ..expressions import ICT53_NAMES
+
+    rows = ["| expression | yaw | pitch | views | pitch err mean (min .. max) | expr geometry mm | largest code error, mean of views | shapes (mean signed error) |",
+            "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for n in dict.fromkeys(r["expr_name"].tolist()):
+        for y in np.unique(r["yaw"]):
+            for p in np.unique(np.round(r["pitch"])):
+                k = (r["expr_name"] == n) & (r["yaw"] == y) & (np.round(r["pitch"]) == p)
+                if not k.any():
+                    continue
+                pe, E = r["pitch_err_deg"][k], r["expr_err"][k]
+                top = np.argsort(-np.abs(E).mean(0))[:4]
+                rows.append(f"| {n} | {y:.0f} | {p:+.0f} | {k.sum()} | {pe.mean():+.1f} ({pe.min():+.1f} .. {pe.max():+.1f}) | "
+                            f"{r['expr_geom_mm'][k].mean():.2f} | {np.abs(E).max(1).mean():.2f} | "
+                            + ", ".join(f"{ICT53_NAMES[i]} {E[:, i].mean():+.2f}" for i in top) + " |")  # fmt: skip
     return "\n".join(rows)
 
 

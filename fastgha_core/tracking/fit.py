@@ -20,8 +20,8 @@ Face Mesh points on the far side of the head get ``occluded_weight`` (``visibili
 
 Stages: a rigid-only fit per photo (pose only) from five yaw guesses (-60 .. +60 degrees) keeps
 the best; the joint fit; for the Face Mesh layout, ``yaw_map_rounds`` rounds that re-tie each
-photo's points to the vertices the detector lands on at its current yaw (``meshmap``'s yaw
-table); for the Face Mesh layout without a warm start, a re-pose (identity and expressions fixed)
+photo's points to the vertices the detector lands on at its current yaw and pitch (``meshmap``'s
+pose table; the pitch clipped to ``[pitch_map_min_deg, pitch_map_max_deg]``); for the Face Mesh layout without a warm start, a re-pose (identity and expressions fixed)
 of the photos turned beyond the fit's saturation towards the yaw regressed from the 2D layout
 (``yawprior.py``, ``FitConfig.yaw_prior``); optionally the outline of a person mask for side
 views (``silhouette.py``).
@@ -83,7 +83,16 @@ class FitConfig:
     silhouette_min_yaw: float = 30.0  # use the outline for photos turned at least this much (degrees)
     silhouette_rounds: int = 3  # outline points re-chosen this many times
     yaw_map: bool = True  # Face Mesh layout: tie points to vertices by the head's yaw (meshmap.build_yaw_table)
-    yaw_map_rounds: int = 3  # re-chosen this many times as the yaw moves
+    yaw_map_rounds: int = 3  # re-chosen this many times as the yaw (and pitch) moves
+    # the map's pitch axis too (meshmap.build_pose_table): the Face Mesh's lip, chin and nose points slide
+    # on pitched heads; with the pitch-0 map, heads pitched up read short and grow mouthStretch (docs/tracking.md)
+    pitch_map: bool = True
+    # the pitch range over which the map follows the head (degrees, + = nose up); beyond it, the map of the
+    # nearest end. Pitched-down rows are shipped but not used by default: on renders they help as much as the
+    # pitched-up ones, on the real sets they read the pitched-down photo at -43 and frontal photos 4-5 degrees
+    # lower, and the avatars from those cameras lose 0.3-1.4 dB (docs/tracking.md, "Pitched heads")
+    pitch_map_min_deg: float = 0.0
+    pitch_map_max_deg: float = 45.0
     # Face Mesh layout: beyond ~60 degrees the landmark fit saturates; a regression from the 2D layout
     # to the yaw (yawprior.py, learned on synthetic renders) then pulls the yaw further out, for photos
     # the fit finds turned >= yaw_prior_min_fit_deg that the regression finds turned further and >= yaw_prior_min_deg
@@ -520,61 +529,103 @@ _YAW_MODELS: dict = {}
 
 
 def _yaw_models(model: "LandmarkModel"):
-    """``(yaws [B], models [B], valid [B, N])`` of the yaw-dependent Face Mesh map, or None when
-    the table is not shipped."""
+    """``(yaws [B], pitches [P], models [P][B], valid [P, B, N])`` of the pose-dependent Face Mesh
+    map (``meshmap.load_pose_table``), or None when no table is shipped. Yaw columns the detector does not reach at pitch 0 (fewer
+    than half of the points hit) are dropped; a cell of a kept column that the detector does not
+    reach takes the cell next to it towards pitch 0, so the grid is full for the bilinear blend."""
     key = (model.num_identity, id(model.vertex_ids) if model.vertex_ids is None else model.vertex_ids.tobytes())
     if key not in _YAW_MODELS:
         from ..data.headmodel import HeadModel
-        from .meshmap import load_mediapipe_map, load_yaw_table
+        from .meshmap import load_mediapipe_map, load_pose_table
 
-        tab = load_yaw_table()
+        tab = load_pose_table()
         if tab is None:
             _YAW_MODELS[key] = None
         else:
             head = HeadModel.load()
             mp_index = load_mediapipe_map().mp_index
-            vert = tab["vertex"][:, mp_index]  # [B, N]
+            pitches = np.asarray(tab["pitch"], dtype=np.float64)
+            vert = np.asarray(tab["vertex"], dtype=np.int64)[:, :, mp_index]  # [P, B, N]
+            q0 = int(np.argmin(np.abs(pitches)))
             valid = vert >= 0
-            models, yaws, oks = [], [], []
-            for b in range(vert.shape[0]):
-                if valid[b].mean() < 0.5:  # a yaw the detector does not reach
+            cols = [b for b in range(vert.shape[1]) if valid[q0, b].mean() >= 0.5]  # yaws the detector reaches
+            for q in sorted(range(len(pitches)), key=lambda q: abs(q - q0)):  # fill outwards from pitch 0
+                if q == q0:
                     continue
-                ids = np.where(valid[b], vert[b], model.vertex_ids)
-                models.append(LandmarkModel.from_vertex_ids(head, ids, model.num_identity, model.layout))
-                yaws.append(float(tab["yaw"][b]))
-                oks.append(valid[b])
-            _YAW_MODELS[key] = (np.array(yaws), models, np.array(oks))
+                toward = q + 1 if q < q0 else q - 1
+                for b in cols:
+                    if valid[q, b].mean() < 0.5:
+                        vert[q, b], valid[q, b] = vert[toward, b], valid[toward, b]
+            models = [[LandmarkModel.from_vertex_ids(head, np.where(valid[q, b], vert[q, b], model.vertex_ids), model.num_identity, model.layout)
+                       for b in cols] for q in range(len(pitches))]  # fmt: skip
+            _YAW_MODELS[key] = (np.asarray(tab["yaw"], dtype=np.float64)[cols], pitches, models, valid[:, cols])
     return _YAW_MODELS[key]
 
 
-def _model_at_yaw(table, yaw: float):
-    """The blended model of the two yaw bins around ``yaw`` and the points' weights (0 = no hit)."""
-    yaws, models, oks = table
-    yaw = float(np.clip(yaw, yaws[0], yaws[-1]))
-    b = int(np.clip(np.searchsorted(yaws, yaw) - 1, 0, len(yaws) - 2))
-    a = (yaw - yaws[b]) / (yaws[b + 1] - yaws[b])
-    w = ((1 - a) * oks[b] + a * oks[b + 1]).astype(np.float64)
-    return models[b].blend(models[b + 1], a), w
+def _bin(bins: np.ndarray, x: float) -> tuple[int, float]:
+    """Lower bin index and blend fraction of ``x`` (clipped to the bins' range); (0, 0) for a single bin."""
+    if len(bins) == 1:
+        return 0, 0.0
+    x = float(np.clip(x, bins[0], bins[-1]))
+    b = int(np.clip(np.searchsorted(bins, x) - 1, 0, len(bins) - 2))
+    return b, (x - bins[b]) / (bins[b + 1] - bins[b])
+
+
+def _model_at_yaw(table, yaw: float, pitch: float = 0.0):
+    """The model blended bilinearly from the four (pitch, yaw) cells around the pose (degrees,
+    clipped to the table's range) and the points' weights ``[N]`` (0 = no hit)."""
+    yaws, pitches, models, oks = table
+    b, a = _bin(yaws, yaw)
+    q, c = _bin(pitches, pitch)
+    b1, q1 = min(b + 1, len(yaws) - 1), min(q + 1, len(pitches) - 1)
+    lo = models[q][b].blend(models[q][b1], a)
+    hi = models[q1][b].blend(models[q1][b1], a)
+    w = (1 - c) * ((1 - a) * oks[q, b] + a * oks[q, b1]) + c * ((1 - a) * oks[q1, b] + a * oks[q1, b1])
+    return lo.blend(hi, c), w.astype(np.float64)
 
 
 def _use_yaw_map(prob: "_Problem", table, Rs: np.ndarray, ts: np.ndarray, base: np.ndarray, cfg: "FitConfig") -> None:
-    """Give each photo of ``prob`` the yaw map's model at its current yaw (``Rs [V, 3, 3]``) and the
-    weights ``base [V, N]`` times the map's hits (times the visibility ramp when ``occluded_weight`` < 1)."""
+    """Give each photo of ``prob`` the pose map's model at its current yaw and pitch (``Rs [V, 3, 3]``)
+    and the weights ``base [V, N]`` times the map's hits (times the visibility ramp when
+    ``occluded_weight`` < 1)."""
     wv = base.copy()
     for v in range(len(Rs)):
-        prob.ms[v], hit = _model_at_yaw(table, _yaw_deg(Rs[v]))
+        prob.ms[v], hit = _model_at_yaw(table, _yaw_deg(Rs[v]), _map_pitch(Rs[v], cfg))
         wv[v] *= hit
         if cfg.occluded_weight < 1.0:
             wv[v] *= visibility_weights(prob.ms[v], Rs[v : v + 1], ts[v : v + 1], cfg.occluded_weight)[0]
     prob.set_weights(wv)
 
 
+def _pose_table(model: "LandmarkModel", cfg: "FitConfig"):
+    """The pose map for ``fit_landmarks`` / ``fit_known_cameras``: None unless the Face Mesh layout
+    and ``cfg.yaw_map``."""
+    if not (cfg.yaw_map and model.layout == "mediapipe"):
+        return None
+    return _yaw_models(model)
+
+
+def _map_pitch(R: np.ndarray, cfg: "FitConfig") -> float:
+    """The pitch (degrees) at which the pose map is read for a head -> camera rotation ``R``: the
+    head's pitch clipped to ``[cfg.pitch_map_min_deg, cfg.pitch_map_max_deg]``, or 0 (the yaw-only
+    map) without ``cfg.pitch_map``."""
+    if not cfg.pitch_map:
+        return 0.0
+    return float(np.clip(_pitch_deg(R), cfg.pitch_map_min_deg, cfg.pitch_map_max_deg))
+
+
 def landmark_models(model: "LandmarkModel", rotations: np.ndarray, cfg: "FitConfig") -> list["LandmarkModel"]:
-    """The landmark model of each photo at its yaw (``rotations [V, 3, 3]``): the yaw map's blend
+    """The landmark model of each photo at its pose (``rotations [V, 3, 3]``): the pose map's blend
     (``_model_at_yaw``) for the Face Mesh layout when ``cfg.yaw_map`` and the table is shipped, else
     ``model`` itself; the models ``fit_landmarks`` measures its ``rms_px`` with."""
-    table = _yaw_models(model) if cfg.yaw_map and model.layout == "mediapipe" else None
-    return [model if table is None else _model_at_yaw(table, _yaw_deg(R))[0] for R in rotations]
+    table = _pose_table(model, cfg)
+    return [model if table is None else _model_at_yaw(table, _yaw_deg(R), _map_pitch(R, cfg))[0] for R in rotations]
+
+
+def _pitch_deg(R: np.ndarray) -> float:
+    """Pitch of a head -> camera rotation (realsets.head_angles_deg): + = nose up."""
+    n = R[:, 2]
+    return math.degrees(math.atan2(-n[1], math.hypot(n[0], n[2])))
 
 
 def _yaw_deg(R: np.ndarray) -> float:
@@ -701,7 +752,7 @@ def _fit_landmarks(
         W = W * visibility_weights(model, Rs, ts, cfg.occluded_weight)
 
     prob = _Problem(model, obs, K, cfg, W, free_identity=identity is None, free_expression=True)
-    table = _yaw_models(model) if cfg.yaw_map and model.layout == "mediapipe" else None
+    table = _pose_table(model, cfg)
 
     def use_yaw_map(p=prob):
         _use_yaw_map(p, table, Rs, ts, W_user, cfg)
@@ -871,7 +922,7 @@ def fit_known_cameras(
             W = visibility_weights(model, Rs, ts, cfg.occluded_weight)
         prob = _Problem(model, obs, K[idx], cfg, W, free_identity=True, free_expression=True)
         T, ecols = _shared_pose_reduction(prob.nid, prob.nv, Cs)
-        table = _yaw_models(model) if cfg.yaw_map and model.layout == "mediapipe" else None
+        table = _pose_table(model, cfg)
         beta, E, Rs, ts, cost = _lm(prob, beta, E, Rs, ts, cfg.iterations, cfg.tolerance, reduce=(T, ecols))
         for _ in range(cfg.yaw_map_rounds if table is not None else 0):
             _use_yaw_map(prob, table, Rs, ts, np.ones((n, model.num_points)), cfg)

@@ -17,11 +17,14 @@ point is tied to one ICT vertex, computed once and shipped as
 3. Every Face Mesh point takes the nearest vertex of the fitted ICT face (vertices 0-9408);
    points farther than ``MAX_SNAP_MM`` are left out (none are, with these portraits).
 
-**Yaw-dependent map** (``assets/headmodel/mediapipe_ict_yaw.npz``, ``build_yaw_table``, rebuild
-with ``--yaw``): the Face Mesh squeezes the far half of a turned head onto the visible half, so
-beyond ~40 degrees its points no longer sit on the vertices above. On renders of synthetic ICT
-heads at known yaw (every 15 degrees) each point is tied to the surface point it actually lands
-on; the fitter re-chooses the table's bins by the current yaw (``FitConfig.yaw_map``).
+**Pose-dependent map** (``assets/headmodel/mediapipe_ict_pose.npz``, ``build_pose_table``, rebuild
+with ``--pose``, ~30 s): the Face Mesh squeezes the far half of a turned head onto the visible half,
+so beyond ~40 degrees its points no longer sit on the vertices above; on a pitched head its face
+outline (jaw line, chin) slides 1-2 cm along the surface. On renders of synthetic ICT heads at
+known yaw (every 15 degrees) and pitch (-30 .. +45, every 15) each point is tied to the surface
+point it actually lands on; the fitter re-chooses the table's cells by the current yaw and pitch
+(``FitConfig.yaw_map``, ``FitConfig.pitch_map``). Its pitch-0 row is the earlier yaw-only table
+(``build_yaw_table``, ``load_yaw_table``).
 
 MediaPipe's own depth places the face-outline points (which, in a frontal photo, lie on the
 cheeks' far slope): tying them instead to the ICT vertex seen at their image position under a
@@ -74,13 +77,24 @@ def load_mediapipe_map(path: str | None = None) -> MediaPipeMap:
     return MediaPipeMap(d["mp_index"], d["ict_vertex"], d["snap_mm"])
 
 
-def load_yaw_table(path: str | None = None) -> dict | None:
-    """The shipped yaw-dependent table (``build_yaw_table``), or None when absent."""
-    p = Path(path) if path else YAW_ASSET
+def load_pose_table(path: str | None = None) -> dict | None:
+    """The shipped pose-dependent table (``build_pose_table``: ``yaw [B]``, ``pitch [P]``, ``vertex
+    [P, B, 468]``, ``hits [P, B, 468]``), or None when absent (the fitter then uses the frontal map)."""
+    p = Path(path) if path else POSE_ASSET
     if not p.is_file():
         return None
     with np.load(p) as d:
         return {k: d[k] for k in d.files}
+
+
+def load_yaw_table(path: str | None = None) -> dict | None:
+    """The pitch-0 row of the pose table (``build_yaw_table``'s layout: ``yaw [B]``, ``vertex [B,
+    468]``, ``hits [B, 468]``), or None when absent."""
+    d = load_pose_table(path)
+    if d is None:
+        return None
+    q = int(np.argmin(np.abs(d["pitch"])))
+    return {"yaw": d["yaw"], "vertex": d["vertex"][q].astype(np.int64), "hits": d["hits"][q]}
 
 
 def _umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -147,11 +161,13 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
 
     p = argparse.ArgumentParser(prog="python -m fastgha_core.tracking.meshmap", description="rebuild the Face Mesh -> ICT maps")
-    p.add_argument("--yaw", action="store_true", help="rebuild the yaw-dependent table (synthetic renders) instead")
-    if p.parse_args(argv).yaw:
-        d = build_yaw_table()
-        np.savez_compressed(YAW_ASSET, **d)
-        print(f"wrote {YAW_ASSET}: yaw bins {d['yaw'].tolist()}, points with a hit per bin {(d['vertex'] >= 0).sum(1).tolist()}")
+    p.add_argument("--pose", "--yaw", dest="pose", action="store_true",
+                   help="rebuild the pose-dependent table (yaw x pitch, synthetic renders, ~2 min) instead")
+    if p.parse_args(argv).pose:
+        d = build_pose_table()
+        np.savez_compressed(POSE_ASSET, **d)
+        print(f"wrote {POSE_ASSET}: yaw bins {d['yaw'].tolist()}, pitch bins {d['pitch'].tolist()}, "
+              f"points with a hit per cell (pitch x yaw) {(d['vertex'] >= 0).sum(2).tolist()}")
         return 0
     m = build_mediapipe_map()
     MAP_ASSET.write_text(json.dumps({
@@ -162,26 +178,44 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
 
 
 # ---------------------------------------------------------------------------- yaw-dependent map
 YAW_BINS = (-90.0, -75.0, -60.0, -45.0, -30.0, -15.0, 0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
-YAW_ASSET = MAP_ASSET.with_name("mediapipe_ict_yaw.npz")
 CALIBRATION_SEEDS = tuple(range(1_000_100, 1_000_108))  # synthetic held-out subjects (data/synthetic.py)
 
 
+PITCH_BINS = (-30.0, -15.0, 0.0, 15.0, 30.0, 45.0)  # -45: the detector's chin outline lands on the chest, its mean hit is meaningless
+POSE_ASSET = MAP_ASSET.with_name("mediapipe_ict_pose.npz")
+
+
 def build_yaw_table(seeds=CALIBRATION_SEEDS, size: int = 512, fov_deg: float = 25.0) -> dict:
-    """Where the Face Mesh puts its points on a turned head, measured on synthetic renders.
+    """The pitch-0 row of :func:`build_pose_table` (the first, yaw-only table): ``{"yaw": [B],
+    "vertex": [B, 468] int (-1 = no hit in most renders), "hits": [B, 468]}``."""
+    d = build_pose_table(seeds, size, fov_deg, pitch_bins=(0.0,))
+    return {"yaw": d["yaw"], "vertex": d["vertex"][0].astype(np.int64), "hits": d["hits"][0]}
+
+
+def build_pose_table(seeds=CALIBRATION_SEEDS, size: int = 512, fov_deg: float = 25.0, yaw_bins=YAW_BINS,
+                     pitch_bins=PITCH_BINS, occlusion_mm: float | None = None) -> dict:
+    """Where the Face Mesh puts its points on a turned or pitched head, measured on synthetic renders.
 
     The Face Mesh squeezes the far half of a turned face onto the visible half: on renders of the
     ICT head with known cameras, a 75-degree head fitted with the frontal map comes out at ~57.
-    For each yaw in ``YAW_BINS`` and each synthetic subject (``data/synthetic.py``, neutral
-    expression, pitch 0, 1 m, ``fov_deg``) the render's Face Mesh points are cast onto the true
-    mesh (the camera-facing face/head vertex whose projection is nearest), the hit vertices' generic
-    positions are averaged over subjects and snapped to the nearest generic vertex. Returns
-    ``{"yaw": [B], "vertex": [B, 468] int (-1 = no hit in most renders), "hits": [B, 468]}``.
+    Pitch does the same to the lips, chin and nose: the points slide along the surface, so with the
+    pitch-0 map a head pitched by -30 / +30 degrees comes out at about -15 / +25 and the codes
+    absorb the rest (mouthStretch on heads pitched up; docs/tracking.md, "Pitched heads").
+    For each (pitch, yaw) in ``pitch_bins x yaw_bins`` and each synthetic subject
+    (``data/synthetic.py``, neutral expression, camera at 1 m looking at the head origin from
+    azimuth ``-yaw`` and elevation ``-pitch``, ``fov_deg``; pitch + = nose up = camera below, as
+    ``realsets.head_angles_deg``) the render's Face Mesh points are cast onto the true mesh (the
+    camera-facing face/head vertex whose projection is nearest, within 2 % of the face size), the
+    hit vertices' generic positions are averaged over subjects and snapped to the nearest generic
+    vertex. Deterministic (renders and detector).
+
+    Returns ``{"yaw": [B] degrees, "pitch": [P] degrees, "vertex": [P, B, 468] int16 ICT vertex id
+    (-1 = no hit in at least half of the renders), "hits": [P, B, 468] int16}``.
+    Raises ImportError without mediapipe (``faces`` extra).
     """
     import math
 
@@ -192,9 +226,9 @@ def build_yaw_table(seeds=CALIBRATION_SEEDS, size: int = 512, fov_deg: float = 2
     from .faces import MeshDetector
 
     det = MeshDetector(min_face_px=1.0)
-    B = len(YAW_BINS)
-    acc = np.zeros((B, 468, 3))
-    cnt = np.zeros((B, 468))
+    P_, B = len(pitch_bins), len(yaw_bins)
+    acc = np.zeros((P_, B, 468, 3))
+    cnt = np.zeros((P_, B, 468))
     subj0 = None
     for seed in seeds:
         sub = SyntheticSubject(seed)
@@ -204,29 +238,42 @@ def build_yaw_table(seeds=CALIBRATION_SEEDS, size: int = 512, fov_deg: float = 2
         verts = sub.base.astype(np.float64)  # neutral expression: frame vertices = base
         normals = head.vertex_normals(verts)
         cand = np.arange(0, 11248)
-        for b, yaw in enumerate(YAW_BINS):
-            a = -math.radians(yaw)  # a camera at azimuth -yaw sees the head turned by +yaw
-            cam = Cameras.look_at([math.sin(a), 0.0, math.cos(a)], fov_deg=fov_deg, width=size, height=size).flatten()
-            view = sub.render(frame, cam)[0]
-            img = (view.image.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
-            faces = det.detect_all(img)
-            if not faces:
-                continue
-            pts = faces[0][1]
-            w2c = cam.w2c[0].double().numpy()
-            K = cam.K[0].double().numpy()
-            P = verts[cand] @ w2c[:3, :3].T + w2c[:3, 3]
-            uv = (P @ K.T)[:, :2] / (P @ K.T)[:, 2:]
-            front = ((normals[cand] @ w2c[:3, :3].T) * P).sum(1) < 0
-            ids = cand[front]
-            d, j = cKDTree(uv[front]).query(pts)
-            face_px = np.linalg.norm(pts.max(0) - pts.min(0))
-            ok = d < 0.02 * face_px
-            acc[b, ok] += head.neutral[ids[j[ok]]]
-            cnt[b, ok] += 1
+        for q, pitch in enumerate(pitch_bins):
+            el = math.radians(pitch)
+            for b, yaw in enumerate(yaw_bins):
+                a = -math.radians(yaw)  # a camera at azimuth -yaw sees the head turned by +yaw
+                eye = [math.sin(a) * math.cos(el), -math.sin(el), math.cos(a) * math.cos(el)]  # below the head: nose up
+                cam = Cameras.look_at(eye, fov_deg=fov_deg, width=size, height=size).flatten()
+                view = sub.render(frame, cam)[0]
+                img = (view.image.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
+                faces = det.detect_all(img)
+                if not faces:
+                    continue
+                pts = faces[0][1]
+                w2c = cam.w2c[0].double().numpy()
+                K = cam.K[0].double().numpy()
+                P = verts[cand] @ w2c[:3, :3].T + w2c[:3, 3]
+                uv = (P @ K.T)[:, :2] / (P @ K.T)[:, 2:]
+                front = ((normals[cand] @ w2c[:3, :3].T) * P).sum(1) < 0
+                if occlusion_mm is not None:  # only vertices the render shows (not behind the lips, nose or chin)
+                    depth = view.depth[0].numpy()
+                    px = np.clip(np.round(uv - 0.5).astype(np.int64), 0, [size - 1, size - 1])
+                    zb = depth[px[:, 1], px[:, 0]]
+                    front &= (zb > 0) & (P[:, 2] <= zb + occlusion_mm / 1000.0)
+                ids = cand[front]
+                d, j = cKDTree(uv[front]).query(pts)
+                face_px = np.linalg.norm(pts.max(0) - pts.min(0))
+                ok = d < 0.02 * face_px
+                acc[q, b, ok] += head.neutral[ids[j[ok]]]
+                cnt[q, b, ok] += 1
     tree = cKDTree(subj0.neutral[:11248].astype(np.float64))
-    vertex = np.full((B, 468), -1, dtype=np.int64)
+    vertex = np.full((P_, B, 468), -1, dtype=np.int16)
     good = cnt >= max(1, len(seeds) // 2)
     mean = acc[good] / cnt[good][:, None]
     vertex[good] = tree.query(mean)[1]
-    return {"yaw": np.array(YAW_BINS), "vertex": vertex, "hits": cnt.astype(np.int16)}
+    return {"yaw": np.array(yaw_bins, dtype=np.float64), "pitch": np.array(pitch_bins, dtype=np.float64), "vertex": vertex,
+            "hits": cnt.astype(np.int16)}
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
