@@ -40,9 +40,13 @@ photo's expression and the frame's), and the factor becomes
 (one combined penalty per view, so the covering view best on both keeps full opacity; with every
 ``p`` equal it is the angle factor above). Only the Gaussians whose covering views' ``d_v`` differ by
 more than ``EXPR_SPREAD_FRAC x sigma`` get the combined form (``|p[s] - p[v]| <= |d_s - d_v|``: for the
-rest it would change the factor by less than ``1 - exp(-EXPR_SPREAD_FRAC)``, 5%); their ``d_v`` and a compact
-basis of their bound vertices are built once per avatar and prior binding (``ExpressionPenalty``),
-so a frame costs one ``[E] @ [E, Us*3]`` product, a gather and a ``[M, V]`` minimum.
+rest it would change the factor by less than ``1 - exp(-EXPR_SPREAD_FRAC)``, 5%); their ``d_v`` and
+their rows of a sparse weight matrix on the prior runtime's compact basis are built once per avatar
+and prior binding (``ExpressionPenalty``), so a frame costs one ``[E] @ [E, Uc*4]`` product, a sparse
+product and a ``[M, V]`` minimum. The lips of open-mouthed input views, which the prior's mouth gate
+fades as the frame's mouth opens (``prior.hide_open_lips``), count in that minimum with ``-ln`` of
+their gate factor added: otherwise an open-mouthed frame would pick them, fade the other views' lips,
+and the gate would then hide the chosen ones (a hole in the mouth).
 
 Conventions: cameras are ``fastgha_core.cameras.Cameras`` (OpenCV, pixel corners at integer
 coordinates); masks are ``uint8`` with bit ``v`` for input view ``v``, so at most 8 views.
@@ -264,8 +268,7 @@ class ViewBlend:
         spread = EXPR_SPREAD_FRAC * float(sigma_mm) * 1e-3
         if pen is None or pen.runtime is not runtime or pen.idx.device != out.device or pen.with_means != (means is not None) or pen.spread_min_m != spread:
             pen = self.__dict__["_expr"] = ExpressionPenalty.build(self, runtime, spread, means=means)
-        if len(pen.idx):
-            out = out.clone()
+        if len(pen.idx):  # ``out`` is a new tensor (the gather above)
             out[pen.idx] = pen.factors(ang, expression, tau_deg, sigma_mm, self.sharp_scale)
         return out
 
