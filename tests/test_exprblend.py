@@ -250,3 +250,25 @@ def test_the_servers_frames_take_the_penalty(recon):
     finally:
         gc.view_blend_expr_mm = saved
     assert float(np.abs(frames[0.0] - frames[SIGMA]).max()) > 8  # the jaw and smile views' mouths fade in a neutral frame
+
+
+def test_the_avatar_budget_bounds_the_tables_before_the_first_frame_and_counts_them_after(recon):
+    import dataclasses
+
+    model, av, cams, expr = recon
+    gc = model.config.gaussians
+    fresh = dataclasses.replace(av, view_blend=dataclasses.replace(av.view_blend))  # no tables built yet
+    saved = gc.view_blend_expr_mm
+    try:
+        gc.view_blend_expr_mm = 0.0
+        off = model.serving_nbytes(fresh)
+        gc.view_blend_expr_mm = SIGMA
+        before = model.serving_nbytes(fresh)
+        model.animate(fresh, expr[1], camera=cams[0:1])
+        pen = fresh.view_blend.__dict__["_expr"]
+        after = model.serving_nbytes(fresh)
+    finally:
+        gc.view_blend_expr_mm = saved
+    assert len(pen) > 0
+    assert after - off == pen.nbytes  # once built: what the tables hold
+    assert before - off >= pen.nbytes  # before: a bound

@@ -812,14 +812,20 @@ class FastGHA(nn.Module):
         """Bytes ``avatar`` holds once this model has animated it: its Gaussians, its prior binding, the
         deformation MLP's cached first layer (``[N_reconstructed, H]`` float32) and the binding's
         per-frame runtime on this model's device (``PriorRuntime.estimate_nbytes``), and the view-blending
-        data (``ViewBlend.nbytes``). What
+        data (``ViewBlend.nbytes``; with ``gaussians.view_blend_expr_mm > 0`` before the first frame the
+        expression penalty's tables at most, ``ExpressionPenalty.estimate_nbytes``). What
         the server's avatar budget counts; an avatar without a binding counts none (it gets one on its
         first frame). Computed from the sizes, without building the caches.
         """
         n = len(avatar.gaussians)
         total = int(avatar.nbytes) + avatar.num_reconstructed * int(self.config.deform.hidden_size) * 4
         if avatar.view_blend is not None:  # per-view data and its per-frame pair index (model/viewblend.py)
-            total += avatar.view_blend.nbytes
+            vb = avatar.view_blend
+            total += vb.nbytes
+            if self.config.gaussians.view_blend_expr_mm > 0 and vb.expressions is not None and "_expr" not in vb.__dict__:
+                from .viewblend import ExpressionPenalty  # its tables, built on the first frame: at most this
+
+                total += ExpressionPenalty.estimate_nbytes(len(vb), vb.directions.shape[0])
         if avatar.prior is not None:
             total += sum(t.numel() * t.element_size() for t in vars(avatar.prior).values() if isinstance(t, Tensor))
             if self.config.deform.prior and len(avatar.prior) == n:

@@ -279,11 +279,8 @@ class ViewBlend:
         extra += 0 if self.sharp is None else self.sharp.numel()
         extra += 0 if self.under is None else self.under.numel()
         extra += 0 if self.expressions is None else self.expressions.numel() * 4
-        pen = self.__dict__.get("_expr")  # the expression penalty's tables: as built, or at most this before the first frame
-        if pen is not None:
-            extra += pen.nbytes
-        elif self.expressions is not None:
-            extra += ExpressionPenalty.estimate_nbytes(len(self), self.directions.shape[0])
+        pen = self.__dict__.get("_expr")  # the expression penalty's tables once built (FastGHA.serving_nbytes bounds them before)
+        extra += 0 if pen is None else pen.nbytes
         return sum(t.numel() * t.element_size() for t in (self.source_view, self.mask, self.directions)) + 8 * len(self) + extra
 
     def subset(self, keep: Tensor) -> "ViewBlend":
