@@ -1,5 +1,5 @@
 """The view-blending benchmark scripts (bench/realset_resolution.py, bench/view_blend_frame.py,
-bench/view_blend_synthetic.py) explain every option in --help and refuse a bad value at once,
+bench/view_blend_synthetic.py, bench/expr_blend_synthetic.py) explain every option in --help and refuse a bad value at once,
 before tracking real photos or rendering synthetic subjects for minutes (a misspelt ``--variants
 blnd20`` used to fail after the first set was tracked)."""
 
@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPTS = ("realset_resolution", "view_blend_frame", "view_blend_synthetic")
+SCRIPTS = ("realset_resolution", "view_blend_frame", "view_blend_synthetic", "expr_blend_synthetic")
 
 
 def _load(name):
@@ -49,6 +49,9 @@ def test_every_option_has_help(name, monkeypatch):
         ("view_blend_frame", ["--frames", "0", "--views", "1"], "--frames >= 1"),
         ("view_blend_frame", ["--views", "9"], "1..8"),
         ("view_blend_synthetic", ["--taus", "0,twenty", "--subjects", "1", "--resolution", "32"], "--taus"),
+        ("view_blend_frame", ["--expr-mm", "0"], "--expr-mm > 0"),
+        ("expr_blend_synthetic", ["--sigmas", "0,eight"], "--sigmas"),
+        ("expr_blend_synthetic", ["--sigmas", "-1"], "--sigmas >= 0"),
     ],
 )
 def test_a_bad_value_is_refused_before_any_work(name, argv, said, capsys, monkeypatch, tmp_path):

@@ -239,6 +239,9 @@ def test_the_avatar_budget_counts_the_view_data_a_blended_frame_holds(tiny):
     held = sum(t.untyped_storage().nbytes() for t in (vb.source_view, vb.mask, vb.directions, vb.__dict__["_key"]))
     held += 0 if vb.sharp is None else vb.sharp.untyped_storage().nbytes()  # the head-on check's flags (gaussians.head_on_colour_tol)
     held += 0 if vb.under is None else vb.under.untyped_storage().nbytes()  # the off-head flags (gaussians.off_head_draw "under")
+    held += 0 if vb.expressions is None else vb.expressions.untyped_storage().nbytes()  # the views' expressions (gaussians.view_blend_expr_mm)
+    pen = vb.__dict__.get("_expr")  # ... and the penalty's tables, built on the first frame (model/viewblend.py ExpressionPenalty)
+    held += 0 if pen is None else pen.nbytes
     assert tiny.serving_nbytes(av) - without == held
 
 

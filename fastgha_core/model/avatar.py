@@ -15,8 +15,10 @@ mouth socket) at the end of ``gaussians``: part of the file, the PLY export and 
 ``view_blend`` (``model/viewblend.py``): each reconstructed Gaussian's source input view and the
 mask of input views that see its point, with the input cameras' directions, saved as ``view.*``
 tensors; frames then weight each view's Gaussians by its camera's angle to the render camera
-(``GaussianHeadConfig.view_blend_tau_deg``). Files written without them load with ``None`` (frames
-unweighted). The PLY export is a static file: it holds the unweighted opacities.
+(``GaussianHeadConfig.view_blend_tau_deg``), and, with the input views' expressions (``view.expr``),
+by how far each view's expression puts the Gaussian's bound surface point from the frame's
+(``view_blend_expr_mm``). Files written without them load with ``None`` (frames unweighted; without
+``view.expr``: by the angle alone). The PLY export is a static file: it holds the unweighted opacities.
 """
 
 from __future__ import annotations

@@ -721,7 +721,8 @@ class FastGHA(nn.Module):
             if v > v_real and self.config.gaussians.mirror_blend_offset_deg > 0:  # mirrored views count as further from every render camera
                 offsets = torch.zeros(v, device=dev)
                 offsets[v_real:] = float(self.config.gaussians.mirror_blend_offset_deg)
-            blend = ViewBlend(view_index.to(torch.int8), mask, view_directions(c32), offsets, sharp, self.config.gaussians.head_on_tau_scale, under)
+            vexpr = expressions.float().to(dev) if expressions is not None and self.config.deform.prior else None  # for the expression penalty (view_blend_expr_mm)
+            blend = ViewBlend(view_index.to(torch.int8), mask, view_directions(c32), offsets, sharp, self.config.gaussians.head_on_tau_scale, under, vexpr)
         prior, n_int = None, 0
         if self.config.deform.prior:
             n_rec = len(g)
@@ -811,14 +812,20 @@ class FastGHA(nn.Module):
         """Bytes ``avatar`` holds once this model has animated it: its Gaussians, its prior binding, the
         deformation MLP's cached first layer (``[N_reconstructed, H]`` float32) and the binding's
         per-frame runtime on this model's device (``PriorRuntime.estimate_nbytes``), and the view-blending
-        data (``ViewBlend.nbytes``). What
+        data (``ViewBlend.nbytes``; with ``gaussians.view_blend_expr_mm > 0`` before the first frame the
+        expression penalty's tables at most, ``ExpressionPenalty.estimate_nbytes``). What
         the server's avatar budget counts; an avatar without a binding counts none (it gets one on its
         first frame). Computed from the sizes, without building the caches.
         """
         n = len(avatar.gaussians)
         total = int(avatar.nbytes) + avatar.num_reconstructed * int(self.config.deform.hidden_size) * 4
         if avatar.view_blend is not None:  # per-view data and its per-frame pair index (model/viewblend.py)
-            total += avatar.view_blend.nbytes
+            vb = avatar.view_blend
+            total += vb.nbytes
+            if self.config.gaussians.view_blend_expr_mm > 0 and vb.expressions is not None and "_expr" not in vb.__dict__:
+                from .viewblend import ExpressionPenalty  # its tables, built on the first frame: at most this
+
+                total += ExpressionPenalty.estimate_nbytes(len(vb), vb.directions.shape[0])
         if avatar.prior is not None:
             total += sum(t.numel() * t.element_size() for t in vars(avatar.prior).values() if isinstance(t, Tensor))
             if self.config.deform.prior and len(avatar.prior) == n:
@@ -911,30 +918,35 @@ class FastGHA(nn.Module):
                 rt.source = avatar.prior  # what this per-avatar cache was built from
                 rt.light_of = avatar.gaussians.colors
             if prior and z.ndim == 1 and dev.type == "cpu" and g.means.dtype == torch.float32:
-                return self.blend_views(avatar, rt.frame(g, n_int, dxyz, drgb, z), camera)  # one numba pass, the same Gaussians as below
+                return self.blend_views(avatar, rt.frame(g, n_int, dxyz, drgb, z), camera, z)  # one numba pass, the same Gaussians as below
             if prior:
                 prior_d = rt.displacement(z)  # [N, 3] or [B, N, 3]
                 shade = rt.shading(z) if rt.shading_on else None  # [N] or [B, N]
                 rot = rt.rotation(z) if rt.rotate_on else None  # [N, 4] or [B, N, 4]
             gate = self._gate(z, rt)
         if z.ndim == 1:
-            return self.blend_views(avatar, _combine(g, dxyz, drgb, prior_d, n_int, gate, trim=True, shade=shade, rot=rot), camera)
+            return self.blend_views(avatar, _combine(g, dxyz, drgb, prior_d, n_int, gate, trim=True, shade=shade, rot=rot), camera, z)
         return [
             self.blend_views(
                 avatar,
                 _combine(g, dxyz[i], drgb[i], None if prior_d is None else prior_d[i], n_int, None if gate is None else gate[i], trim=True, shade=None if shade is None else shade[i], rot=None if rot is None else rot[i]),
                 camera,
+                z[i],
             )
             for i in range(z.shape[0])
         ]
 
-    def blend_views(self, avatar: CanonicalAvatar, g: Gaussians, camera: Cameras | None) -> Gaussians:
+    def blend_views(self, avatar: CanonicalAvatar, g: Gaussians, camera: Cameras | None, expression: Tensor | None = None) -> Gaussians:
         """``g`` (a frame of ``avatar``, as ``animate`` returns it without a camera) with its first
         ``avatar.num_reconstructed`` Gaussians' opacities multiplied by their source view's weight for
         ``camera`` (batch ``[1]``; ``model/viewblend.py``). ``animate(..., camera=c)`` is
         ``blend_views(avatar, animate(...), c)``; callers that render one frame from several cameras
-        deform once and weight per camera. Returns ``g`` itself when ``gaussians.view_blend_tau_deg``
-        is 0, ``camera`` is None or the avatar has no per-view data."""
+        deform once and weight per camera. With the frame's ``expression [E]``,
+        ``gaussians.view_blend_expr_mm > 0``, an avatar whose per-view data holds its input views'
+        expressions and a prior binding, the weights take the expression penalty too
+        (``ViewBlend.factors``: the views whose expression is nearest the frame's there win).
+        Returns ``g`` itself when ``gaussians.view_blend_tau_deg`` is 0, ``camera`` is None or the
+        avatar has no per-view data."""
         tau = float(self.config.gaussians.view_blend_tau_deg)
         vb = avatar.view_blend
         if camera is None or tau <= 0 or vb is None:
@@ -942,7 +954,11 @@ class FastGHA(nn.Module):
         n = avatar.num_reconstructed
         if len(vb) != n or len(g) < n:
             return g
-        f = vb.to(g.opacities.device).factors(camera, tau).to(g.opacities.dtype)
+        sigma = float(self.config.gaussians.view_blend_expr_mm)
+        rt = avatar.prior_runtime if expression is not None and sigma > 0 and vb.expressions is not None and avatar.prior is not None else None
+        if rt is not None and (getattr(rt, "source", None) is not avatar.prior or rt.n != len(avatar.gaussians)):
+            rt = None  # not this avatar's binding: angle factors alone
+        f = vb.to(g.opacities.device).factors(camera, tau, expression, sigma, rt, avatar.gaussians.means[:n] if rt is not None else None).to(g.opacities.dtype)
         op = g.opacities.clone()
         op[:n] = op[:n] * f
         if vb.under is not None:  # off-head Gaussians drawn under the others for this camera (model/viewblend.py push_under)

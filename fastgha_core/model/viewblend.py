@@ -26,12 +26,35 @@ are also moved per frame 1 m deeper along the frame camera's rays and scaled wit
 (``push_under``): they look the same, but every other Gaussian is composited over them, so they
 show only where the head leaves the frame uncovered (hair beside the face, not streaked across it).
 
+Expression penalty (``GaussianHeadConfig.view_blend_expr_mm``, ``ViewBlend.expressions``): the
+canonical head is neutral in *geometry* (each photo's tracked expression is undone), but each view's
+Gaussians keep that photo's *colours*: a smiling photo's teeth and creases, a profile's open mouth.
+Buehler et al. combine several penalties per input; here a second one is added to the angle: with
+``d_v = D_g e_v`` the displacement (the expression prior's ict53 basis ``D_g`` of the Gaussian's bound
+surface point, metres) of view ``v``'s tracked expression ``e_v`` and ``d_f = D_g e_f`` that of the
+frame's expression, ``p[v] = |d_f - d_v|`` in millimetres (how far the point moves between the
+photo's expression and the frame's), and the factor becomes
+
+    factor = exp(-(c[source] - min_{v in covers} c[v])),   c[v] = a[v] / tau + p[v] / sigma_mm
+
+(one combined penalty per view, so the covering view best on both keeps full opacity; with every
+``p`` equal it is the angle factor above). Only the Gaussians whose covering views' ``d_v`` differ by
+more than ``EXPR_SPREAD_FRAC x sigma`` get the combined form (``|p[s] - p[v]| <= |d_s - d_v|``: for the
+rest it would change the factor by less than ``1 - exp(-EXPR_SPREAD_FRAC)``, 5%); their ``d_v`` and
+their rows of a sparse weight matrix on the prior runtime's compact basis are built once per avatar
+and prior binding (``ExpressionPenalty``), so a frame costs one ``[E] @ [E, Uc*4]`` product, a sparse
+product and a ``[M, V]`` minimum. The lips of open-mouthed input views, which the prior's mouth gate
+fades as the frame's mouth opens (``prior.hide_open_lips``), count in that minimum with ``-ln`` of
+their gate factor added: otherwise an open-mouthed frame would pick them, fade the other views' lips,
+and the gate would then hide the chosen ones (a hole in the mouth).
+
 Conventions: cameras are ``fastgha_core.cameras.Cameras`` (OpenCV, pixel corners at integer
 coordinates); masks are ``uint8`` with bit ``v`` for input view ``v``, so at most 8 views.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -40,10 +63,12 @@ from torch import Tensor
 
 from ..cameras import Cameras
 
-__all__ = ["ViewBlend", "angles_deg", "contradicted_by_head_on_view", "blend_factors", "coverage_masks", "min_angle_table", "view_depth_maps", "view_directions", "MAX_BLEND_VIEWS", "COVER_DEPTH_TOL_M", "UNDER_PUSH_M", "push_under"]
+__all__ = ["ViewBlend", "angles_deg", "contradicted_by_head_on_view", "blend_factors", "coverage_masks", "min_angle_table", "view_depth_maps", "view_directions", "MAX_BLEND_VIEWS", "COVER_DEPTH_TOL_M", "UNDER_PUSH_M", "push_under",
+           "ExpressionPenalty", "expression_factors", "EXPR_SPREAD_FRAC"]
 
 MAX_BLEND_VIEWS = 8  # coverage masks are uint8
 UNDER_PUSH_M = 1.0  # push_under: metres the "under" Gaussians move further from the frame's camera (more than a head's depth)
+EXPR_SPREAD_FRAC = 0.05  # ExpressionPenalty: Gaussians whose covering views' prior displacements all lie within this x sigma of their source view's get no expression penalty (their factor changes by less than 1 - exp(-0.05), 5%)
 COVER_DEPTH_TOL_M = 0.015  # a point counts as seen by a view if at most this far behind that view's surface (metres)
 
 
@@ -172,6 +197,9 @@ class ViewBlend:
             ``UNDER_PUSH_M`` further from the frame's camera along its rays and scaled with their
             distance, so that they look the same but every other Gaussian is composited over them
             (``push_under``; the off-head pixels' Gaussians, ``GaussianHeadConfig.off_head_draw``).
+        expressions: ``float32 [V, E]`` (None: no expression penalty) each input view's expression
+            (known or tracked, the one ``reconstruct`` undid; mirrored views their mirrored one), for
+            the expression penalty (module doc, ``ExpressionPenalty``; saved as ``view.expr``).
     """
 
     source_view: Tensor
@@ -181,6 +209,7 @@ class ViewBlend:
     sharp: Tensor | None = None
     sharp_scale: float = 0.25
     under: Tensor | None = None
+    expressions: Tensor | None = None
 
     def __post_init__(self) -> None:
         n, v = self.source_view.shape[0], self.directions.shape[0]
@@ -197,14 +226,21 @@ class ViewBlend:
             raise ValueError(f"ViewBlend: sharp must be bool [N={n}], got {self.sharp.dtype} {list(self.sharp.shape)}")
         if self.under is not None and (self.under.shape != (n,) or self.under.dtype != torch.bool):
             raise ValueError(f"ViewBlend: under must be bool [N={n}], got {self.under.dtype} {list(self.under.shape)}")
+        if self.expressions is not None and (self.expressions.ndim != 2 or self.expressions.shape[0] != v or not bool(torch.isfinite(self.expressions).all())):
+            raise ValueError(f"ViewBlend: expressions must be [V={v}, E] finite, got {list(self.expressions.shape)}")
         if not 0 < float(self.sharp_scale) <= 1:
             raise ValueError(f"ViewBlend: sharp_scale must be in (0, 1], got {self.sharp_scale}")
 
     def __len__(self) -> int:
         return int(self.source_view.shape[0])
 
-    def factors(self, camera: Cameras, tau_deg: float) -> Tensor:
-        """``[N]`` opacity factors for ``camera``, the same as ``blend_factors``.
+    def factors(self, camera: Cameras, tau_deg: float, expression: Tensor | None = None, sigma_mm: float = 0.0, runtime=None, means: Tensor | None = None) -> Tensor:
+        """``[N]`` opacity factors for ``camera``, the same as ``blend_factors``; with the frame's
+        ``expression [E]``, ``sigma_mm > 0``, this object's ``expressions`` and the avatar's prior
+        ``runtime`` (``prior.PriorRuntime`` of a binding whose first ``N`` Gaussians are these), those
+        of the Gaussians whose views' expressions disagree there take the expression penalty too
+        (module doc, ``expression_factors``). ``means [N, 3]``: the Gaussians' canonical centres, for
+        which of them lie on the lips that open-mouthed views hide (``ExpressionPenalty.build``).
 
         Per frame: the factor of every (mask, source view) pair, a ``[2^V * V + 1]`` table (the
         last entry 1 for Gaussians without a source view), and one gather of it by each Gaussian's
@@ -225,7 +261,16 @@ class ViewBlend:
         f = torch.exp(-(ang[None, :] - table[:, None]).clamp(min=0) / float(tau_deg)).reshape(-1)  # [2^V * V]
         # sharp Gaussians: by their own camera's angle alone (1 there, ~0 a few tau_s away, whatever else covers the point)
         fs = torch.exp(-ang.clamp(min=0) / (float(tau_deg) * float(self.sharp_scale)))[None, :].expand(1 << v, v).reshape(-1)
-        return torch.cat([f, fs, f.new_ones(1)])[key]
+        out = torch.cat([f, fs, f.new_ones(1)])[key]
+        if expression is None or sigma_mm <= 0 or self.expressions is None or runtime is None:
+            return out
+        pen = self.__dict__.get("_expr")
+        spread = EXPR_SPREAD_FRAC * float(sigma_mm) * 1e-3
+        if pen is None or pen.runtime is not runtime or pen.idx.device != out.device or pen.with_means != (means is not None) or pen.spread_min_m != spread:
+            pen = self.__dict__["_expr"] = ExpressionPenalty.build(self, runtime, spread, means=means)
+        if len(pen.idx):  # ``out`` is a new tensor (the gather above)
+            out[pen.idx] = pen.factors(ang, expression, tau_deg, sigma_mm, self.sharp_scale)
+        return out
 
     @property
     def nbytes(self) -> int:
@@ -233,11 +278,14 @@ class ViewBlend:
         extra = 0 if self.offsets is None else self.offsets.numel() * self.offsets.element_size()
         extra += 0 if self.sharp is None else self.sharp.numel()
         extra += 0 if self.under is None else self.under.numel()
+        extra += 0 if self.expressions is None else self.expressions.numel() * 4
+        pen = self.__dict__.get("_expr")  # the expression penalty's tables once built (FastGHA.serving_nbytes bounds them before)
+        extra += 0 if pen is None else pen.nbytes
         return sum(t.numel() * t.element_size() for t in (self.source_view, self.mask, self.directions)) + 8 * len(self) + extra
 
     def subset(self, keep: Tensor) -> "ViewBlend":
         return ViewBlend(self.source_view[keep], self.mask[keep], self.directions, self.offsets, None if self.sharp is None else self.sharp[keep], self.sharp_scale,
-                         None if self.under is None else self.under[keep])
+                         None if self.under is None else self.under[keep], self.expressions)
 
     def to(self, device) -> "ViewBlend":
         if self.mask.device == torch.device(device):
@@ -245,6 +293,7 @@ class ViewBlend:
         return ViewBlend(
             self.source_view.to(device), self.mask.to(device), self.directions.to(device), None if self.offsets is None else self.offsets.to(device),
             None if self.sharp is None else self.sharp.to(device), self.sharp_scale, None if self.under is None else self.under.to(device),
+            None if self.expressions is None else self.expressions.to(device),
         )  # fmt: skip
 
     def tensors(self) -> dict[str, Tensor]:
@@ -256,6 +305,8 @@ class ViewBlend:
             out["view.sharp_scale"] = torch.tensor([float(self.sharp_scale)])
         if self.under is not None:
             out["view.under"] = self.under.to(torch.uint8)
+        if self.expressions is not None:
+            out["view.expr"] = self.expressions.float()
         return out
 
     @staticmethod
@@ -268,13 +319,174 @@ class ViewBlend:
         sharp = t.get("view.sharp")  # absent in files without contradicted Gaussians
         scale = t.get("view.sharp_scale")
         under = t.get("view.under")  # absent in files without Gaussians drawn under the others
+        expr = t.get("view.expr")  # absent in files written before the expression penalty: angle factors alone
         b = ViewBlend(
             t[keys[0]].to(torch.int8), t[keys[1]].to(torch.uint8), t[keys[2]].float(), None if off is None else off.float(),
             None if sharp is None else sharp.bool(), 0.25 if scale is None else float(scale.reshape(-1)[0]), None if under is None else under.bool(),
+            None if expr is None else expr.float(),
         )  # fmt: skip
         if len(b) != n:
             raise ValueError(f"avatar view blend must cover the {n} reconstructed Gaussians, got {len(b)}")
         return b
+
+
+@dataclass
+class ExpressionPenalty:
+    """Per-avatar tables of the expression penalty (module doc) for the ``M`` Gaussians that need it.
+
+    Attributes:
+        idx: ``[M]`` long, which of the ``N`` reconstructed Gaussians (those whose covering views'
+            prior displacements differ from their source view's by more than ``spread_min_m``, metres;
+            ``ViewBlend.factors`` uses ``EXPR_SPREAD_FRAC x sigma``).
+        source: ``[M, 1]`` long source views; cover: ``[M, V]`` bool coverage bits; sharp: ``[M]`` bool.
+        dv: ``[3, M, V]`` each view's expression's prior displacement at the Gaussian (metres),
+            coordinate-major (three contiguous ``[M, V]`` planes: the per-frame distances without a
+            strided ``[M, V, 3]`` reduction).
+        basis: ``[E, Uc*4]`` the prior runtime's own compact basis (``PriorRuntime.compact``: per slot
+            the blendshape displacement in the fit's frame and the shading; shared, not copied); W:
+            ``[M, Uc]`` sparse CSR, each row the Gaussian's three barycentric x fade weights on its slots.
+        runtime: the ``PriorRuntime`` this was built from (the cache key).
+        hide: ``[M, V]`` bool: view ``v``'s Gaussians at this point fade as the mouth opens (the lips of
+            an open-mouthed view, ``prior.hide_open_lips``): per frame ``-ln(1 - gate)`` is added to
+            that view's penalty in the minimum, so a frame with an open mouth does not fade the other
+            views' lips in favour of lips that the gate hides (None: none).
+        with_means, spread_min_m: how it was built (``ViewBlend.factors``' cache key).
+    """
+
+    idx: Tensor
+    source: Tensor
+    cover: Tensor
+    sharp: Tensor
+    dv: Tensor
+    basis: Tensor
+    W: Tensor
+    runtime: object
+    hide: Tensor | None = None
+    with_means: bool = False
+    spread_min_m: float = 0.0
+
+    @staticmethod
+    def build(blend: "ViewBlend", runtime, spread_min_m: float = 0.0, means: Tensor | None = None) -> "ExpressionPenalty":
+        """From ``blend`` (with ``expressions [V, E]``) and a ``prior.PriorRuntime`` whose first ``N``
+        Gaussians are ``blend``'s; with their canonical centres ``means [N, 3]`` also ``hide`` (the
+        open-mouthed views, ``prior.open_mouth_views``, at the points within ``prior.LIP_RADIUS`` of the
+        fitted head's lip landmarks, as ``prior.hide_open_lips`` chooses them). Raises ``ValueError``
+        when the runtime holds fewer Gaussians or another expression dimension."""
+        import warnings
+
+        n, v = len(blend), blend.directions.shape[0]
+        bu = runtime.basis_u
+        e = bu.shape[0]
+        dev = blend.mask.device
+        if blend.expressions is None or blend.expressions.shape != (v, e):
+            raise ValueError(f"ExpressionPenalty: the blend's expressions must be [V={v}, E={e}]")
+        if runtime.n < n:
+            raise ValueError(f"ExpressionPenalty: the prior runtime holds {runtime.n} Gaussians, the blend {n}")
+        coef_all = runtime.coef3[:n].to(dev, torch.float32)
+        dv_all = runtime.displacement(blend.expressions.to(bu.device, bu.dtype))[:, :n].to(dev, torch.float32)  # [V, N, 3]
+        sv = blend.source_view.to(dev).long()
+        own = sv >= 0
+        bits = ((blend.mask.to(dev).long()[:, None] >> torch.arange(v, device=dev)) & 1).bool()  # [N, V]
+        ds = dv_all[sv.clamp(min=0), torch.arange(n, device=dev)]  # [N, 3]
+        spread = torch.where(bits.T, (dv_all - ds[None]).norm(dim=-1), torch.zeros((), device=dev)).amax(dim=0)  # [N]
+        idx = (own & (spread > float(spread_min_m))).nonzero()[:, 0]
+        m = len(idx)
+        basis, cslots = runtime.compact  # [E, Uc*4], [N_all, 3]
+        basis = basis.to(dev, torch.float32)
+        with warnings.catch_warnings():  # torch marks CSR tensors "beta"; this one is valid by construction
+            warnings.simplefilter("ignore", UserWarning)
+            W = torch.sparse_csr_tensor(
+                torch.arange(0, 3 * m + 1, 3, dtype=torch.int64, device=dev), cslots[:n].to(dev).long()[idx].reshape(-1), coef_all[idx].reshape(-1),
+                size=(m, basis.shape[1] // 4), check_invariants=False,
+            )  # fmt: skip
+        sharp = blend.sharp.to(dev)[idx] if blend.sharp is not None else torch.zeros(m, dtype=torch.bool, device=dev)
+        hide = None
+        b, hb = getattr(runtime, "source", None), getattr(runtime, "basis", None)
+        if means is not None and b is not None and hb is not None and hb.lip_landmarks is not None and m:
+            from .prior import LIP_RADIUS, open_mouth_views
+
+            ov = torch.from_numpy(open_mouth_views(blend.expressions, hb)).to(dev)
+            if bool(ov.any()):
+                scale = float(torch.linalg.det(b.transform[:3, :3].double().cpu()).abs() ** (1 / 3))
+                lips = torch.from_numpy(b.fitted_vertices(hb)[hb.lip_landmarks]).to(dev)
+                near = torch.cdist(means[:n][idx].detach().float().to(dev), lips).amin(dim=1) < LIP_RADIUS * scale
+                hide = near[:, None] & ov[None, :] & (b.weight[:n].to(dev)[idx] > 0)[:, None]
+                hide = hide if bool(hide.any()) else None
+        dv = dv_all[:, idx].permute(2, 1, 0).contiguous()  # [3, M, V]
+        return ExpressionPenalty(idx, sv[idx, None], bits[idx], sharp, dv, basis, W, runtime, hide, means is not None, float(spread_min_m))
+
+    def __len__(self) -> int:
+        return int(self.idx.shape[0])
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of these tables (the runtime's compact basis not counted: ``PriorRuntime.estimate_nbytes``)."""
+        extra = 0 if self.hide is None else self.hide.numel()
+        extra += 36 * len(self) + 8 * (len(self) + 1)  # W: 3 columns (int64) and 3 weights a row, row pointers
+        return extra + sum(t.numel() * t.element_size() for t in (self.idx, self.source, self.cover, self.sharp, self.dv))
+
+    @staticmethod
+    def estimate_nbytes(n: int, v: int) -> int:
+        """An upper bound of ``nbytes`` for ``n`` Gaussians and ``v`` views (every Gaussian penalised)."""
+        return n * (8 + 8 + 2 * v + 1 + 12 * v + 36) + 8 * (n + 1)
+
+    def frame_displacement(self, expression: Tensor) -> Tensor:
+        """``[M, 3]`` the prior displacement ``D_g e`` of ``expression [E]`` at these Gaussians (metres)."""
+        z = torch.as_tensor(expression, dtype=torch.float32).to(self.basis.device).reshape(-1)
+        return self.W @ (z @ self.basis).view(-1, 4)[:, :3].contiguous()  # [Uc, 3] -> [M, 3]
+
+    def penalties_mm(self, expression: Tensor) -> Tensor:
+        """``[M, V]`` ``|D_g (e_frame - e_v)|`` in millimetres."""
+        df = self.frame_displacement(expression).T  # [3, M]
+        x = self.dv[0] - df[0, :, None]
+        p = x * x
+        for k in (1, 2):
+            x = self.dv[k] - df[k, :, None]
+            p.addcmul_(x, x)
+        return p.sqrt_().mul_(1000.0)
+
+    def factors(self, ang: Tensor, expression: Tensor, tau_deg: float, sigma_mm: float, sharp_scale: float = 0.25) -> Tensor:
+        """``[M]`` factors of these Gaussians for the frame's per-view angles ``ang [V]`` (degrees, offsets
+        included) and ``expression [E]`` (``expression_factors``)."""
+        hidden = None
+        if self.hide is not None:
+            z = torch.as_tensor(expression, dtype=torch.float32).reshape(-1)
+            h = float(self.runtime.factor_table(z.to(self.runtime.gates.device))[-1])  # 1 - the mouth gate (prior.opacity_factors' last slot)
+            hidden = torch.where(self.hide, -math.log(max(h, 1e-6)), 0.0) if h < 1 else None
+        return expression_factors(ang, self.penalties_mm(expression), self.source[:, 0], self.cover, tau_deg, sigma_mm, self.sharp, sharp_scale, hidden)
+
+
+def expression_factors(
+    ang: Tensor, p_mm: Tensor, source: Tensor, cover: Tensor, tau_deg: float, sigma_mm: float, sharp: Tensor | None = None, sharp_scale: float = 0.25,
+    hidden: Tensor | None = None,
+) -> Tensor:
+    """Opacity factors ``[M]`` with the expression penalty (module doc).
+
+    ``ang [V]`` degrees (the frame camera's angle to each input view's), ``p_mm [M, V]`` each view's
+    expression penalty ``|d_frame - d_v|`` (millimetres: how far the point moves between view ``v``'s
+    expression and the frame's), ``source [M]`` long (>= 0), ``cover [M, V]`` bool (the source's bit
+    set), ``tau_deg, sigma_mm > 0``. ``c[v] = ang[v] / tau + p_mm[v] / sigma``, factor
+    ``exp(-(c[source] - min over covering v of c[v]))``; ``sharp [M]`` Gaussians:
+    ``exp(-ang[source] / (tau sharp_scale))`` times the expression part alone,
+    ``exp(-(p[source] - min over covering v of p[v]) / sigma)``. ``hidden [M, V]`` (optional, >= 0):
+    added to ``c[v]`` (and ``p[v] / sigma``) in the minimum but not to the source's own term: ``-ln``
+    of the gate factor that view's Gaussians there are drawn with (their own opacity already carries
+    it), so a view the gate hides does not fade the others.
+    """
+    if tau_deg <= 0 or sigma_mm <= 0:
+        raise ValueError(f"expression_factors: tau_deg and sigma_mm must be > 0, got {tau_deg}, {sigma_mm}")
+    p = p_mm / float(sigma_mm)  # [M, V]
+    c = p + ang.to(p)[None, :] / float(tau_deg)
+    hp = p if hidden is None else p + hidden.to(p)
+    hc = c if hidden is None else c + hidden.to(p)
+    inf = torch.full((), float("inf"), device=p.device)
+    s = source.long()[:, None]
+    f = torch.exp(-(c.gather(1, s)[:, 0] - torch.where(cover, hc, inf).amin(dim=1)).clamp(min=0))
+    if sharp is not None and bool(sharp.any()):
+        fe = torch.exp(-(p.gather(1, s)[:, 0] - torch.where(cover, hp, inf).amin(dim=1)).clamp(min=0))
+        fs = torch.exp(-ang.to(p)[source.long()].clamp(min=0) / (float(tau_deg) * float(sharp_scale))) * fe
+        f = torch.where(sharp, fs, f)
+    return f
 
 
 def view_depth_maps(means: Tensor, cameras: Cameras, visible: Tensor) -> Tensor:

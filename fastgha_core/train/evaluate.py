@@ -305,7 +305,7 @@ def evaluate(
                 # of the same deformed Gaussians
                 cams_d = cams.to(device)
                 pred = torch.cat([
-                    render(model.blend_views(avatar, gauss, cams_d[i : i + 1]), cams_d[i : i + 1], background=BACKGROUND_RGB, backend=cfg.backend).rgb
+                    render(model.blend_views(avatar, gauss, cams_d[i : i + 1], expr), cams_d[i : i + 1], background=BACKGROUND_RGB, backend=cfg.backend).rgb
                     for i in range(len(cams))
                 ]).float().cpu().clamp(0, 1)
             else:
