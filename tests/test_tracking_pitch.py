@@ -126,3 +126,25 @@ def test_pitched_up_neutral_head_keeps_a_calm_mouth(model, seed):
     assert abs(p_new - truth) < 6.0, p_new
     assert e_old[stretch].max() > e_new[stretch].max() + 0.1, (e_old[stretch], e_new[stretch])
     assert abs(p_old - truth) > abs(p_new - truth), (p_old, p_new)
+
+
+def test_a_table_that_is_not_a_pose_table_is_refused(tmp_path):
+    """A missing file is None (the fitter falls back to the frontal map); the yaw-only table of
+    earlier versions (no ``pitch``) or one whose shapes disagree is refused, naming the file."""
+    assert load_pose_table(str(tmp_path / "absent.npz")) is None
+    tab = load_pose_table()
+    q0 = PITCH_BINS.index(0.0)
+    old = tmp_path / "mediapipe_ict_yaw.npz"
+    np.savez(old, yaw=tab["yaw"], vertex=tab["vertex"][q0], hits=tab["hits"][q0])
+    with pytest.raises(ValueError, match=r"mediapipe_ict_yaw\.npz.*missing \['pitch'\]"):
+        load_pose_table(str(old))
+    with pytest.raises(ValueError, match="missing"):
+        load_yaw_table(str(old))
+    short = tmp_path / "short.npz"
+    np.savez(short, yaw=tab["yaw"], pitch=tab["pitch"][:3], vertex=tab["vertex"], hits=tab["hits"])
+    with pytest.raises(ValueError, match=r"short\.npz.*vertex \[6, 13, 468\]"):
+        load_pose_table(str(short))
+    unsorted = tmp_path / "unsorted.npz"
+    np.savez(unsorted, yaw=tab["yaw"], pitch=tab["pitch"][::-1], vertex=tab["vertex"], hits=tab["hits"])
+    with pytest.raises(ValueError, match="ascending"):
+        load_pose_table(str(unsorted))
