@@ -272,3 +272,35 @@ def test_the_avatar_budget_bounds_the_tables_before_the_first_frame_and_counts_t
     assert len(pen) > 0
     assert after - off == pen.nbytes  # once built: what the tables hold
     assert before - off >= pen.nbytes  # before: a bound
+
+
+def test_a_malformed_view_expr_is_refused_naming_the_file_or_the_shape(recon, tmp_path):
+    """``view.expr`` with the wrong number of views or a non-finite code is refused when the avatar
+    file loads (the file named); one with another expression dimension loads (frames with the
+    penalty off never read it) and a frame with the penalty on is refused, naming the shape."""
+    from fastgha_core.io import load_avatar_file, save_avatar_file
+    from fastgha_core.model.avatar import CanonicalAvatar
+
+    model, av, cams, expr = recon
+    path = tmp_path / "a.fgha"
+    av.save(path)
+    g, meta, extra = load_avatar_file(path)
+    good = extra["view.expr"]
+    nan = good.clone()
+    nan[0, 0] = float("nan")
+    for bad in (good[:2], good[0], nan):
+        save_avatar_file(tmp_path / "bad.fgha", g, meta, {**extra, "view.expr": bad})
+        with pytest.raises(ValueError, match=r"bad\.fgha.*expressions must be \[V=3, E\] finite"):
+            CanonicalAvatar.load(tmp_path / "bad.fgha")
+    save_avatar_file(tmp_path / "short.fgha", g, meta, {**extra, "view.expr": good[:, :52]})
+    short = CanonicalAvatar.load(tmp_path / "short.fgha")
+    gc = model.config.gaussians
+    saved = gc.view_blend_expr_mm
+    try:
+        gc.view_blend_expr_mm = 0.0
+        model.animate(short, expr[1], camera=cams[1:2])
+        gc.view_blend_expr_mm = SIGMA
+        with pytest.raises(ValueError, match=r"view\.expr.*\[V=3, E=53\].*got \[3, 52\]"):
+            model.animate(short, expr[1], camera=cams[1:2])
+    finally:
+        gc.view_blend_expr_mm = saved
