@@ -175,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
 
     p = argparse.ArgumentParser(prog="python -m fastgha_core.tracking.meshmap", description="rebuild the Face Mesh -> ICT maps")
     p.add_argument("--pose", "--yaw", dest="pose", action="store_true",
-                   help="rebuild the pose-dependent table (yaw x pitch, synthetic renders, ~2 min) instead")
+                   help="rebuild the pose-dependent table (yaw x pitch, synthetic renders, ~30 s) instead")
     if p.parse_args(argv).pose:
         d = build_pose_table()
         np.savez_compressed(POSE_ASSET, **d)
