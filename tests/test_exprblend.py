@@ -33,16 +33,13 @@ def _expr(**codes) -> torch.Tensor:
 def recon(head_case):
     """The tiny model's avatar of the tracked head's three views: view 0 (frontal) neutral, view 1
     (+60) with the jaw open, view 2 (-60) smiling."""
-    from fastgha_core.constants import BACKGROUND_RGB
     from fastgha_core.model.fastgha import load_model
 
     surface, cams, sd, fg = head_case
     model = load_model("tiny")
     s = model.config.input_size
     gc = model.config.gaussians
-    imgs = torch.tensor(BACKGROUND_RGB, dtype=torch.float32).view(1, 3, 1, 1).repeat(3, 1, s, s)
-    torch.manual_seed(0)
-    imgs = torch.where(fg[:, None] > 0.5, torch.rand(3, 3, s, s) * 0.5 + 0.25, imgs)
+    imgs = test_surface_hull.head_case_photos(fg, s)
     expr = torch.stack([_expr(), _expr(jawOpen=0.8), _expr(mouthSmile_L=0.9, mouthSmile_R=0.9)])
     saved = gc.mirror_views
     gc.mirror_views = False
