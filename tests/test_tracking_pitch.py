@@ -87,6 +87,17 @@ def test_map_pitch_follows_config():
     assert _map_pitch(down, FitConfig(pitch_map_min_deg=-30.0)) == pytest.approx(-25.0)
     assert _map_pitch(up, FitConfig(pitch_map_max_deg=15.0)) == pytest.approx(15.0)
     assert _map_pitch(up, FitConfig(pitch_map=False)) == 0.0
+    with pytest.raises(ValueError, match="pitch_map_min_deg"):
+        _map_pitch(up, FitConfig(pitch_map_min_deg=50.0))
+
+
+def test_evaluate_refuses_bad_pitch_options_before_rendering(capsys):
+    from fastgha_core.tracking.evaluate import main
+
+    for argv, said in ((["--pitches", "up"], "--pitches"), (["--pitch-map-min", "60"], "--pitch-map-min")):
+        with pytest.raises(SystemExit) as e:
+            main(["--through-detector", "1", *argv])
+        assert e.value.code == 2 and said in capsys.readouterr().err
 
 
 def _render(sub, pitch_deg: float, expression=None):

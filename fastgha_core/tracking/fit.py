@@ -608,9 +608,11 @@ def _pose_table(model: "LandmarkModel", cfg: "FitConfig"):
 def _map_pitch(R: np.ndarray, cfg: "FitConfig") -> float:
     """The pitch (degrees) at which the pose map is read for a head -> camera rotation ``R``: the
     head's pitch clipped to ``[cfg.pitch_map_min_deg, cfg.pitch_map_max_deg]``, or 0 (the yaw-only
-    map) without ``cfg.pitch_map``."""
+    map) without ``cfg.pitch_map``. Raises ``ValueError`` when ``pitch_map_min_deg > pitch_map_max_deg``."""
     if not cfg.pitch_map:
         return 0.0
+    if cfg.pitch_map_min_deg > cfg.pitch_map_max_deg:
+        raise ValueError(f"FitConfig: pitch_map_min_deg ({cfg.pitch_map_min_deg:g}) must not exceed pitch_map_max_deg ({cfg.pitch_map_max_deg:g})")
     return float(np.clip(_pitch_deg(R), cfg.pitch_map_min_deg, cfg.pitch_map_max_deg))
 
 
