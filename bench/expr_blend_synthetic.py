@@ -40,6 +40,7 @@ def main(argv=None) -> int:
     if any(s < 0 for s in sigmas) or args.subjects < 1 or args.resolution < 64:
         ap.error(f"expected --sigmas >= 0, --subjects >= 1 and --resolution >= 64, got {args.sigmas!r}, {args.subjects}, {args.resolution}")
     sys.path.insert(0, str(REPO))
+    import fastgha_core  # noqa: F401  (first: its thread settings must precede torch's import, fastgha_core/perf.py)
     import numpy as np
     import torch
 

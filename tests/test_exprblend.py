@@ -33,16 +33,13 @@ def _expr(**codes) -> torch.Tensor:
 def recon(head_case):
     """The tiny model's avatar of the tracked head's three views: view 0 (frontal) neutral, view 1
     (+60) with the jaw open, view 2 (-60) smiling."""
-    from fastgha_core.constants import BACKGROUND_RGB
     from fastgha_core.model.fastgha import load_model
 
     surface, cams, sd, fg = head_case
     model = load_model("tiny")
     s = model.config.input_size
     gc = model.config.gaussians
-    imgs = torch.tensor(BACKGROUND_RGB, dtype=torch.float32).view(1, 3, 1, 1).repeat(3, 1, s, s)
-    torch.manual_seed(0)
-    imgs = torch.where(fg[:, None] > 0.5, torch.rand(3, 3, s, s) * 0.5 + 0.25, imgs)
+    imgs = test_surface_hull.head_case_photos(fg, s)
     expr = torch.stack([_expr(), _expr(jawOpen=0.8), _expr(mouthSmile_L=0.9, mouthSmile_R=0.9)])
     saved = gc.mirror_views
     gc.mirror_views = False
@@ -272,3 +269,35 @@ def test_the_avatar_budget_bounds_the_tables_before_the_first_frame_and_counts_t
     assert len(pen) > 0
     assert after - off == pen.nbytes  # once built: what the tables hold
     assert before - off >= pen.nbytes  # before: a bound
+
+
+def test_a_malformed_view_expr_is_refused_naming_the_file_or_the_shape(recon, tmp_path):
+    """``view.expr`` with the wrong number of views or a non-finite code is refused when the avatar
+    file loads (the file named); one with another expression dimension loads (frames with the
+    penalty off never read it) and a frame with the penalty on is refused, naming the shape."""
+    from fastgha_core.io import load_avatar_file, save_avatar_file
+    from fastgha_core.model.avatar import CanonicalAvatar
+
+    model, av, cams, expr = recon
+    path = tmp_path / "a.fgha"
+    av.save(path)
+    g, meta, extra = load_avatar_file(path)
+    good = extra["view.expr"]
+    nan = good.clone()
+    nan[0, 0] = float("nan")
+    for bad in (good[:2], good[0], nan):
+        save_avatar_file(tmp_path / "bad.fgha", g, meta, {**extra, "view.expr": bad})
+        with pytest.raises(ValueError, match=r"bad\.fgha.*expressions must be \[V=3, E\] finite"):
+            CanonicalAvatar.load(tmp_path / "bad.fgha")
+    save_avatar_file(tmp_path / "short.fgha", g, meta, {**extra, "view.expr": good[:, :52]})
+    short = CanonicalAvatar.load(tmp_path / "short.fgha")
+    gc = model.config.gaussians
+    saved = gc.view_blend_expr_mm
+    try:
+        gc.view_blend_expr_mm = 0.0
+        model.animate(short, expr[1], camera=cams[1:2])
+        gc.view_blend_expr_mm = SIGMA
+        with pytest.raises(ValueError, match=r"view\.expr.*\[V=3, E=53\].*got \[3, 52\]"):
+            model.animate(short, expr[1], camera=cams[1:2])
+    finally:
+        gc.view_blend_expr_mm = saved

@@ -100,7 +100,6 @@ def test_flags_match_a_plain_reference(head_case):
 
 
 def test_reconstruct_drops_or_sharpens_only_the_off_head_gaussians_in_front_of_another_head(head_case):
-    from fastgha_core.constants import BACKGROUND_RGB
     from fastgha_core.model import fastgha as F
     from fastgha_core.model.fastgha import load_model
     from fastgha_core.model.gaussian_head import foreground_weight
@@ -111,9 +110,7 @@ def test_reconstruct_drops_or_sharpens_only_the_off_head_gaussians_in_front_of_a
     gc = model.config.gaussians
     assert gc.off_head_draw == "under"  # the default (docs/model-card.md)
     default = gc.off_head_draw
-    imgs = torch.tensor(BACKGROUND_RGB, dtype=torch.float32).view(1, 3, 1, 1).repeat(3, 1, s, s)
-    torch.manual_seed(0)
-    imgs = torch.where(fg[:, None] > 0.5, torch.rand(3, 3, s, s) * 0.5 + 0.25, imgs)
+    imgs = test_surface_hull.head_case_photos(fg, s)
     saved = gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.head_on_colour_tol
     gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.head_on_colour_tol = 0.0, False, 0.0, False, 0.0  # one Gaussian per pixel
     out = {}
@@ -198,7 +195,6 @@ def test_push_under_draws_the_selected_gaussians_under_the_others_and_looks_the_
 
 
 def test_under_is_recorded_saved_and_applied_per_frame(head_case, tmp_path):
-    from fastgha_core.constants import BACKGROUND_RGB
     from fastgha_core.model.fastgha import load_model
     from fastgha_core.model.gaussian_head import foreground_weight
     from fastgha_core.model.viewblend import ViewBlend
@@ -207,9 +203,7 @@ def test_under_is_recorded_saved_and_applied_per_frame(head_case, tmp_path):
     model = load_model("tiny")
     s = model.config.input_size
     gc = model.config.gaussians
-    imgs = torch.tensor(BACKGROUND_RGB, dtype=torch.float32).view(1, 3, 1, 1).repeat(3, 1, s, s)
-    torch.manual_seed(0)
-    imgs = torch.where(fg[:, None] > 0.5, torch.rand(3, 3, s, s) * 0.5 + 0.25, imgs)
+    imgs = test_surface_hull.head_case_photos(fg, s)
     saved = gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit
     gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit = 0.0, False, 0.0, False
     default = gc.off_head_draw

@@ -186,6 +186,16 @@ def head_case():
     return surface, cams, sd, fg
 
 
+def head_case_photos(fg: torch.Tensor, size: int) -> torch.Tensor:
+    """``[3, 3, size, size]`` input photos for ``head_case``: the background colour, and uniform noise
+    in [0.25, 0.75) where the matte ``fg [3, size, size]`` > 0.5 (after ``torch.manual_seed(0)``)."""
+    from fastgha_core.constants import BACKGROUND_RGB
+
+    imgs = torch.tensor(BACKGROUND_RGB, dtype=torch.float32).view(1, 3, 1, 1).repeat(3, 1, size, size)
+    torch.manual_seed(0)
+    return torch.where(fg[:, None] > 0.5, torch.rand(3, 3, size, size) * 0.5 + 0.25, imgs)
+
+
 def _points(cams, t):
     o, d = cams.pixel_rays()
     return o + t[..., None] * d
@@ -252,7 +262,6 @@ def test_collar_moves_only_head_pixels_below_the_neck_ring_that_the_hull_rejects
 
 
 def test_reconstruct_with_the_hull_moves_only_off_head_gaussians(head_case):
-    from fastgha_core.constants import BACKGROUND_RGB
     from fastgha_core.model.fastgha import load_model
 
     surface, cams, sd, fg = head_case
@@ -261,9 +270,7 @@ def test_reconstruct_with_the_hull_moves_only_off_head_gaussians(head_case):
     assert (cams.width, s) == (128, 128)
     gc = model.config.gaussians
     assert gc.off_head_hull == "off"  # off by default (docs/model-card.md)
-    imgs = torch.tensor(BACKGROUND_RGB, dtype=torch.float32).view(1, 3, 1, 1).repeat(3, 1, s, s)
-    torch.manual_seed(0)
-    imgs = torch.where(fg[:, None] > 0.5, torch.rand(3, 3, s, s) * 0.5 + 0.25, imgs)
+    imgs = head_case_photos(fg, s)
     saved = gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit
     gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit = 0.0, False, 0.0, False  # one Gaussian per pixel, on the bald head
     try:

@@ -87,6 +87,17 @@ def test_map_pitch_follows_config():
     assert _map_pitch(down, FitConfig(pitch_map_min_deg=-30.0)) == pytest.approx(-25.0)
     assert _map_pitch(up, FitConfig(pitch_map_max_deg=15.0)) == pytest.approx(15.0)
     assert _map_pitch(up, FitConfig(pitch_map=False)) == 0.0
+    with pytest.raises(ValueError, match="pitch_map_min_deg"):
+        _map_pitch(up, FitConfig(pitch_map_min_deg=50.0))
+
+
+def test_evaluate_refuses_bad_pitch_options_before_rendering(capsys):
+    from fastgha_core.tracking.evaluate import main
+
+    for argv, said in ((["--pitches", "up"], "--pitches"), (["--pitch-map-min", "60"], "--pitch-map-min")):
+        with pytest.raises(SystemExit) as e:
+            main(["--through-detector", "1", *argv])
+        assert e.value.code == 2 and said in capsys.readouterr().err
 
 
 def _render(sub, pitch_deg: float, expression=None):
@@ -126,3 +137,25 @@ def test_pitched_up_neutral_head_keeps_a_calm_mouth(model, seed):
     assert abs(p_new - truth) < 6.0, p_new
     assert e_old[stretch].max() > e_new[stretch].max() + 0.1, (e_old[stretch], e_new[stretch])
     assert abs(p_old - truth) > abs(p_new - truth), (p_old, p_new)
+
+
+def test_a_table_that_is_not_a_pose_table_is_refused(tmp_path):
+    """A missing file is None (the fitter falls back to the frontal map); the yaw-only table of
+    earlier versions (no ``pitch``) or one whose shapes disagree is refused, naming the file."""
+    assert load_pose_table(str(tmp_path / "absent.npz")) is None
+    tab = load_pose_table()
+    q0 = PITCH_BINS.index(0.0)
+    old = tmp_path / "mediapipe_ict_yaw.npz"
+    np.savez(old, yaw=tab["yaw"], vertex=tab["vertex"][q0], hits=tab["hits"][q0])
+    with pytest.raises(ValueError, match=r"mediapipe_ict_yaw\.npz.*missing \['pitch'\]"):
+        load_pose_table(str(old))
+    with pytest.raises(ValueError, match="missing"):
+        load_yaw_table(str(old))
+    short = tmp_path / "short.npz"
+    np.savez(short, yaw=tab["yaw"], pitch=tab["pitch"][:3], vertex=tab["vertex"], hits=tab["hits"])
+    with pytest.raises(ValueError, match=r"short\.npz.*vertex \[6, 13, 468\]"):
+        load_pose_table(str(short))
+    unsorted = tmp_path / "unsorted.npz"
+    np.savez(unsorted, yaw=tab["yaw"], pitch=tab["pitch"][::-1], vertex=tab["vertex"], hits=tab["hits"])
+    with pytest.raises(ValueError, match="ascending"):
+        load_pose_table(str(unsorted))

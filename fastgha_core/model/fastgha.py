@@ -939,11 +939,12 @@ class FastGHA(nn.Module):
     def blend_views(self, avatar: CanonicalAvatar, g: Gaussians, camera: Cameras | None, expression: Tensor | None = None) -> Gaussians:
         """``g`` (a frame of ``avatar``, as ``animate`` returns it without a camera) with its first
         ``avatar.num_reconstructed`` Gaussians' opacities multiplied by their source view's weight for
-        ``camera`` (batch ``[1]``; ``model/viewblend.py``). ``animate(..., camera=c)`` is
-        ``blend_views(avatar, animate(...), c)``; callers that render one frame from several cameras
-        deform once and weight per camera. With the frame's ``expression [E]``,
-        ``gaussians.view_blend_expr_mm > 0``, an avatar whose per-view data holds its input views'
-        expressions and a prior binding, the weights take the expression penalty too
+        ``camera`` (batch ``[1]``; ``model/viewblend.py``). ``animate(avatar, z, camera=c)`` is
+        ``blend_views(avatar, animate(avatar, z), c, z)``; callers that render one frame from several
+        cameras deform once and weight per camera, passing the frame's expression. With that
+        ``expression [E]``, ``gaussians.view_blend_expr_mm > 0``, an avatar whose per-view data holds
+        its input views' expressions and a prior binding whose runtime ``animate`` has built (without
+        one: the angle alone), the weights take the expression penalty too
         (``ViewBlend.factors``: the views whose expression is nearest the frame's there win).
         Returns ``g`` itself when ``gaussians.view_blend_tau_deg`` is 0, ``camera`` is None or the
         avatar has no per-view data."""

@@ -379,7 +379,9 @@ class ExpressionPenalty:
         e = bu.shape[0]
         dev = blend.mask.device
         if blend.expressions is None or blend.expressions.shape != (v, e):
-            raise ValueError(f"ExpressionPenalty: the blend's expressions must be [V={v}, E={e}]")
+            got = None if blend.expressions is None else list(blend.expressions.shape)
+            raise ValueError(f"ExpressionPenalty: the blend's expressions (an avatar file's view.expr) must be [V={v}, E={e}] "
+                             f"(E: the prior runtime's expression dimension), got {got}")
         if runtime.n < n:
             raise ValueError(f"ExpressionPenalty: the prior runtime holds {runtime.n} Gaussians, the blend {n}")
         coef_all = runtime.coef3[:n].to(dev, torch.float32)

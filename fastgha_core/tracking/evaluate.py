@@ -160,9 +160,14 @@ def main(argv: list[str] | None = None) -> int:
             from .photoalign import PhotoAlignConfig
 
             align = PhotoAlignConfig()
-        pitches = tuple(float(x) for x in a.pitches.split(",")) if a.pitches else (0.0,)
+        try:
+            pitches = tuple(float(x) for x in a.pitches.split(",")) if a.pitches else (0.0,)
+        except ValueError:
+            p.error(f"--pitches: expected comma-separated degrees (e.g. --pitches=-30,0,30), got {a.pitches!r}")
         cfg = FitConfig(pitch_map=not a.no_pitch_map)
         if a.pitch_map_min is not None:
+            if a.pitch_map_min > cfg.pitch_map_max_deg:
+                p.error(f"--pitch-map-min must not exceed FitConfig.pitch_map_max_deg ({cfg.pitch_map_max_deg:g}), got {a.pitch_map_min:g}")
             cfg.pitch_map_min_deg = a.pitch_map_min
         r = evaluate_renders(a.through_detector, yaws, a.seed, align=align, pitches=pitches, config=cfg,
                              expressions=KNOWN_EXPRESSIONS if a.known_expressions else None)  # fmt: skip

@@ -82,7 +82,7 @@ class FitConfig:
     silhouette_clip: float = 0.08  # outline residuals are clipped at this fraction of the face size
     silhouette_min_yaw: float = 30.0  # use the outline for photos turned at least this much (degrees)
     silhouette_rounds: int = 3  # outline points re-chosen this many times
-    yaw_map: bool = True  # Face Mesh layout: tie points to vertices by the head's yaw (meshmap.build_yaw_table)
+    yaw_map: bool = True  # Face Mesh layout: tie points to vertices by the head's pose (meshmap.build_pose_table; its pitch axis: pitch_map)
     yaw_map_rounds: int = 3  # re-chosen this many times as the yaw (and pitch) moves
     # the map's pitch axis too (meshmap.build_pose_table): the Face Mesh's lip, chin and nose points slide
     # on pitched heads; with the pitch-0 map, heads pitched up read short and grow mouthStretch (docs/tracking.md)
@@ -608,9 +608,11 @@ def _pose_table(model: "LandmarkModel", cfg: "FitConfig"):
 def _map_pitch(R: np.ndarray, cfg: "FitConfig") -> float:
     """The pitch (degrees) at which the pose map is read for a head -> camera rotation ``R``: the
     head's pitch clipped to ``[cfg.pitch_map_min_deg, cfg.pitch_map_max_deg]``, or 0 (the yaw-only
-    map) without ``cfg.pitch_map``."""
+    map) without ``cfg.pitch_map``. Raises ``ValueError`` when ``pitch_map_min_deg > pitch_map_max_deg``."""
     if not cfg.pitch_map:
         return 0.0
+    if cfg.pitch_map_min_deg > cfg.pitch_map_max_deg:
+        raise ValueError(f"FitConfig: pitch_map_min_deg ({cfg.pitch_map_min_deg:g}) must not exceed pitch_map_max_deg ({cfg.pitch_map_max_deg:g})")
     return float(np.clip(_pitch_deg(R), cfg.pitch_map_min_deg, cfg.pitch_map_max_deg))
 
 

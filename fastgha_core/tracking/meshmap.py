@@ -78,13 +78,26 @@ def load_mediapipe_map(path: str | None = None) -> MediaPipeMap:
 
 
 def load_pose_table(path: str | None = None) -> dict | None:
-    """The shipped pose-dependent table (``build_pose_table``: ``yaw [B]``, ``pitch [P]``, ``vertex
-    [P, B, 468]``, ``hits [P, B, 468]``), or None when absent (the fitter then uses the frontal map)."""
+    """The shipped pose-dependent table (``build_pose_table``: ``yaw [B]``, ``pitch [P]`` degrees,
+    both ascending, ``vertex [P, B, 468]`` ICT vertex ids (-1 = no hit), ``hits [P, B, 468]``), or
+    None when the file is absent (the fitter then uses the frontal map). Raises ``ValueError`` naming
+    the file when it lacks one of those arrays or their shapes disagree (e.g. the yaw-only
+    ``mediapipe_ict_yaw.npz`` of earlier versions, which had no ``pitch``)."""
     p = Path(path) if path else POSE_ASSET
     if not p.is_file():
         return None
     with np.load(p) as d:
-        return {k: d[k] for k in d.files}
+        out = {k: d[k] for k in d.files}
+    missing = [k for k in ("yaw", "pitch", "vertex", "hits") if k not in out]
+    if missing:
+        raise ValueError(f"{p}: not a pose table (build_pose_table), missing {missing}; rebuild with python -m fastgha_core.tracking.meshmap --pose")
+    yaw, pitch = out["yaw"], out["pitch"]
+    shape = (len(pitch), len(yaw), 468)
+    ascending = yaw.ndim == pitch.ndim == 1 and len(yaw) > 0 and len(pitch) > 0 and (np.diff(yaw) > 0).all() and (np.diff(pitch) > 0).all()
+    if not ascending or out["vertex"].shape != shape or out["hits"].shape != shape:
+        raise ValueError(f"{p}: expected ascending yaw [B >= 1] and pitch [P >= 1] bins and vertex, hits [P, B, 468], got yaw "
+                         f"{yaw.tolist()}, pitch {pitch.tolist()}, vertex {list(out['vertex'].shape)}, hits {list(out['hits'].shape)}")
+    return out
 
 
 def load_yaw_table(path: str | None = None) -> dict | None:
@@ -162,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
 
     p = argparse.ArgumentParser(prog="python -m fastgha_core.tracking.meshmap", description="rebuild the Face Mesh -> ICT maps")
     p.add_argument("--pose", "--yaw", dest="pose", action="store_true",
-                   help="rebuild the pose-dependent table (yaw x pitch, synthetic renders, ~2 min) instead")
+                   help="rebuild the pose-dependent table (yaw x pitch, synthetic renders, ~30 s) instead")
     if p.parse_args(argv).pose:
         d = build_pose_table()
         np.savez_compressed(POSE_ASSET, **d)
@@ -178,9 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-
-
-# ---------------------------------------------------------------------------- yaw-dependent map
+# ---------------------------------------------------------------------------- pose-dependent map
 YAW_BINS = (-90.0, -75.0, -60.0, -45.0, -30.0, -15.0, 0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
 CALIBRATION_SEEDS = tuple(range(1_000_100, 1_000_108))  # synthetic held-out subjects (data/synthetic.py)
 
@@ -212,6 +223,10 @@ def build_pose_table(seeds=CALIBRATION_SEEDS, size: int = 512, fov_deg: float = 
     camera-facing face/head vertex whose projection is nearest, within 2 % of the face size), the
     hit vertices' generic positions are averaged over subjects and snapped to the nearest generic
     vertex. Deterministic (renders and detector).
+
+    ``occlusion_mm`` (None, the shipped table): cast the points only onto vertices the render shows,
+    at most this many millimetres behind its depth buffer (a variant tried and not kept,
+    docs/tracking.md "Pitched heads").
 
     Returns ``{"yaw": [B] degrees, "pitch": [P] degrees, "vertex": [P, B, 468] int16 ICT vertex id
     (-1 = no hit in at least half of the renders), "hits": [P, B, 468] int16}``.
