@@ -160,6 +160,10 @@ class DeformConfig:
     # with the prior (ict53): an opaque shell on the fitted head's back and scalp (model/prior.py,
     # ``back_shell``): no input sees the back of the head, which was hollow and showed the face from behind
     back_shell: bool = True
+    # with the prior (ict53): the same kind of shell under the jaw and on the front of the neck, bound
+    # to follow the expression prior (``chin_shell``): a pitched-up view sees the jaw's underside that no
+    # input does (docs/model-card.md "Under the chin")
+    chin_shell: bool = True
     # with the prior: relight what an expression moves (model/prior.py, ``shading_basis``): a photo's
     # baked light otherwise stays on a moved surface (no smile creases, an evenly lit dropped lip)
     prior_shading: bool = True

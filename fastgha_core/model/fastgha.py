@@ -400,10 +400,10 @@ class FastGHA(nn.Module):
         return fit, binding.to(g.means.device), means, shift, back
 
     def _prior_extras(self, g: Gaussians, fit, binding, drawn: Tensor, shell_fit=None):
-        """``build_prior``'s back-of-head shell and mouth interior for the (neutralised) ``g``:
+        """``build_prior``'s back-of-head shell, chin shell and mouth interior for the (neutralised) ``g``:
         ``(extra Gaussians or None, binding, num_interior)``; ``drawn`` is where ``g`` is drawn at the
         neutral expression."""
-        from .prior import PriorBinding, back_shell, back_shell_vertices, interior_inset, mouth_interior
+        from .prior import PriorBinding, back_shell, back_shell_vertices, chin_shell, chin_shell_vertices, interior_inset, mouth_interior
 
         basis = self.head_basis()
         dev = g.means.device
@@ -415,6 +415,12 @@ class FastGHA(nn.Module):
             parts.append(gs.to(dev, g.means.dtype))
             binding = PriorBinding.concat(binding, bs.to(dev))
             n_int = len(gs)
+        if self.config.deform.chin_shell and len(chin_shell_vertices(basis)):
+            # also ungated, after the back shell (``_shell_count``); on the bound fit: it moves with the jaw
+            gs, bs = chin_shell(fit, basis, g.features.shape[1], avatar=g)
+            parts.append(gs.to(dev, g.means.dtype))
+            binding = PriorBinding.concat(binding, bs.to(dev))
+            n_int += len(gs)
         if self.config.deform.mouth_interior and len(basis.interior_vertices):
             # the interior behind the avatar's own lips, which sit a few mm behind the fitted ones
             inset = interior_inset(drawn, fit, basis, g.opacities)
@@ -727,7 +733,7 @@ class FastGHA(nn.Module):
         if self.config.deform.prior:
             n_rec = len(g)
             g, prior, n_int = self.build_prior(g, view_index if expressions is not None else None, expressions, head_fit=head_fit, shell_fit=shell_fit)
-            if surface is not None and self.config.gaussians.shell_carve and self.config.deform.back_shell and n_int > 0:
+            if surface is not None and self.config.gaussians.shell_carve and self._shell_count() > 0 and n_int > 0:
                 g = self._carve_shell(g, n_rec, images[:v_real], cameras[:v_real], surface)
         avatar = CanonicalAvatar(g, self.config.name, self.config.expression_space, prior, n_int, blend)
         self._deform_partial(avatar)
@@ -747,16 +753,23 @@ class FastGHA(nn.Module):
         st = stereo_ray_depth(images.float().cpu(), cameras.to("cpu", torch.float32), sd.t, sd.hit, foreground_weight(images.float().cpu()), cfg)
         return dataclasses.replace(sd, t=st.t.to(sd.t))
 
+    def _shell_count(self) -> int:
+        """How many ungated shell Gaussians ``_prior_extras`` appends after the reconstructed ones: the
+        back-of-head shell's (``deform.back_shell``) and then the chin shell's (``deform.chin_shell``)."""
+        from .prior import back_shell_vertices, chin_shell_vertices
+
+        basis = self.head_basis()
+        return len(back_shell_vertices(basis)) * bool(self.config.deform.back_shell) + len(chin_shell_vertices(basis)) * bool(self.config.deform.chin_shell)
+
     def _carve_shell(self, g: Gaussians, n_rec: int, images: Tensor, cameras: Cameras, surface) -> Gaussians:
-        """``reconstruct``'s back-of-head shell (the ``len(back_shell_vertices)`` Gaussians after the
+        """``reconstruct``'s back-of-head and chin shells (the ``_shell_count()`` Gaussians after the
         ``n_rec`` reconstructed ones) moved towards the head centre until every real input's matte
         holds it (``surface.carve_into_mattes``): the fitted head can be wider than the person's, and an
         opaque shell beyond a photo's outline is drawn as a dark rim beside the hair."""
         from .gaussian_head import foreground_weight
-        from .prior import back_shell_vertices
         from .surface import carve_into_mattes
 
-        k = len(back_shell_vertices(self.head_basis()))
+        k = self._shell_count()
         if k == 0 or len(g) < n_rec + k:
             return g
         means = g.means.clone()

@@ -43,6 +43,9 @@ Pieces (all numpy/torch on CPU, no learning):
 - ``back_shell(fit, basis)``: flat, opaque, ungated Gaussians on the fitted head's skin behind the
   ears and above the hairline, a few mm inside it and coloured from the avatar next to them: no
   input photo sees the back of the head, which was otherwise hollow and showed the face from behind.
+- ``chin_shell(fit, basis)``: the same discs under the jaw and on the front of the neck, bound to
+  follow the expression prior there (the jaw's underside moves with jawOpen): a pitched-up view sees
+  that skin, which no less pitched input does (``DeformConfig.chin_shell``).
 """
 
 from __future__ import annotations
@@ -70,6 +73,8 @@ __all__ = [
     "interior_inset",
     "back_shell",
     "back_shell_vertices",
+    "chin_shell",
+    "chin_shell_vertices",
     "mouth_gate_vector",
     "open_mouth_views",
     "hide_open_lips",
@@ -1057,7 +1062,7 @@ def _quat_z_to(n: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
-def back_shell(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gaussians | None" = None) -> tuple["Gaussians", PriorBinding]:  # noqa: F821
+def back_shell(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gaussians | None" = None, ids: np.ndarray | None = None) -> tuple["Gaussians", PriorBinding]:  # noqa: F821
     """Ungated Gaussians on the back of the fitted head (``back_shell_vertices``), an opaque skin the
     reconstruction has no pixels for.
 
@@ -1067,6 +1072,7 @@ def back_shell(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gauss
     with fewer takes the colour of the nearest point that has them (the hair or skin at the edge of
     what the inputs saw); ``BACK_SHELL_DEFAULT`` when no point has any. Bound with weight 0 and no
     gate group: they move with the head only (the skull does not take expressions).
+    ``ids``: other vertex ids to lay the discs on (``chin_shell``); default ``back_shell_vertices``.
     Returns ``(gaussians [S], binding [S])``; ``features`` are zeros ``[S, num_features]``.
     """
     from scipy.spatial import cKDTree
@@ -1074,7 +1080,7 @@ def back_shell(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gauss
     from ..data.headmodel import vertex_normals
     from ..gaussians import Gaussians
 
-    ids = back_shell_vertices(basis)
+    ids = back_shell_vertices(basis) if ids is None else ids
     n = len(ids)
     M = fit.transform[:3, :3].astype(np.float64)
     s = float(np.cbrt(abs(np.linalg.det(M))))
@@ -1109,6 +1115,58 @@ def back_shell(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gauss
         torch.from_numpy(fit.transform), torch.from_numpy(fit.identity), basis.space, torch.full((n,), -1, dtype=torch.int64),
     )
     return g, b
+
+
+# Chin shell: the back shell's kind of opaque skin under the jaw and on the front of the neck. A
+# pitched-up render looks at the jaw's underside, which no less pitched input sees: the face's
+# Gaussians left gaps there and the back shell showed through them as a dark hatched patch.
+CHIN_SHELL_DOWN = -0.3  # the jaw's underside: neutral vertex normals with y below this (facing down)
+CHIN_SHELL_FRONT = 0.02  # metres behind the jaw's corner (landmark 0): the back shell's bound
+CHIN_SHELL_TOP = 0.012  # metres above the chin's lowest point (landmark 8): the shell's top (0.032, up to the lower lip: phone-5's jawOpen gap 0.263 -> 0.236)
+
+
+@functools.lru_cache(maxsize=2)
+def _chin_shell_cached(key: int, basis: HeadBasis) -> np.ndarray:
+    from scipy.spatial import cKDTree
+
+    from ..data.headmodel import HEAD_VERTEX_RANGE, HeadModel, vertex_normals
+
+    v = basis.neutral
+    lm = v[HeadModel.load().landmarks68]
+    idx = np.arange(HEAD_VERTEX_RANGE[0], HEAD_VERTEX_RANGE[1])
+    p = v[idx]
+    ny = vertex_normals(v, basis.bind_faces)[idx, 1]
+    # in front of the back shell, below the lower lip: the jaw's underside, or the neck under the chin
+    sel = (p[:, 2] >= lm[0, 2] - CHIN_SHELL_FRONT) & (p[:, 1] < min(lm[57, 1], lm[8, 1] + CHIN_SHELL_TOP)) & ((ny < CHIN_SHELL_DOWN) | (p[:, 1] < lm[8, 1]))
+    ids = idx[sel]
+    near = cKDTree(v[ids]).query_ball_point(v[ids], r=BACK_SHELL_SPACING)
+    free = np.ones(len(ids), bool)
+    keep = []
+    for i in range(len(ids)):
+        if free[i]:
+            keep.append(i)
+            free[near[i]] = False
+    return ids[np.array(keep, np.int64)].astype(np.int64)
+
+
+def chin_shell_vertices(basis: HeadBasis) -> np.ndarray:
+    """``[S]`` int64 vertex ids of the chin shell: ICT-FaceKit head skin below the lower lip (landmark
+    57) and in front of the back shell (``CHIN_SHELL_FRONT`` behind landmark 0) that faces down
+    (neutral normal y < ``CHIN_SHELL_DOWN``) or lies below the chin (landmark 8), no two closer than
+    ``BACK_SHELL_SPACING`` on the neutral head. Empty for other head models."""
+    if basis.space != "ict53":
+        return np.zeros(0, np.int64)
+    return _chin_shell_cached(id(basis), basis)
+
+
+def chin_shell(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gaussians | None" = None) -> tuple["Gaussians", PriorBinding]:  # noqa: F821
+    """Ungated Gaussians under the jaw and on the front of the neck (``chin_shell_vertices``): the
+    back shell's discs (``back_shell``: size, inset, opacity, colour from nearby solid avatar
+    Gaussians) on that skin, but bound with weight 1 to their vertex, so they follow the expression
+    prior's displacement there (the jaw's underside moves with jawOpen).
+    Returns ``(gaussians [S], binding [S])``."""
+    g, b = back_shell(fit, basis, num_features, avatar=avatar, ids=chin_shell_vertices(basis))
+    return g, PriorBinding(b.vertex_ids, b.bary, torch.ones(len(b)), b.transform, b.identity, b.space, b.group)
 
 
 def mouth_gate_vector(basis: HeadBasis) -> Tensor:
