@@ -1015,6 +1015,22 @@ BACK_SHELL_EAR_CENTRE = np.array([0.08, -0.005, -0.022])  # metres, the neutral 
 BACK_SHELL_EAR = 0.04  # metres: no shell this near an ear
 
 
+def _spaced(v: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """``ids [K]`` vertex ids thinned so no two of ``v [Nv, 3]`` (metres) lie within ``BACK_SHELL_SPACING``:
+    greedy Poisson-disc subsampling (keep a vertex when no kept one is that near), so every vertex of
+    ``ids`` lies within that of a kept one (a voxel grid left 1 cm holes at its seams). ``[S]`` int64."""
+    from scipy.spatial import cKDTree
+
+    near = cKDTree(v[ids]).query_ball_point(v[ids], r=BACK_SHELL_SPACING)
+    free = np.ones(len(ids), bool)
+    keep = []
+    for i in range(len(ids)):
+        if free[i]:
+            keep.append(i)
+            free[near[i]] = False
+    return ids[np.array(keep, np.int64)].astype(np.int64)
+
+
 @functools.lru_cache(maxsize=2)
 def _back_shell_cached(key: int, basis: HeadBasis) -> np.ndarray:
     from ..data.headmodel import HEAD_VERTEX_RANGE, HeadModel
@@ -1030,19 +1046,7 @@ def _back_shell_cached(key: int, basis: HeadBasis) -> np.ndarray:
     # the reconstructed ear as a dark rim (held-out PSNR 20.56 -> 20.49 dB on synth_1000001)
     side = np.c_[np.abs(p[:, 0]), p[:, 1:]]  # both ears on the +x side
     sel &= np.linalg.norm(side - BACK_SHELL_EAR_CENTRE, axis=1) > BACK_SHELL_EAR
-    ids = idx[sel]
-    # greedy Poisson-disc subsampling: keep a vertex when no kept one is within BACK_SHELL_SPACING, so
-    # every skin vertex lies within that of a shell point (a voxel grid left 1 cm holes at its seams)
-    from scipy.spatial import cKDTree
-
-    near = cKDTree(v[ids]).query_ball_point(v[ids], r=BACK_SHELL_SPACING)
-    free = np.ones(len(ids), bool)
-    keep = []
-    for i in range(len(ids)):
-        if free[i]:
-            keep.append(i)
-            free[near[i]] = False
-    return ids[np.array(keep, np.int64)].astype(np.int64)
+    return _spaced(v, idx[sel])
 
 
 def back_shell_vertices(basis: HeadBasis) -> np.ndarray:
@@ -1127,8 +1131,6 @@ CHIN_SHELL_TOP = 0.012  # metres above the chin's lowest point (landmark 8): the
 
 @functools.lru_cache(maxsize=2)
 def _chin_shell_cached(key: int, basis: HeadBasis) -> np.ndarray:
-    from scipy.spatial import cKDTree
-
     from ..data.headmodel import HEAD_VERTEX_RANGE, HeadModel, vertex_normals
 
     v = basis.neutral
@@ -1138,15 +1140,7 @@ def _chin_shell_cached(key: int, basis: HeadBasis) -> np.ndarray:
     ny = vertex_normals(v, basis.bind_faces)[idx, 1]
     # in front of the back shell, below the lower lip: the jaw's underside, or the neck under the chin
     sel = (p[:, 2] >= lm[0, 2] - CHIN_SHELL_FRONT) & (p[:, 1] < min(lm[57, 1], lm[8, 1] + CHIN_SHELL_TOP)) & ((ny < CHIN_SHELL_DOWN) | (p[:, 1] < lm[8, 1]))
-    ids = idx[sel]
-    near = cKDTree(v[ids]).query_ball_point(v[ids], r=BACK_SHELL_SPACING)
-    free = np.ones(len(ids), bool)
-    keep = []
-    for i in range(len(ids)):
-        if free[i]:
-            keep.append(i)
-            free[near[i]] = False
-    return ids[np.array(keep, np.int64)].astype(np.int64)
+    return _spaced(v, idx[sel])
 
 
 def chin_shell_vertices(basis: HeadBasis) -> np.ndarray:
