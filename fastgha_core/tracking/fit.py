@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["FitConfig", "FitResult", "KnownCameraFit", "LandmarkModel", "fit_landmarks", "fit_known_cameras", "default_intrinsics", "intrinsics_from_35mm", "rodrigues", "FRONTAL_R"]
+__all__ = ["FitConfig", "FitResult", "KnownCameraFit", "LandmarkModel", "fit_landmarks", "fit_known_cameras", "default_intrinsics", "intrinsics_from_35mm", "rodrigues", "FRONTAL_R", "head_angles_deg"]
 
 logger = logging.getLogger(__name__)
 
@@ -613,7 +613,7 @@ def _map_pitch(R: np.ndarray, cfg: "FitConfig") -> float:
         return 0.0
     if cfg.pitch_map_min_deg > cfg.pitch_map_max_deg:
         raise ValueError(f"FitConfig: pitch_map_min_deg ({cfg.pitch_map_min_deg:g}) must not exceed pitch_map_max_deg ({cfg.pitch_map_max_deg:g})")
-    return float(np.clip(_pitch_deg(R), cfg.pitch_map_min_deg, cfg.pitch_map_max_deg))
+    return float(np.clip(head_angles_deg(R)[1], cfg.pitch_map_min_deg, cfg.pitch_map_max_deg))
 
 
 def landmark_models(model: "LandmarkModel", rotations: np.ndarray, cfg: "FitConfig") -> list["LandmarkModel"]:
@@ -624,15 +624,23 @@ def landmark_models(model: "LandmarkModel", rotations: np.ndarray, cfg: "FitConf
     return [model if table is None else _model_at_yaw(table, _yaw_deg(R), _map_pitch(R, cfg))[0] for R in rotations]
 
 
-def _pitch_deg(R: np.ndarray) -> float:
-    """Pitch of a head -> camera rotation (realsets.head_angles_deg): + = nose up."""
-    n = R[:, 2]
-    return math.degrees(math.atan2(-n[1], math.hypot(n[0], n[2])))
+def head_angles_deg(R: np.ndarray) -> tuple[float, float, float]:
+    """(yaw, pitch, roll) in degrees of a head -> camera rotation ``R [3, 3]`` (OpenCV camera).
+
+    yaw: + = nose towards the image's right edge; pitch: + = nose up; roll: + = the head's up axis
+    turned clockwise in the image. 0, 0, 0 = looking straight into the camera (``FRONTAL_R``).
+    """
+    n = R[:, 2]  # the nose direction (head +z) in camera axes
+    up = R[:, 1]  # head +y
+    yaw = math.degrees(math.atan2(n[0], -n[2]))
+    pitch = math.degrees(math.atan2(-n[1], math.hypot(n[0], n[2])))
+    roll = math.degrees(math.atan2(up[0], -up[1]))
+    return yaw, pitch, roll
 
 
 def _yaw_deg(R: np.ndarray) -> float:
-    """Yaw of a head -> camera rotation (realsets.head_angles_deg): + = nose towards the image's right."""
-    return math.degrees(math.atan2(R[0, 2], -R[2, 2]))
+    """Yaw of a head -> camera rotation (``head_angles_deg``): + = nose towards the image's right."""
+    return head_angles_deg(R)[0]
 
 
 def _regressed_yaw_targets(obs: np.ndarray, Rs: np.ndarray, cfg: FitConfig) -> np.ndarray:

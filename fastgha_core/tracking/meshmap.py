@@ -219,7 +219,7 @@ def build_pose_table(seeds=CALIBRATION_SEEDS, size: int = 512, fov_deg: float = 
     For each (pitch, yaw) in ``pitch_bins x yaw_bins`` and each synthetic subject
     (``data/synthetic.py``, neutral expression, camera at 1 m looking at the head origin from
     azimuth ``-yaw`` and elevation ``-pitch``, ``fov_deg``; pitch + = nose up = camera below, as
-    ``realsets.head_angles_deg``) the render's Face Mesh points are cast onto the true mesh (the
+    ``fit.head_angles_deg``) the render's Face Mesh points are cast onto the true mesh (the
     camera-facing face/head vertex whose projection is nearest, within 2 % of the face size), the
     hit vertices' generic positions are averaged over subjects and snapped to the nearest generic
     vertex. Deterministic (renders and detector).

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import re
 import sys
@@ -26,6 +25,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from .fit import head_angles_deg  # (yaw, pitch, roll) of a fitted head: the fitter's convention
 
 __all__ = ["realsets_root", "annotated_yaw", "head_angles_deg", "evaluate_realsets"]
 
@@ -44,20 +45,6 @@ def annotated_yaw(name: str) -> float | None:
     """Degrees from a file name's ``yaw<deg>`` tag, or None."""
     m = _YAW.search(Path(name).stem)
     return float(m.group(1)) if m else None
-
-
-def head_angles_deg(R: np.ndarray) -> tuple[float, float, float]:
-    """(yaw, pitch, roll) in degrees of a head -> camera rotation ``R [3, 3]`` (OpenCV camera).
-
-    yaw: + = nose towards the image's right edge; pitch: + = nose up; roll: + = the head's up axis
-    turned clockwise in the image. 0, 0, 0 = looking straight into the camera (``fit.FRONTAL_R``).
-    """
-    n = R[:, 2]  # the nose direction (head +z) in camera axes
-    up = R[:, 1]  # head +y
-    yaw = math.degrees(math.atan2(n[0], -n[2]))
-    pitch = math.degrees(math.atan2(-n[1], math.hypot(n[0], n[2])))
-    roll = math.degrees(math.atan2(up[0], -up[1]))
-    return yaw, pitch, roll
 
 
 def _read(path: Path) -> np.ndarray:
