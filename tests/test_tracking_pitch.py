@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from fastgha_core.tracking.fit import FRONTAL_R, FitConfig, LandmarkModel, _map_pitch, _model_at_yaw, _yaw_models, rodrigues
-from fastgha_core.tracking.meshmap import MP68, PITCH_BINS, YAW_BINS, load_pose_table, load_yaw_table
+from fastgha_core.tracking.meshmap import MP68, PITCH_BINS, YAW_BINS, load_pose_table
 from fastgha_core.tracking.realsets import head_angles_deg
 
 try:
@@ -50,8 +50,6 @@ def test_shipped_pose_table_layout():
     b0, up = YAW_BINS.index(0.0), PITCH_BINS.index(30.0)
     slide = 1000.0 * np.linalg.norm(X[tab["vertex"][up, b0]] - X[tab["vertex"][q0, b0]], axis=1)
     assert np.median(slide[list(MP68[:17])]) > 8.0 and np.median(slide[list(MP68[36:48])]) < 4.0
-    yaw_only = load_yaw_table()
-    np.testing.assert_array_equal(yaw_only["vertex"], tab["vertex"][q0])
 
 
 def test_lookup_by_pitch(model):
@@ -149,8 +147,6 @@ def test_a_table_that_is_not_a_pose_table_is_refused(tmp_path):
     np.savez(old, yaw=tab["yaw"], vertex=tab["vertex"][q0], hits=tab["hits"][q0])
     with pytest.raises(ValueError, match=r"mediapipe_ict_yaw\.npz.*missing \['pitch'\]"):
         load_pose_table(str(old))
-    with pytest.raises(ValueError, match="missing"):
-        load_yaw_table(str(old))
     short = tmp_path / "short.npz"
     np.savez(short, yaw=tab["yaw"], pitch=tab["pitch"][:3], vertex=tab["vertex"], hits=tab["hits"])
     with pytest.raises(ValueError, match=r"short\.npz.*vertex \[6, 13, 468\]"):

@@ -134,7 +134,7 @@ def test_exif_orientations_track_to_the_upright_pose(tmp_path):
 
 @needs_mediapipe
 def test_detector_and_fitter_on_synthetic_renders_with_known_cameras():
-    """Renders of synthetic heads (not the calibration subjects of meshmap.build_yaw_table) at known
+    """Renders of synthetic heads (not the calibration subjects of meshmap.build_pose_table) at known
     yaw through MediaPipe and the fitter: within 6 degrees up to 60 of yaw; the yaw-dependent map
     is closer to the truth at 60 than the frontal one (measured 52-57 -> 55-60)."""
     import math

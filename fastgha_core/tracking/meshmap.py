@@ -24,7 +24,7 @@ outline (jaw line, chin) slides 1-2 cm along the surface. On renders of syntheti
 known yaw (every 15 degrees) and pitch (-30 .. +45, every 15) each point is tied to the surface
 point it actually lands on; the fitter re-chooses the table's cells by the current yaw and pitch
 (``FitConfig.yaw_map``, ``FitConfig.pitch_map``). Its pitch-0 row is the earlier yaw-only table
-(``build_yaw_table``, ``load_yaw_table``).
+(``mediapipe_ict_yaw.npz``, which it replaces).
 
 MediaPipe's own depth places the face-outline points (which, in a frontal photo, lie on the
 cheeks' far slope): tying them instead to the ICT vertex seen at their image position under a
@@ -98,16 +98,6 @@ def load_pose_table(path: str | None = None) -> dict | None:
         raise ValueError(f"{p}: expected ascending yaw [B >= 1] and pitch [P >= 1] bins and vertex, hits [P, B, 468], got yaw "
                          f"{yaw.tolist()}, pitch {pitch.tolist()}, vertex {list(out['vertex'].shape)}, hits {list(out['hits'].shape)}")
     return out
-
-
-def load_yaw_table(path: str | None = None) -> dict | None:
-    """The pitch-0 row of the pose table (``build_yaw_table``'s layout: ``yaw [B]``, ``vertex [B,
-    468]``, ``hits [B, 468]``), or None when absent."""
-    d = load_pose_table(path)
-    if d is None:
-        return None
-    q = int(np.argmin(np.abs(d["pitch"])))
-    return {"yaw": d["yaw"], "vertex": d["vertex"][q].astype(np.int64), "hits": d["hits"][q]}
 
 
 def _umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -194,17 +184,8 @@ def main(argv: list[str] | None = None) -> int:
 # ---------------------------------------------------------------------------- pose-dependent map
 YAW_BINS = (-90.0, -75.0, -60.0, -45.0, -30.0, -15.0, 0.0, 15.0, 30.0, 45.0, 60.0, 75.0, 90.0)
 CALIBRATION_SEEDS = tuple(range(1_000_100, 1_000_108))  # synthetic held-out subjects (data/synthetic.py)
-
-
 PITCH_BINS = (-30.0, -15.0, 0.0, 15.0, 30.0, 45.0)  # -45: the detector's chin outline lands on the chest, its mean hit is meaningless
 POSE_ASSET = MAP_ASSET.with_name("mediapipe_ict_pose.npz")
-
-
-def build_yaw_table(seeds=CALIBRATION_SEEDS, size: int = 512, fov_deg: float = 25.0) -> dict:
-    """The pitch-0 row of :func:`build_pose_table` (the first, yaw-only table): ``{"yaw": [B],
-    "vertex": [B, 468] int (-1 = no hit in most renders), "hits": [B, 468]}``."""
-    d = build_pose_table(seeds, size, fov_deg, pitch_bins=(0.0,))
-    return {"yaw": d["yaw"], "vertex": d["vertex"][0].astype(np.int64), "hits": d["hits"][0]}
 
 
 def build_pose_table(seeds=CALIBRATION_SEEDS, size: int = 512, fov_deg: float = 25.0, yaw_bins=YAW_BINS,
