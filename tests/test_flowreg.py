@@ -125,6 +125,23 @@ def test_a_known_shift_of_one_view_is_undone(scene):
     assert torch.equal(foreground_weight(reg.images[1]) > 0.5, foreground_weight(moved) > 0.5)
 
 
+def test_mean_mode_meets_halfway(scene):
+    """``mode="mean"``: no root; with two views each moves half way, so they meet in the middle."""
+    surface, cams, sd, imgs = scene
+    moved, g = _shifted(imgs[1], (2.0, -1.0))
+    inp = torch.stack([imgs[0], moved])
+    reg = register_views(inp, cams, sd, surface, mode="mean")
+    assert reg.parent == [-1, -1] and reg.flow[0].any() and reg.flow[1].any()
+    m = reg.overlap[1] & (g.norm(dim=-1) > 2.0)
+    assert int(m.sum()) > 500
+    assert float((reg.flow[1][m] + 0.5 * g[m]).norm(dim=-1).median()) < 0.4
+    before = _agreement(moved, imgs[0], scene)
+    after = _agreement(reg.images[1], reg.images[0], scene)
+    assert after < 0.6 * before, (before, after)
+    with pytest.raises(ValueError, match="mode"):
+        register_views(inp, cams, sd, surface, mode="median")
+
+
 def test_the_flow_is_clipped_and_fades_outside_the_overlap(scene):
     surface, cams, sd, imgs = scene
     moved, _ = _shifted(imgs[1], (3.0, 0.0))

@@ -55,6 +55,7 @@ OFF_HEAD_HULL_FREE_TOL_M = None  # ... and, when set (metres), the space in fron
 FLOW_REGISTER_SIGMA_PX = 4.0  # reconstruct() with gaussians.flow_register: the flow's smoothing, pixels at an image side of 256 (model/flowreg.py smooth_flow)
 FLOW_REGISTER_FALLOFF_PX = 6.0  # ... its fade to zero beyond the measured pixels, pixels at a side of 256
 FLOW_REGISTER_FACE_ONLY = False  # ... measured on the bare face only (SurfaceDepth.face_hit), not on hair, ears and neck
+FLOW_REGISTER_MODE = "chain"  # ... "chain" (each view onto its neighbour, from the most frontal one) or "mean" (each halfway towards every view that sees its points; model/flowreg.py register_views)
 OFF_HEAD_BEHIND_M = 0.02  # reconstruct() with gaussians.off_head_draw="behind": metres the off-head pixels move back along their ray (model/surface.py off_head_draw_flags)
 OFF_HEAD_COVER_TOL_M = 0.01  # ... "drop" / "cover_sharp": metres in front of another view's head a point must lie to count as a smear
 
@@ -770,7 +771,7 @@ class FastGHA(nn.Module):
         if isinstance(clip, bool) or not isinstance(clip, (int, float)) or not np.isfinite(clip) or clip <= 0:
             raise ValueError(f"reconstruct: gaussians.flow_register_clip_px must be a finite number > 0, got {clip!r}")
         reg = register_views(images.float().cpu(), cameras, sd, surface, hair, clip_px=float(clip), sigma_px=FLOW_REGISTER_SIGMA_PX, falloff_px=FLOW_REGISTER_FALLOFF_PX,
-                             where=sd.face_hit if FLOW_REGISTER_FACE_ONLY else None)
+                             where=sd.face_hit if FLOW_REGISTER_FACE_ONLY else None, mode=FLOW_REGISTER_MODE)
         log.info("reconstruct: flow registration of views %s to %s", list(range(len(reg.parent))), reg.parent)
         return reg.images.to(images)
 

@@ -292,7 +292,7 @@ def _inside_matte_distance(fg: np.ndarray) -> np.ndarray:
 
 def register_views(images: Tensor, cameras: Cameras, depth, surface=None, hair_m=0.0, views: list[int] | None = None, clip_px: float = 4.0,
                    sigma_px: float = 4.0, falloff_px: float = 6.0, consistency_px: float = 1.0, max_incidence_deg: float = 70.0,
-                   tol_m: float = 0.006, min_overlap: int = 50, where: Tensor | None = None, flow_fn=None) -> FlowRegistration:
+                   tol_m: float = 0.006, min_overlap: int = 50, where: Tensor | None = None, mode: str = "chain", flow_fn=None) -> FlowRegistration:
     """Register the textures of input views to each other by optical flow (module doc).
 
     Args:
@@ -311,6 +311,10 @@ def register_views(images: Tensor, cameras: Cameras, depth, surface=None, hair_m
         min_overlap: a view with fewer measured pixels is left unchanged.
         where: optional ``[V, H, W]`` bool: the only pixels whose flow is measured (e.g.
             ``SurfaceDepth.face_hit``, the bare face); the flow still continues beyond them, fading.
+        mode: ``"chain"`` (module doc: each view onto its registered neighbour, from the most frontal
+            one) or ``"mean"`` (each view, unregistered, halfway towards every other view that sees
+            its points: ``sum_j c_j f_j / (1 + sum_j c_j)``, ``f_j`` its faded flow onto view ``j`` and
+            ``c_j`` that flow's fade weight; no root, ``parent`` stays -1).
         flow_fn: the flow estimator (default ``dense_flow``): ``(a, b) -> (f_ab, f_ba)`` as there.
     Returns:
         ``FlowRegistration``.
@@ -323,6 +327,8 @@ def register_views(images: Tensor, cameras: Cameras, depth, surface=None, hair_m
     v, _, h, w = images.shape
     if len(cams.K) != v or (cams.width, cams.height) != (w, h) or tuple(depth.t.shape) != (v, h, w):
         raise ValueError(f"register_views: expected {v} cameras of {w}x{h} and depth [{v}, {h}, {w}], got {len(cams.K)}, {cams.width}x{cams.height}, {list(depth.t.shape)}")
+    if mode not in ("chain", "mean"):
+        raise ValueError(f"register_views: mode must be 'chain' or 'mean', got {mode!r}")
     if min(clip_px, sigma_px, consistency_px, tol_m) <= 0 or falloff_px < 0 or not 0 < max_incidence_deg <= 90:
         raise ValueError("register_views: clip_px, sigma_px, consistency_px and tol_m must be > 0, falloff_px >= 0, max_incidence_deg in (0, 90]")
     flow_fn = flow_fn or dense_flow
@@ -339,21 +345,24 @@ def register_views(images: Tensor, cameras: Cameras, depth, surface=None, hair_m
         return FlowRegistration(images.clone(), flows, parent, overlap)
     head_to_world = None if surface is None else surface.head_to_world
     centre = None if head_to_world is None else torch.as_tensor(np.asarray(head_to_world)[:3, 3])
-    root = sel[frontal_view(cams[sel], head_to_world)]
-    for i, p in registration_order(cams, root, centre, sel):
+
+    def pair(i: int, p: int, src: Tensor):
+        """View ``i``'s smoothed, faded flow onto view ``p`` (whose image is ``src``) and its measured pixels, or None."""
         corr = None if surface is None else surface_correspondence(surface, i, p, cams[i], hair_m)
-        ref, ok = reproject(out[p], cams[p], t[p], hit[p], fg[p], cams[i], t[i], hit[i], fg[i], tol_m, max_incidence_deg, corr)
+        ref, ok = reproject(src, cams[p], t[p], hit[p], fg[p], cams[i], t[i], hit[i], fg[i], tol_m, max_incidence_deg, corr)
         if where is not None:
             ok = ok & where[i].cpu()
         if int(ok.sum()) < min_overlap:
-            continue
+            return None
         a = imgs[i].permute(1, 2, 0).numpy()
         ref_np = torch.where(ok[None], ref, imgs[i]).permute(1, 2, 0).numpy().astype(np.float32)  # outside the overlap: the photo itself (no motion)
         f_ab, f_ba = flow_fn(np.ascontiguousarray(ref_np), np.ascontiguousarray(a))
         good = ok.numpy() & _consistent(f_ab, f_ba, consistency_px * k)
         if int(good.sum()) < min_overlap:
-            continue
-        f = smooth_flow(f_ab, good.astype(np.float32), sigma_px * k, falloff_px * k)
+            return None
+        return smooth_flow(f_ab, good.astype(np.float32), sigma_px * k, falloff_px * k), good
+
+    def apply(i: int, f: np.ndarray, good: np.ndarray) -> None:
         mag = np.linalg.norm(f, axis=-1, keepdims=True)
         f = f * np.minimum(1.0, clip_px * k / np.maximum(mag, 1e-12))
         room = np.maximum(_inside_matte_distance(fg[i].numpy()) - 1.5, 0.0)  # never sample beyond the matte
@@ -362,5 +371,30 @@ def register_views(images: Tensor, cameras: Cameras, depth, surface=None, hair_m
         flows[i] = torch.from_numpy(f)
         out[i] = warp_image(imgs[i], flows[i])
         overlap[i] = torch.from_numpy(good)
+
+    if mode == "mean":  # every view halfway towards each neighbour: the mean placement of it and the views that see its points
+        from scipy.ndimage import distance_transform_edt
+
+        for i in sel:
+            num, den, seen = np.zeros((h, w, 2), np.float32), np.ones((h, w), np.float32), np.zeros((h, w), bool)
+            for j in sel:
+                if j == i:
+                    continue
+                r = pair(i, j, imgs[j])
+                if r is None:
+                    continue
+                num += r[0]  # already faded by its weight outside the measured pixels
+                d = distance_transform_edt(~r[1])
+                den += np.exp(-d / (falloff_px * k)) if falloff_px > 0 else (d == 0)
+                seen |= r[1]
+            if seen.any():
+                apply(i, num / den[..., None], seen)
+        return FlowRegistration(out.to(images), flows, parent, overlap)
+    root = sel[frontal_view(cams[sel], head_to_world)]
+    for i, p in registration_order(cams, root, centre, sel):
+        r = pair(i, p, out[p])
+        if r is None:
+            continue
+        apply(i, *r)
         parent[i] = p
     return FlowRegistration(out.to(images), flows, parent, overlap)
