@@ -136,6 +136,8 @@ class GaussianHeadConfig:
     mirror_blend_offset_deg: float = 40.0  # ... view blending counts each mirrored view this many degrees further from the render camera than it is (real photos keep precedence near their own cameras; 0 = none; 40 chosen in docs/model-card.md, "Why the 40° offset"; model/viewblend.py offsets)
     mirror_midline_m: float = 0.0  # ... drop the mirrored Gaussians within this many metres of the head's sagittal plane (0 = keep them; model/mirror.py near_midline)
     mirror_drop_seen_deg: float = 0.0  # ... drop the mirrored Gaussians whose point a real view sees (inside its matte, unoccluded) at an incidence below this many degrees (0 = keep them all; model/mirror.py seen_by_views)
+    flow_register: bool = False  # reconstruct() on a tracked head surface ("replace"): before the network sees them, resample each real input view's image along a dense optical flow (OpenCV DIS) that moves its texture onto where its neighbour view (chained from the most frontal one) sees it through the tracked surface, faded to 0 outside the views' overlap (model/flowreg.py register_views; mirrored views are built from the registered images); off by default: measured neutral, real-photo leave-one-out identity 0.529 both ways, PSNR -0.06 / -0.01 / -0.08 dB, own cameras -0.2 to -0.3 dB (docs/model-card.md "Registering the views' textures by optical flow")
+    flow_register_clip_px: float = 4.0  # ... the largest flow, pixels at an image side of 256 (scaled with the input: 2 px of the tiny model's 128² inputs); must be > 0
 
     @property
     def channels(self) -> int:

@@ -52,6 +52,10 @@ SHELL_CARVE_DILATE_PX = -2  # reconstruct(): the back-of-head shell is carved in
 OFF_HEAD_HULL_COLLAR = False  # reconstruct() with gaussians.off_head_hull: also move the mesh's own pixels below its neck ring whose point is outside the other views' hull (model/surface.py off_head_on_hull)
 OFF_HEAD_HULL_DILATE_PX = 2  # ... the other views' mattes dilated by this many pixels
 OFF_HEAD_HULL_FREE_TOL_M = None  # ... and, when set (metres), the space in front of the head each other view sees is empty (up to this tolerance)
+FLOW_REGISTER_SIGMA_PX = 4.0  # reconstruct() with gaussians.flow_register: the flow's smoothing, pixels at an image side of 256 (model/flowreg.py smooth_flow)
+FLOW_REGISTER_FALLOFF_PX = 6.0  # ... its fade to zero beyond the measured pixels, pixels at a side of 256
+FLOW_REGISTER_FACE_ONLY = False  # ... measured on the bare face only (SurfaceDepth.face_hit), not on hair, ears and neck
+FLOW_REGISTER_MODE = "chain"  # ... "chain" (each view onto its neighbour, from the most frontal one) or "mean" (each halfway towards every view that sees its points; model/flowreg.py register_views)
 OFF_HEAD_BEHIND_M = 0.02  # reconstruct() with gaussians.off_head_draw="behind": metres the off-head pixels move back along their ray (model/surface.py off_head_draw_flags)
 OFF_HEAD_COVER_TOL_M = 0.01  # ... "drop" / "cover_sharp": metres in front of another view's head a point must lie to count as a smear
 
@@ -614,6 +618,10 @@ class FastGHA(nn.Module):
                 from .surface import off_head_draw_flags
 
                 sd, _ = off_head_draw_flags(sd, cameras, foreground_weight(images.float()), "behind", behind_m=OFF_HEAD_BEHIND_M)
+            if not isinstance(self.config.gaussians.flow_register, bool):
+                raise ValueError(f"reconstruct: gaussians.flow_register must be true or false, got {self.config.gaussians.flow_register!r}")
+            if self.config.gaussians.flow_register and surface_mode == "replace" and v > 1:  # the views' textures registered to each other (model/flowreg.py)
+                images = self._flow_register(images, cameras, sd, surface, hair)
             ray_depth = sd.t[None]
             if surface_mode == "blend":
                 from .surface import blend_network_depth
@@ -752,6 +760,20 @@ class FastGHA(nn.Module):
         cfg = StereoConfig(range_m=r, step_m=min(StereoConfig.step_m, r))
         st = stereo_ray_depth(images.float().cpu(), cameras.to("cpu", torch.float32), sd.t, sd.hit, foreground_weight(images.float().cpu()), cfg)
         return dataclasses.replace(sd, t=st.t.to(sd.t))
+
+    def _flow_register(self, images: Tensor, cameras: Cameras, sd, surface, hair) -> Tensor:
+        """``reconstruct``'s inputs with each view's texture registered to its neighbour's by optical
+        flow through the tracked surface (``model/flowreg.py``, ``gaussians.flow_register``), clipped to
+        ``gaussians.flow_register_clip_px``. Raises ``ValueError`` on a clip that is not a finite number > 0."""
+        from .flowreg import register_views
+
+        clip = self.config.gaussians.flow_register_clip_px
+        if isinstance(clip, bool) or not isinstance(clip, (int, float)) or not np.isfinite(clip) or clip <= 0:
+            raise ValueError(f"reconstruct: gaussians.flow_register_clip_px must be a finite number > 0, got {clip!r}")
+        reg = register_views(images.float().cpu(), cameras, sd, surface, hair, clip_px=float(clip), sigma_px=FLOW_REGISTER_SIGMA_PX, falloff_px=FLOW_REGISTER_FALLOFF_PX,
+                             where=sd.face_hit if FLOW_REGISTER_FACE_ONLY else None, mode=FLOW_REGISTER_MODE)
+        log.info("reconstruct: flow registration of views %s to %s", list(range(len(reg.parent))), reg.parent)
+        return reg.images.to(images)
 
     def _shell_count(self) -> int:
         """How many ungated shell Gaussians ``_prior_extras`` appends after the reconstructed ones: the
