@@ -314,6 +314,7 @@ def _validate_gaussians(g: GaussianHeadConfig) -> None:
     _in_range(w + "mirror_blend_offset_deg", g.mirror_blend_offset_deg, 0, note="degrees; 0 = none")
     _in_range(w + "mirror_midline_m", g.mirror_midline_m, 0, note="metres; 0 = keep them")
     _in_range(w + "mirror_drop_seen_deg", g.mirror_drop_seen_deg, 0, 90, note="an incidence angle in degrees; 0 = keep them all")
+    _in_range(w + "flow_register_clip_px", g.flow_register_clip_px, 0, lo_open=True, note="pixels at an image side of 256")
 
 
 def _validate_deform(d: DeformConfig) -> None:
