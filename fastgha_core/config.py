@@ -225,6 +225,8 @@ class FastGHAConfig:
             )
         if not 1 <= self.max_views:
             raise ValueError(f"max_views must be >= 1, got {self.max_views}")
+        _validate_gaussians(self.gaussians)
+        _validate_deform(self.deform)
 
     # ------------------------------------------------------------ (de)serialisation
     def to_dict(self) -> dict[str, Any]:
@@ -236,6 +238,98 @@ class FastGHAConfig:
 
     def copy(self, **changes: Any) -> "FastGHAConfig":
         return dataclasses.replace(copy.deepcopy(self), **changes)
+
+
+# ------------------------------------------------------------ field ranges
+# The allowed values of the string options; each is also checked where it is used (model/fastgha.py,
+# model/surface.py), which is only on a tracked head surface: here a typo fails when the config loads.
+EDGE_MODES = ("colour", "fade")
+NECK_CYLINDER_MODES = ("off", "off_head", "below_ring")
+OFF_HEAD_HULL_MODES = ("off", "entry", "nearest", "middle")
+OFF_HEAD_DRAW_MODES = ("off", "behind", "drop", "sharp", "headon_sharp", "cover_sharp", "under")  # = model/surface.py's
+MAX_VIEW_BLEND_TAU_DEG = 360.0  # = fastgha_core.commands.MAX_VIEW_BLEND_TAU_DEG (the server's bound on its override)
+
+
+def _in_range(where: str, value: Any, lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
+              hi_open: bool = False, integer: bool = False, note: str = "") -> None:
+    """``ValueError`` naming ``where`` and the allowed range unless ``value`` is a finite number in it
+    (``[lo, hi]``, an end left out is unbounded, ``lo_open`` / ``hi_open`` exclude that end;
+    ``integer``: an ``int``). ``note`` says what the value means (e.g. "0 = off")."""
+    import math
+    import numbers
+
+    if integer:
+        ok = isinstance(value, numbers.Integral) and not isinstance(value, bool)
+    else:
+        ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and lo is not None:
+        ok = value > lo if lo_open else value >= lo
+    if ok and hi is not None:
+        ok = value < hi if hi_open else value <= hi
+    if ok:
+        return
+    kind = "an integer" if integer else "a number"
+    if lo is not None and hi is not None:
+        rng = f"in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+    elif lo is not None:
+        rng = f"{'>' if lo_open else '>='} {lo:g}"
+    elif hi is not None:
+        rng = f"{'<' if hi_open else '<='} {hi:g}"
+    else:
+        rng = "(finite)"
+    raise ValueError(f"{where} must be {kind} {rng}{f' ({note})' if note else ''}, got {value!r}")
+
+
+def _one_of(where: str, value: Any, allowed: tuple[str, ...]) -> None:
+    if value not in allowed:
+        raise ValueError(f"{where} must be one of {list(allowed)}, got {value!r}")
+
+
+def _validate_gaussians(g: GaussianHeadConfig) -> None:
+    """The ranges of ``GaussianHeadConfig``'s numeric and string fields (see each field's comment).
+    Several read 0 as "off"; a negative value used to turn such a term off silently."""
+    w = "gaussians."
+    _in_range(w + "feature_dim", g.feature_dim, 0, integer=True)
+    _in_range(w + "depth_range", g.depth_range, 0, lo_open=True, note="metres either side of the camera distance")
+    _in_range(w + "min_scale_px", g.min_scale_px, 0, lo_open=True, note="pixel footprints")
+    _in_range(w + "max_scale_px", g.max_scale_px, g.min_scale_px, note="pixel footprints, at least min_scale_px")
+    _in_range(w + "prune_opacity", g.prune_opacity, 0, 1, hi_open=True, note="0 = keep all")
+    _in_range(w + "depth_parity_sigma", g.depth_parity_sigma, 0, note="pixels; 0 = off")
+    _in_range(w + "edge_margin_px", g.edge_margin_px, 0, note="pixels; 0 = off")
+    _one_of(w + "edge_mode", g.edge_mode, EDGE_MODES)
+    _in_range(w + "coverage_target", g.coverage_target, 0, 1, note="a fraction of each matte; 0 = off")
+    _one_of(w + "neck_cylinder", g.neck_cylinder, NECK_CYLINDER_MODES)
+    _one_of(w + "off_head_hull", g.off_head_hull, OFF_HEAD_HULL_MODES)
+    _one_of(w + "off_head_draw", g.off_head_draw, OFF_HEAD_DRAW_MODES)
+    _in_range(w + "head_on_colour_tol", g.head_on_colour_tol, 0, 1, note="a colour difference, channels in 0..1; 0 = off")
+    _in_range(w + "head_on_gain_deg", g.head_on_gain_deg, 0, 180, note="degrees")
+    _in_range(w + "head_on_tau_scale", g.head_on_tau_scale, 0, lo_open=True, note="a fraction of view_blend_tau_deg")
+    _in_range(w + "grazing_stretch", g.grazing_stretch, 0, note="0 = off")
+    _in_range(w + "stereo_depth_mm", g.stereo_depth_mm, 0, note="millimetres; 0 = off")
+    _in_range(w + "grazing_edge_px", g.grazing_edge_px, 0, integer=True, note="pixels; 0 = everywhere")
+    _in_range(w + "grazing_min_ratio", g.grazing_min_ratio, 0, note="pixel footprints")
+    _in_range(w + "view_blend_tau_deg", g.view_blend_tau_deg, 0, MAX_VIEW_BLEND_TAU_DEG, note="degrees; 0 = off")
+    _in_range(w + "view_blend_expr_mm", g.view_blend_expr_mm, 0, note="millimetres; 0 = off")
+    _in_range(w + "mirror_min_yaw_deg", g.mirror_min_yaw_deg, 0, 180, note="degrees from frontal")
+    _in_range(w + "mirror_blend_offset_deg", g.mirror_blend_offset_deg, 0, note="degrees; 0 = none")
+    _in_range(w + "mirror_midline_m", g.mirror_midline_m, 0, note="metres; 0 = keep them")
+    _in_range(w + "mirror_drop_seen_deg", g.mirror_drop_seen_deg, 0, 90, note="an incidence angle in degrees; 0 = keep them all")
+    _in_range(w + "flow_register_clip_px", g.flow_register_clip_px, 0, lo_open=True, note="pixels at an image side of 256")
+
+
+def _validate_deform(d: DeformConfig) -> None:
+    """The ranges of ``DeformConfig``'s numeric fields (see each field's comment)."""
+    w = "deform."
+    _in_range(w + "hidden_size", d.hidden_size, 1, integer=True)
+    _in_range(w + "num_layers", d.num_layers, 1, integer=True, note="hidden layers")
+    _in_range(w + "pe_freqs", d.pe_freqs, 0, integer=True, note="0 = xyz only")
+    _in_range(w + "pe_scale", d.pe_scale, 0, lo_open=True)
+    _in_range(w + "negative_slope", d.negative_slope, 0, 1, hi_open=True, note="the LeakyReLU slope; the in-place activation's backward needs >= 0")
+    fade = d.prior_fade
+    if not isinstance(fade, (tuple, list)) or len(fade) != 2:
+        raise ValueError(f"deform.prior_fade must be two distances in metres (full weight up to, no weight beyond), got {fade!r}")
+    _in_range(w + "prior_fade[0]", fade[0], 0, note="metres from the surface with full prior weight")
+    _in_range(w + "prior_fade[1]", fade[1], fade[0], note="metres from the surface with no prior weight, at least prior_fade[0]")
 
 
 def _from_dict(cls, data: Any, where: str):

@@ -593,9 +593,11 @@ def test_reconstruct_recolours_gaussians_at_the_matte_outline(toy_model):
     assert torch.equal(c1, c0[src])  # each outline Gaussian takes its view's nearest interior colour
     assert not torch.equal(c1[moved], c0[moved]) and torch.equal(c1[~moved], c0[~moved])
     assert torch.equal(a1.gaussians.opacities, a0.gaussians.opacities) and torch.equal(a1.gaussians.means, a0.gaussians.means)
-    bad = _edge_models(toy_model, edge_margin_px=3.0, edge_mode="blur")[1]
+    with pytest.raises(ValueError, match=r"gaussians\.edge_mode must be one of \['colour', 'fade'\], got 'blur'"):
+        _edge_models(toy_model, edge_margin_px=3.0, edge_mode="blur")  # the config refuses it (FastGHAConfig.validate)
+    on.config.gaussians.edge_mode = "blur"  # set on a built model: reconstruct() still refuses it
     with pytest.raises(ValueError, match="edge_mode must be 'colour' or 'fade', got 'blur'"):
-        bad.reconstruct(imgs, cams)
+        on.reconstruct(imgs, cams)
 
 
 def test_reconstruct_fades_gaussians_at_the_matte_outline(toy_model):

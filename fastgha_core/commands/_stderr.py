@@ -13,6 +13,13 @@ They are harmless and say nothing a user can act on, but read as warnings in the
 ``fastgha track``. :func:`native_stderr_filtered` sends fd 2 through a pipe for the duration of a
 command and drops exactly those lines (the patterns below); everything else, Python's own log lines
 and tqdm's ``\\r`` progress updates included, is passed on as it arrives.
+
+The server tracks photos with the same graphs (``server/tracking.py``) and is not a command that
+ends: there, :func:`mediapipe_start_up_quiet` does the same only while a graph is built and until
+its first call has run (``tracking/faces.py`` ``QuietGraph``), which is when the lines come; a
+server's stderr is not sent through a Python thread for its whole life (a native crash's last words
+would be lost with it). Setting ``GLOG_minloglevel`` / ``TF_CPP_MIN_LOG_LEVEL`` before the import
+was tried and does not reach them (mediapipe 0.10.21).
 """
 
 from __future__ import annotations
@@ -23,7 +30,7 @@ import re
 import sys
 import threading
 
-__all__ = ["NOISE", "is_noise", "native_stderr_filtered"]
+__all__ = ["NOISE", "is_noise", "native_stderr_filtered", "mediapipe_start_up_quiet"]
 
 #: Whole lines (without their newline) that are dropped: MediaPipe's known start-up messages only.
 NOISE = (
@@ -78,31 +85,75 @@ def _forward(src: int, dst: int) -> None:
         write(buf)
 
 
-@contextlib.contextmanager
-def native_stderr_filtered(enabled: bool = True):
-    """Within the block, lines of :data:`NOISE` written to fd 2 (by C++ or Python) are dropped and
-    the rest reach the real stderr unchanged. Not re-entrant; a no-op when ``enabled`` is false or
-    fd 2 cannot be redirected (no such descriptor)."""
-    if not enabled:
-        yield
-        return
+def _install():
+    """Send fd 2 through a pipe to a thread running :func:`_forward`; the state for :func:`_remove`,
+    or None when fd 2 cannot be redirected (no such descriptor)."""
     try:
         sys.stderr.flush()
         saved = os.dup(2)
     except (OSError, ValueError, AttributeError):
-        yield
-        return
+        return None
     r, w = os.pipe()
     os.dup2(w, 2)
     os.close(w)
     reader = threading.Thread(target=_forward, args=(r, saved), name="fastgha-stderr-filter", daemon=True)
     reader.start()
+    return r, saved, reader
+
+
+def _remove(state) -> None:
+    r, saved, reader = state
+    with contextlib.suppress(Exception):
+        sys.stderr.flush()
+    os.dup2(saved, 2)  # closes the pipe's last write end: the reader drains it and ends
+    reader.join(timeout=5)
+    os.close(r)
+    os.close(saved)
+
+
+@contextlib.contextmanager
+def native_stderr_filtered(enabled: bool = True):
+    """Within the block, lines of :data:`NOISE` written to fd 2 (by C++ or Python) are dropped and
+    the rest reach the real stderr unchanged. Not re-entrant across threads (use
+    :func:`mediapipe_start_up_quiet` there); a no-op when ``enabled`` is false or fd 2 cannot be
+    redirected (no such descriptor)."""
+    state = _install() if enabled else None
     try:
         yield
     finally:
-        with contextlib.suppress(Exception):
-            sys.stderr.flush()
-        os.dup2(saved, 2)  # closes the pipe's last write end: the reader drains it and ends
-        reader.join(timeout=5)
-        os.close(r)
-        os.close(saved)
+        if state is not None:
+            _remove(state)
+
+
+_shared_lock = threading.Lock()
+_shared_users = 0
+_shared_state = None
+
+
+@contextlib.contextmanager
+def mediapipe_start_up_quiet():
+    """:func:`native_stderr_filtered` for the library's own MediaPipe calls (``tracking/faces.py``,
+    ``tracking/silhouette.py``), which also run inside the server, where other threads write to
+    stderr at the same time: process-wide and thread-safe, so concurrent or nested blocks share one
+    filter, put in place by the first to enter and taken away by the last to leave. Other threads'
+    lines written meanwhile pass through it unchanged. Inside a command's own filter (``fastgha
+    track``) it stacks on top and comes off first. Does nothing when the root logger is at DEBUG
+    (``fastgha -v ...``: the lines are then shown, as the commands' filter does)."""
+    import logging
+
+    global _shared_users, _shared_state
+    if logging.getLogger().isEnabledFor(logging.DEBUG):
+        yield
+        return
+    with _shared_lock:
+        if _shared_users == 0:
+            _shared_state = _install()
+        _shared_users += 1
+    try:
+        yield
+    finally:
+        with _shared_lock:
+            _shared_users -= 1
+            if _shared_users == 0 and _shared_state is not None:
+                state, _shared_state = _shared_state, None
+                _remove(state)

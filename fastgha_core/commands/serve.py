@@ -100,6 +100,27 @@ def _check_data_dir(path, named: str) -> None:
         ) from None
 
 
+def _check_model_folder(model: str, named: str) -> None:
+    """Read and validate a model folder's config.json now: a wrong field is reported in one line
+    (the field and its allowed range, ``FastGHAConfig.validate``) before the slow start-up, not as a
+    traceback from the server's start-up tens of seconds later. Preset names are left to the load."""
+    from pathlib import Path
+
+    from ..cli import CLIError
+    from ..config import PRESETS
+
+    if model in PRESETS:
+        return
+    if not Path(model).is_dir():
+        raise CLIError(f"{named} must be one of {sorted(PRESETS)} or a model folder, got {model!r}")
+    from ..model.fastgha import FastGHA
+
+    try:
+        FastGHA.read_config(model)
+    except ValueError as e:
+        raise CLIError(f"{named} {model!r}: {e}") from None
+
+
 def run(args) -> int:
     import logging
 
@@ -150,6 +171,7 @@ def run(args) -> int:
     except Exception as e:  # pydantic ValidationError: say which setting is wrong, in one line
         raise CLIError(f"invalid settings: {_settings_problems(e, overrides)}") from None
     _check_data_dir(settings.data_dir, "--data-dir" if "data_dir" in overrides else "FASTGHA_DATA_DIR")
+    _check_model_folder(settings.model, "--model" if "model" in overrides else "FASTGHA_MODEL")
     if settings.device != "auto":
         from ..cli import check_device
 

@@ -169,19 +169,29 @@ class FastGHA(nn.Module):
         state = {k: v.detach().to("cpu").contiguous() for k, v in self.state_dict().items()}
         save_file(state, str(folder / WEIGHTS_NAME), metadata={"format": "pt", "fastgha_model": self.config.name})
 
-    @classmethod
-    def from_pretrained(cls, folder: str | Path, device: Any = "cpu") -> "FastGHA":
-        """Load a folder written by ``save_pretrained`` (eval mode)."""
-        from safetensors.torch import load_file
-
+    @staticmethod
+    def read_config(folder: str | Path) -> FastGHAConfig:
+        """The validated ``FastGHAConfig`` of a model folder written by ``save_pretrained``, without
+        its weights. Raises ``ValueError`` naming the file when either file is missing, the JSON does
+        not parse, or a field is unknown or out of its range (``FastGHAConfig.validate``)."""
         folder = Path(folder)
         cfg_file, w_file = folder / CONFIG_NAME, folder / WEIGHTS_NAME
         if not cfg_file.is_file() or not w_file.is_file():
             raise ValueError(f"model folder {str(folder)!r} must contain {CONFIG_NAME} and {WEIGHTS_NAME} (written by save_pretrained)")
         try:
-            cfg = FastGHAConfig.from_dict(json.loads(cfg_file.read_text()))
+            return FastGHAConfig.from_dict(json.loads(cfg_file.read_text()))
         except json.JSONDecodeError as e:
             raise ValueError(f"{cfg_file}: does not parse as JSON: {e}") from None
+        except (ValueError, TypeError) as e:  # validate(): the field and its allowed range
+            raise ValueError(f"{cfg_file}: {e}") from None
+
+    @classmethod
+    def from_pretrained(cls, folder: str | Path, device: Any = "cpu") -> "FastGHA":
+        """Load a folder written by ``save_pretrained`` (eval mode); its config is checked by ``read_config``."""
+        from safetensors.torch import load_file
+
+        cfg = cls.read_config(folder)
+        cfg_file, w_file = Path(folder) / CONFIG_NAME, Path(folder) / WEIGHTS_NAME
         model = cls(cfg)
         state = load_file(str(w_file), device="cpu")
         missing, unexpected = model.load_state_dict(state, strict=False)

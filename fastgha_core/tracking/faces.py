@@ -44,6 +44,7 @@ __all__ = [
     "TinyFaceError",
     "load_face_detector",
     "MeshDetector",
+    "QuietGraph",
     "MIN_FACE_PX",
 ]
 
@@ -183,6 +184,43 @@ def _policy(boxes: list[FaceBox], name: str, min_face_px: float, ignore_ratio: f
     return 0
 
 
+class QuietGraph:
+    """A MediaPipe solution graph (``FaceMesh``, ``SelfieSegmentation``) built, and run until it has
+    once returned a result that ``settled(result)`` accepts, with MediaPipe's C++ start-up lines
+    dropped from stderr (``commands/_stderr.py`` ``mediapipe_start_up_quiet``); no environment
+    variable silences them. Other stderr output passes unchanged; ``fastgha -v`` keeps them.
+
+    The graph's threads write most of them just after it is built, while the constructor has
+    already returned: the graph is therefore run once on a blank ``128 x 128`` frame inside the same
+    quiet block, which returns only once they have started (a few ms). The landmark model's lines
+    come on the first run that finds a face, hence ``settled``. ``process`` and ``close`` are the
+    graph's."""
+
+    def __init__(self, build, settled=lambda result: True):
+        from ..commands._stderr import mediapipe_start_up_quiet
+
+        self._quiet = mediapipe_start_up_quiet
+        with self._quiet():
+            self.graph = build()
+            self.graph.process(np.zeros((128, 128, 3), dtype=np.uint8))
+        self._settled, self._starting = settled, True
+
+    def process(self, img: np.ndarray):
+        if not self._starting:
+            return self.graph.process(img)
+        with self._quiet():
+            res = self.graph.process(img)
+        self._starting = not self._settled(res)
+        return res
+
+    def close(self) -> None:
+        self.graph.close()
+
+
+def _found_a_face(res) -> bool:
+    return bool(res.multi_face_landmarks)
+
+
 class MeshDetector:
     """MediaPipe Face Mesh (module doc): photos with :meth:`detect_one`, video with :meth:`track_frame`.
 
@@ -194,7 +232,7 @@ class MeshDetector:
     def __init__(self, min_face_px: float = MIN_FACE_PX, ignore_ratio: float = 1.0 / 3.0, max_faces: int = 4):
         import os
 
-        os.environ.setdefault("GLOG_minloglevel", "2")  # MediaPipe's C++ log lines on stderr
+        os.environ.setdefault("GLOG_minloglevel", "2")  # glog's, where a build still uses it (the start-up lines: QuietGraph)
         import mediapipe as mp  # type: ignore
 
         from .meshmap import load_mediapipe_map
@@ -202,7 +240,7 @@ class MeshDetector:
         self.mp = mp
         self.min_face_px, self.ignore_ratio = float(min_face_px), float(ignore_ratio)
         self.index = load_mediapipe_map().mp_index  # [N] Face Mesh indices in the fitter's order
-        self._static = mp.solutions.face_mesh.FaceMesh(static_image_mode=True, max_num_faces=max_faces, min_detection_confidence=0.5)
+        self._static = QuietGraph(lambda: mp.solutions.face_mesh.FaceMesh(static_image_mode=True, max_num_faces=max_faces, min_detection_confidence=0.5), _found_a_face)
         self._video = None
 
     def _points(self, res, w: int, h: int) -> list[np.ndarray]:
@@ -228,8 +266,8 @@ class MeshDetector:
         """Landmarks ``[N, 2]`` of the largest face of a video frame (MediaPipe's tracking mode:
         the detector runs only when the face is lost), or None."""
         if self._video is None:
-            self._video = self.mp.solutions.face_mesh.FaceMesh(static_image_mode=False, max_num_faces=1,
-                                                               min_detection_confidence=0.5, min_tracking_confidence=0.5)  # fmt: skip
+            self._video = QuietGraph(lambda: self.mp.solutions.face_mesh.FaceMesh(static_image_mode=False, max_num_faces=1,
+                                                                                  min_detection_confidence=0.5, min_tracking_confidence=0.5), _found_a_face)  # fmt: skip
         frame = _check_image(frame)
         pts = self._points(self._video.process(frame), frame.shape[1], frame.shape[0])
         return pts[0][self.index] if pts else None

@@ -164,9 +164,17 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
 
     p = argparse.ArgumentParser(prog="python -m fastgha_core.tracking.meshmap", description="rebuild the Face Mesh -> ICT maps")
-    p.add_argument("--pose", "--yaw", dest="pose", action="store_true",
+    p.add_argument("--pose", action="store_true",
                    help="rebuild the pose-dependent table (yaw x pitch, synthetic renders, ~30 s) instead")
-    if p.parse_args(argv).pose:
+    # --yaw rebuilt the yaw-only table (mediapipe_ict_yaw.npz) that the pose table replaced on
+    # 2026-12-01; it still works for old scripts, but is hidden and warns: the name no longer says
+    # what it builds (yaw x pitch, another file)
+    p.add_argument("--yaw", dest="yaw", action="store_true", help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.yaw:
+        print("warning: --yaw is deprecated: the yaw-only table was replaced by the yaw x pitch pose table; "
+              "use --pose (this run builds the pose table)", file=sys.stderr)
+    if args.pose or args.yaw:
         d = build_pose_table()
         np.savez_compressed(POSE_ASSET, **d)
         print(f"wrote {POSE_ASSET}: yaw bins {d['yaw'].tolist()}, pitch bins {d['pitch'].tolist()}, "

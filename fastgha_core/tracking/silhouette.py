@@ -86,7 +86,9 @@ def person_mask(img: np.ndarray) -> np.ndarray:
     import mediapipe as mp  # type: ignore
 
     if "general" not in _SEG:
-        _SEG["general"] = mp.solutions.selfie_segmentation.SelfieSegmentation(model_selection=0)
+        from .faces import QuietGraph  # its C++ start-up lines off stderr
+
+        _SEG["general"] = QuietGraph(lambda: mp.solutions.selfie_segmentation.SelfieSegmentation(model_selection=0))
     return np.asarray(_SEG["general"].process(np.ascontiguousarray(img)).segmentation_mask, dtype=np.float32)
 
 

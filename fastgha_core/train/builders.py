@@ -32,7 +32,10 @@ def model_config_from_spec(spec: str):
         data = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ValueError(f"model config {path} is not valid JSON ({e}); expected an object of FastGHAConfig fields") from None
-    return FastGHAConfig.from_dict(data)
+    try:
+        return FastGHAConfig.from_dict(data)
+    except (ValueError, TypeError) as e:  # an unknown field, or one out of its range (FastGHAConfig.validate)
+        raise ValueError(f"model config {path}: {e}") from None
 
 
 def build_model(cfg: TrainConfig, dino_weights: str | None = None, vae_weights: str | None = None, init_from: str | None = None):
