@@ -174,6 +174,14 @@ class DeformConfig:
     # held-out subjects it moved the dlib responses by dlib's jitter and cost 0.10-0.14 dB of mouth
     # PSNR on jawOpen (docs/model-card.md); off, the prior moves centres only
     prior_rotate: bool = False
+    # avatars whose per-view data holds each input view's expression (reconstructed on a tracked head
+    # surface, ``ViewBlend.expressions``): the deformation MLP's residual is taken relative to the
+    # residual at the Gaussian's own view's expression, MLP(z) - MLP(z_view), so that at its photo's
+    # expression each Gaussian lies where the tracked head put it, on its own pixel. The MLP learned a
+    # constant offset (2 mm median, 1 cm at the nose) for the network's depth; on the tracked surface it
+    # tore holes beside the nose that the back shell showed through (docs/model-card.md "The dark
+    # blot beside the nose")
+    anchor_residual: bool = True
     flame_model: str | None = None  # flame120 models: FLAME model file (else $FASTGHA_FLAME_MODEL)
 
 

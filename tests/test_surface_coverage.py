@@ -132,8 +132,10 @@ def test_reconstruct_on_a_surface_covers_every_input_matte():
     model.config.gaussians.coverage_target = 0.0
     off = model.reconstruct(imgs, cams, surface=surface)
     (m_on, unc_on), (m_off, unc_off) = coverage(on), coverage(off)
-    assert unc_off > 0.03 and unc_on < 0.5 * unc_off, (unc_off, unc_on)
-    assert m_on > m_off + 0.02
+    # 1.5% of the mattes uncovered without the fill (more than 3% before deform.anchor_residual: the
+    # MLP's offset also moved Gaussians off the mattes), 0.1% with it
+    assert unc_off > 0.01 and unc_on < 0.2 * unc_off, (unc_off, unc_on)
+    assert m_on > 0.99 and m_on > m_off + 0.01, (m_on, m_off)  # 0.998 and 0.979
     # without a surface (the network's depth) nothing changes
     net_off = model.reconstruct(imgs, cams)
     model.config.gaussians.coverage_target = 0.9

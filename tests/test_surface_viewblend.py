@@ -242,6 +242,9 @@ def test_the_avatar_budget_counts_the_view_data_a_blended_frame_holds(tiny):
     held += 0 if vb.expressions is None else vb.expressions.untyped_storage().nbytes()  # the views' expressions (gaussians.view_blend_expr_mm)
     pen = vb.__dict__.get("_expr")  # ... and the penalty's tables, built on the first frame (model/viewblend.py ExpressionPenalty)
     held += 0 if pen is None else pen.nbytes
+    anchor = av.__dict__.get("_residual_anchor")  # the MLP's residual at each view's expression (deform.anchor_residual)
+    held += 0 if anchor is None else anchor[2].untyped_storage().nbytes()
+    assert (anchor is not None) == (vb.expressions is not None)
     assert tiny.serving_nbytes(av) - without == held
 
 

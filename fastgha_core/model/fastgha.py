@@ -327,7 +327,7 @@ class FastGHA(nn.Module):
 
         return opacity_factors(z, rt.basis, rt.group_index) if rt.gated else None
 
-    def build_prior(self, g: Gaussians, view_index: Tensor | None = None, view_expressions: Tensor | None = None, head_fit=None, shell_fit=None):
+    def build_prior(self, g: Gaussians, view_index: Tensor | None = None, view_expressions: Tensor | None = None, head_fit=None, shell_fit=None, anchor: bool = False):
         """Fit the head surface to canonical ``g``, bind every Gaussian, optionally undo the input
         photos' expressions, and append the mouth interior. The fit and the binding use the neutral
         positions the avatar is drawn at (centres + the deformation MLP's residual at the neutral
@@ -342,6 +342,9 @@ class FastGHA(nn.Module):
                 instead of fitting the head surface to the Gaussians.
             shell_fit: a ``prior.HeadFit`` to lay the back-of-head shell on instead of the one bound to
                 (the tracked head with its scalp laid out by the hair thickness, ``HeadSurface.head_fit(basis, hair_m)``).
+            anchor: the avatar will be animated with the MLP's residual relative to each view's
+                expression (``residual_anchor``): the neutral positions are then the centres plus
+                ``MLP(neutral) - MLP(z_view)`` (needs ``view_index`` and ``view_expressions``).
         Returns:
             ``(gaussians, binding, num_interior)``; the returned Gaussians keep ``g``'s autograd graph
             (means are shifted by a constant when neutralising; the appended shell and interior are
@@ -350,7 +353,7 @@ class FastGHA(nn.Module):
             the deformation MLP only.)
         """
         with torch.no_grad():
-            fit, binding, means, shift, back = self._prior_binding(g, view_index, view_expressions, head_fit)
+            fit, binding, means, shift, back = self._prior_binding(g, view_index, view_expressions, head_fit, anchor)
         if shift is not None:
             g = g.replace(means=g.means - shift.to(g.means.device, g.means.dtype))
             if back is not None:  # and its surface rotation, so a frame's rotation starts from neutral
@@ -363,7 +366,7 @@ class FastGHA(nn.Module):
             g = Gaussians.concat([g, extra.to(g.means.device, g.means.dtype)])
         return g, binding, n_int
 
-    def _prior_binding(self, g: Gaussians, view_index: Tensor | None, view_expressions: Tensor | None, head_fit):
+    def _prior_binding(self, g: Gaussians, view_index: Tensor | None, view_expressions: Tensor | None, head_fit, anchor: bool = False):
         """``build_prior``'s fit and binding (no autograd): ``(fit, binding, means, shift, back)``;
         ``shift [N, 3]`` (None without ``view_expressions``) is subtracted from the means, ``back
         [N, 4]`` (None unless ``prior_rotate``) pre-multiplies the quaternions."""
@@ -379,6 +382,8 @@ class FastGHA(nn.Module):
         # -0.19 -> 0.04 (jawOpen 0.75 -> 0.77).
         z0 = torch.as_tensor(self.expression_space.neutral(), dtype=g.means.dtype, device=g.means.device)
         means = means + self.deform(g.features.detach(), g.means.detach(), z0)[0].detach().float().cpu()
+        if anchor and view_index is not None and view_expressions is not None:  # drawn as animate() will: minus MLP(z_view)
+            means = means - self._view_residual(g.features.detach(), g.means.detach(), view_index, view_expressions).float().cpu()
         if head_fit is not None:
             fit = head_fit
         else:
@@ -750,7 +755,8 @@ class FastGHA(nn.Module):
         prior, n_int = None, 0
         if self.config.deform.prior:
             n_rec = len(g)
-            g, prior, n_int = self.build_prior(g, view_index if expressions is not None else None, expressions, head_fit=head_fit, shell_fit=shell_fit)
+            anchor = self.config.deform.anchor_residual and blend is not None and blend.expressions is not None  # animate(): residual_anchor
+            g, prior, n_int = self.build_prior(g, view_index if expressions is not None else None, expressions, head_fit=head_fit, shell_fit=shell_fit, anchor=anchor)
             if surface is not None and self.config.gaussians.shell_carve and self._shell_count() > 0 and n_int > 0:
                 g = self._carve_shell(g, n_rec, images[:v_real], cameras[:v_real], surface)
         avatar = CanonicalAvatar(g, self.config.name, self.config.expression_space, prior, n_int, blend)
@@ -853,9 +859,61 @@ class FastGHA(nn.Module):
             avatar.deform_cache, avatar.deform_cache_owner, avatar.deform_cache_source = cache, id(self.deform), avatar.gaussians
         return cache
 
+    def _view_residual(self, features: Tensor, means: Tensor, view_index: Tensor, view_expressions: Tensor) -> Tensor:
+        """``[N, 3]``: the deformation MLP's offset of each Gaussian (``features [N, F]``, ``means [N, 3]``)
+        at its own view's expression (``view_index [N]`` into ``view_expressions [V, E]``; 0 for a
+        Gaussian without a view, index -1). No autograd."""
+        dev = self.device
+        out = torch.zeros(len(means), 3, device=dev)
+        vi = view_index.to(dev).long()
+        with torch.no_grad():
+            for v in range(int(view_expressions.shape[0])):
+                sel = (vi == v).nonzero().squeeze(1)
+                if len(sel):
+                    out[sel] = self.deform(features[sel].to(dev), means[sel].to(dev), view_expressions[v].to(dev, torch.float32))[0].float()
+        return out
+
+    def residual_anchor(self, avatar: CanonicalAvatar) -> Tensor | None:
+        """``[N_reconstructed, 3]`` float32 on the model's device, or None: what ``animate`` subtracts from
+        the deformation MLP's residual of each reconstructed Gaussian, its residual at its own input
+        view's expression ``MLP(f, x, z_view)`` (``deform.anchor_residual``; avatars whose per-view
+        data holds the views' expressions, ``ViewBlend.expressions``: those reconstructed on a tracked
+        head surface). At its photo's expression each Gaussian then lies where reconstruction put it.
+
+        Why: the MLP was trained on the network's depth, where its expression-independent part (2-4 mm
+        median) corrects that depth; on the tracked surface the Gaussians already lie on their pixels'
+        rays, and that part moved them off (about 1 cm at the nose), opening the gaps beside the nose
+        through which the back-of-head shell showed as a dark blot (docs/model-card.md). Cached on the
+        avatar with the MLP's first-layer term (``_deform_partial``). View expressions of another shape
+        than ``[V, E]`` (a malformed file, which loads: ``view.expr``) give None, with a warning."""
+        vb = avatar.view_blend
+        if not self.config.deform.anchor_residual or vb is None or vb.expressions is None:
+            return None
+        if tuple(vb.expressions.shape) != (vb.directions.shape[0], self.config.expression_dim):  # a file's malformed view.expr
+            if not avatar.__dict__.get("_residual_anchor_warned"):
+                log.warning("avatar's view expressions have shape %s, not [%d, %d]: drawn without residual_anchor",
+                            list(vb.expressions.shape), vb.directions.shape[0], self.config.expression_dim)  # fmt: skip
+                avatar.__dict__["_residual_anchor_warned"] = True
+            return None
+        partial = self._deform_partial(avatar)
+        hit = avatar.__dict__.get("_residual_anchor")
+        if hit is not None and hit[0] is partial and hit[1] is vb:
+            return hit[2]
+        ve = vb.expressions.to(self.device, torch.float32)
+        sv = vb.source_view.to(self.device).long()
+        anchor = torch.zeros(len(sv), 3, device=self.device)
+        with torch.no_grad():
+            for v in range(int(ve.shape[0])):
+                sel = (sv == v).nonzero().squeeze(1)
+                if len(sel):
+                    anchor[sel] = self.deform.forward_split(partial[sel], ve[v])[0].float()
+        avatar.__dict__["_residual_anchor"] = (partial, vb, anchor)
+        return anchor
+
     def serving_nbytes(self, avatar: CanonicalAvatar) -> int:
         """Bytes ``avatar`` holds once this model has animated it: its Gaussians, its prior binding, the
-        deformation MLP's cached first layer (``[N_reconstructed, H]`` float32) and the binding's
+        deformation MLP's cached first layer (``[N_reconstructed, H]`` float32; with ``residual_anchor``
+        also ``[N_reconstructed, 3]``) and the binding's
         per-frame runtime on this model's device (``PriorRuntime.estimate_nbytes``), and the view-blending
         data (``ViewBlend.nbytes``; with ``gaussians.view_blend_expr_mm > 0`` before the first frame the
         expression penalty's tables at most, ``ExpressionPenalty.estimate_nbytes``). What
@@ -871,6 +929,8 @@ class FastGHA(nn.Module):
                 from .viewblend import ExpressionPenalty  # its tables, built on the first frame: at most this
 
                 total += ExpressionPenalty.estimate_nbytes(len(vb), vb.directions.shape[0])
+            if self.config.deform.anchor_residual and vb.expressions is not None:  # residual_anchor: [N_reconstructed, 3] float32
+                total += avatar.num_reconstructed * 3 * 4
         if avatar.prior is not None:
             total += sum(t.numel() * t.element_size() for t in vars(avatar.prior).values() if isinstance(t, Tensor))
             if self.config.deform.prior and len(avatar.prior) == n:
@@ -944,6 +1004,9 @@ class FastGHA(nn.Module):
         with ctx:
             dxyz, drgb = self.deform.forward_split(partial, z)
         dxyz, drgb = dxyz.float(), drgb.float()
+        anchor = self.residual_anchor(avatar)
+        if anchor is not None:  # the residual relative to each Gaussian's own view's expression (deform.anchor_residual)
+            dxyz = dxyz - anchor
         g = avatar.gaussians if avatar.gaussians.means.device == dev else avatar.gaussians.to(dev)
         n_int = avatar.num_interior
         prior_d = gate = shade = rot = None

@@ -507,6 +507,9 @@ def _refine_avatar(
             for i in range(v):
                 a, b = model.deform(feats, xyz, expressions[i].to(dev))
                 dxyz[i], drgb[i] = a.float().cpu(), b.float().cpu()
+            anchor = model.residual_anchor(avatar)  # as animate() draws it: relative to each Gaussian's own view (deform.anchor_residual)
+            if anchor is not None and anchor.shape[0] == n:
+                dxyz -= anchor.float().cpu()[None]
             if avatar.prior is not None:  # the head model's displacement under the MLP's residual
                 rt = model._runtime(avatar.prior, avatar.gaussians, avatar.num_interior)
                 prior_d = rt.displacement(expressions.to(rt.basis_u.device)).float().cpu()  # [V, N_all, 3]
