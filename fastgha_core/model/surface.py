@@ -657,7 +657,10 @@ def photo_pixel_shapes(g, images: Tensor, mode: str, scale: float = PHOTO_SHAPES
     decomposition found that the decoder's colour residual, its sub-1 opacities on the matte and its
     scales (up to 16 pixel footprints) soften a photo's own avatar at its own camera; all three
     together (pure input colour, opacity 1 on the matte, scales x 0.75) lowered the dlib identity
-    distance 0.376 -> 0.320, each alone little.
+    distance 0.376 -> 0.320, each alone little. Off by default: in real-photo leave-one-out (with the
+    anchored residual) "colour_opacity_scale" lowers mean identity 0.512 -> 0.498 but costs phone-5 /
+    studio-4 0.13 / 0.28 dB and shows the 128² grid of smaller splats as a stipple at novel cameras
+    (docs/model-card.md "The Gaussians' shapes on real photos, and expression-aware blending, after the anchor").
 
     Args:
         g: ``Gaussians`` of ``V*H*W`` points, view-major (``FastGHA.forward_gaussians``' order).
