@@ -138,6 +138,7 @@ class GaussianHeadConfig:
     mirror_drop_seen_deg: float = 0.0  # ... drop the mirrored Gaussians whose point a real view sees (inside its matte, unoccluded) at an incidence below this many degrees (0 = keep them all; model/mirror.py seen_by_views)
     flow_register: bool = False  # reconstruct() on a tracked head surface ("replace"): before the network sees them, resample each real input view's image along a dense optical flow (OpenCV DIS) that moves its texture onto where its neighbour view (chained from the most frontal one) sees it through the tracked surface, faded to 0 outside the views' overlap (model/flowreg.py register_views; mirrored views are built from the registered images); off by default: measured neutral, real-photo leave-one-out identity 0.529 both ways, PSNR -0.06 / -0.01 / -0.08 dB, own cameras -0.2 to -0.3 dB (docs/model-card.md "Registering the views' textures by optical flow")
     flow_register_clip_px: float = 4.0  # ... the largest flow, pixels at an image side of 256 (scaled with the input: 2 px of the tiny model's 128² inputs); must be > 0
+    photo_shapes: str = "off"  # reconstruct() on a tracked head surface ("replace"): what each input pixel's Gaussian keeps of the photo (model/surface.py photo_pixel_shapes): "colour_opacity" (the pixel's own colour, the decoder's colour residual dropped, and opacity 1 inside the view's matte), "colour_opacity_scale" (also scales x PHOTO_SHAPES_SCALE, 0.75); "off" (the default: "colour_opacity_scale" lowered real-photo leave-one-out identity 0.512 -> 0.498 but cost 0.13 / 0.28 dB on two of three sets and shows the 128² splat grid as a stipple at novel cameras; at the input cameras identity 0.426 -> 0.383; "colour_opacity" raised identity to 0.529; docs/model-card.md "The Gaussians' shapes on real photos, and expression-aware blending, after the anchor")
 
     @property
     def channels(self) -> int:
@@ -255,6 +256,7 @@ EDGE_MODES = ("colour", "fade")
 NECK_CYLINDER_MODES = ("off", "off_head", "below_ring")
 OFF_HEAD_HULL_MODES = ("off", "entry", "nearest", "middle")
 OFF_HEAD_DRAW_MODES = ("off", "behind", "drop", "sharp", "headon_sharp", "cover_sharp", "under")  # = model/surface.py's
+PHOTO_SHAPES_MODES = ("off", "colour_opacity", "colour_opacity_scale")  # = model/surface.py's
 MAX_VIEW_BLEND_TAU_DEG = 360.0  # = fastgha_core.commands.MAX_VIEW_BLEND_TAU_DEG (the server's bound on its override)
 
 
@@ -323,6 +325,7 @@ def _validate_gaussians(g: GaussianHeadConfig) -> None:
     _in_range(w + "mirror_midline_m", g.mirror_midline_m, 0, note="metres; 0 = keep them")
     _in_range(w + "mirror_drop_seen_deg", g.mirror_drop_seen_deg, 0, 90, note="an incidence angle in degrees; 0 = keep them all")
     _in_range(w + "flow_register_clip_px", g.flow_register_clip_px, 0, lo_open=True, note="pixels at an image side of 256")
+    _one_of(w + "photo_shapes", g.photo_shapes, PHOTO_SHAPES_MODES)
 
 
 def _validate_deform(d: DeformConfig) -> None:

@@ -658,6 +658,10 @@ class FastGHA(nn.Module):
             # turned views' mirror images as virtual views of the unseen side, after the real ones (model/mirror.py); not in
             # blend mode: there the mirrored off-face pixels took a mirrored-only network pass's depth (a flap beside the neck)
             g, images, cameras, sd, expressions, v = self._add_mirrored_views(g, images, cameras, sd, expressions, surface)
+        if surface is not None and surface_mode == "replace" and self.config.gaussians.photo_shapes != "off":  # colour / opacity / size from the photo (model/surface.py)
+            from .surface import photo_pixel_shapes
+
+            g = photo_pixel_shapes(g, images, self.config.gaussians.photo_shapes)
         view_index = torch.arange(v, device=dev).repeat_interleave(len(g) // v)  # Gaussians are V*S*S, view-major
         if surface is not None and surface_mode == "replace" and self.config.gaussians.grazing_stretch > 0:
             from .surface import stretch_to_patches, surface_steps  # grazing views' Gaussians cover their patch (model/surface.py)

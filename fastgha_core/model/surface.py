@@ -644,6 +644,60 @@ def sample_photo_colours(points: Tensor, cameras: Cameras, photos: Tensor, view_
     return out
 
 
+PHOTO_SHAPES_MODES = ("off", "colour_opacity", "colour_opacity_scale")  # GaussianHeadConfig.photo_shapes (= config.PHOTO_SHAPES_MODES)
+PHOTO_SHAPES_SCALE = 0.75  # photo_pixel_shapes' "colour_opacity_scale": every Gaussian's scales x this
+
+
+def photo_pixel_shapes(g, images: Tensor, mode: str, scale: float = PHOTO_SHAPES_SCALE):
+    """The input pixels' Gaussians ``g`` with their colour, opacity and (optionally) size taken from
+    the photo instead of the decoder (``GaussianHeadConfig.photo_shapes``).
+
+    Why (issue 17, ``docs/model-card.md`` "Where a photo's own avatar loses identity"): on a tracked
+    head surface each pixel's Gaussian already lies on its own pixel, and the single-view
+    decomposition found that the decoder's colour residual, its sub-1 opacities on the matte and its
+    scales (up to 16 pixel footprints) soften a photo's own avatar at its own camera; all three
+    together (pure input colour, opacity 1 on the matte, scales x 0.75) lowered the dlib identity
+    distance 0.376 -> 0.320, each alone little. Off by default: in real-photo leave-one-out (with the
+    anchored residual) "colour_opacity_scale" lowers mean identity 0.512 -> 0.498 but costs phone-5 /
+    studio-4 0.13 / 0.28 dB and shows the 128² grid of smaller splats as a stipple at novel cameras
+    (docs/model-card.md "The Gaussians' shapes on real photos, and expression-aware blending, after the anchor").
+
+    Args:
+        g: ``Gaussians`` of ``V*H*W`` points, view-major (``FastGHA.forward_gaussians``' order).
+        images: ``[V, 3, H, W]`` the inputs the Gaussians came from, in [0, 1], matted on ``BACKGROUND_RGB``.
+        mode: ``"off"`` (``g`` returned as is), ``"colour_opacity"`` (colour = the input pixel,
+            clamped to [0.01, 0.99] as ``rgb_residual`` clamps it, i.e. that residual set to 0;
+            opacity 1 where ``foreground_weight > 0.5``, elsewhere unchanged), ``"colour_opacity_scale"``
+            (also every Gaussian's three scales x ``scale``).
+        scale: the factor of ``"colour_opacity_scale"``, > 0.
+    Returns:
+        ``Gaussians`` of the same length; means, rotations and features unchanged.
+    Raises:
+        ValueError: on an unknown mode, a scale that is not a finite number > 0, or images whose
+            pixel count is not ``len(g)``.
+    """
+    import math
+
+    from .gaussian_head import foreground_weight
+
+    if mode not in PHOTO_SHAPES_MODES:
+        raise ValueError(f"photo_pixel_shapes: mode must be one of {list(PHOTO_SHAPES_MODES)}, got {mode!r}")
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale <= 0:
+        raise ValueError(f"photo_pixel_shapes: scale must be a finite number > 0, got {scale!r}")
+    if mode == "off":
+        return g
+    if images.ndim != 4 or images.shape[1] != 3 or images.shape[0] * images.shape[2] * images.shape[3] != len(g):
+        raise ValueError(f"photo_pixel_shapes: images must be [V, 3, H, W] with V*H*W = {len(g)} pixels, got {list(images.shape)}")
+    img = images.to(g.colors.device, torch.float32)
+    colors = img.clamp(0.01, 0.99).permute(0, 2, 3, 1).reshape(-1, 3).to(g.colors.dtype)
+    fg = foreground_weight(img).reshape(-1) > 0.5
+    opac = torch.where(fg, torch.ones_like(g.opacities), g.opacities)
+    out = g.replace(colors=colors, opacities=opac)
+    if mode == "colour_opacity_scale":
+        out = out.replace(scales=g.scales * scale)
+    return out
+
+
 
 def _mattes(foreground: Tensor, dilate_px: int) -> Tensor:
     """``bool [V, H, W]``: ``foreground [V, H, W] > 0.5``, dilated by ``dilate_px`` pixels (a square
