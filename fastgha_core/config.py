@@ -295,10 +295,20 @@ def _one_of(where: str, value: Any, allowed: tuple[str, ...]) -> None:
         raise ValueError(f"{where} must be one of {list(allowed)}, got {value!r}")
 
 
+def _switches(where: str, section) -> None:
+    """``ValueError`` unless each of ``section``'s on/off fields (those whose default is a bool) holds
+    ``true`` / ``false``: a string such as ``"false"`` in a config.json is truthy and used to turn the
+    switch on."""
+    for f in dataclasses.fields(section):
+        if isinstance(f.default, bool) and not isinstance(getattr(section, f.name), bool):
+            raise ValueError(f"{where}{f.name} must be true or false, got {getattr(section, f.name)!r}")
+
+
 def _validate_gaussians(g: GaussianHeadConfig) -> None:
     """The ranges of ``GaussianHeadConfig``'s numeric and string fields (see each field's comment).
     Several read 0 as "off"; a negative value used to turn such a term off silently."""
     w = "gaussians."
+    _switches(w, g)
     _in_range(w + "feature_dim", g.feature_dim, 0, integer=True)
     _in_range(w + "depth_range", g.depth_range, 0, lo_open=True, note="metres either side of the camera distance")
     _in_range(w + "min_scale_px", g.min_scale_px, 0, lo_open=True, note="pixel footprints")
@@ -331,6 +341,7 @@ def _validate_gaussians(g: GaussianHeadConfig) -> None:
 def _validate_deform(d: DeformConfig) -> None:
     """The ranges of ``DeformConfig``'s numeric fields (see each field's comment)."""
     w = "deform."
+    _switches(w, d)
     _in_range(w + "hidden_size", d.hidden_size, 1, integer=True)
     _in_range(w + "num_layers", d.num_layers, 1, integer=True, note="hidden layers")
     _in_range(w + "pe_freqs", d.pe_freqs, 0, integer=True, note="0 = xyz only")

@@ -61,6 +61,8 @@ BAD = [
     ("deform", "prior_fade", (-0.006, 0.025), "prior_fade[0]"),
     ("deform", "prior_fade", (0.025, 0.006), "prior_fade[1] must be a number >= 0.025"),
     ("deform", "prior_fade", (0.006,), "two distances"),
+    ("deform", "anchor_residual", "false", "true or false"),  # a truthy string used to turn it on
+    ("gaussians", "flow_register", 1, "true or false"),
 ]
 
 
@@ -105,6 +107,8 @@ GOOD = [
     ("deform", "negative_slope", 0.0),
     ("deform", "prior_fade", (0.0, 0.0)),
     ("deform", "prior_fade", [0.006, 0.025]),
+    ("deform", "anchor_residual", False),
+    ("gaussians", "flow_register", True),
 ]
 
 

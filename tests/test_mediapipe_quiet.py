@@ -102,3 +102,32 @@ def test_face_mesh_and_segmentation_start_quietly_and_our_lines_stay():
     loud = subprocess.run([sys.executable, "-c", _TRACK, "DEBUG"], capture_output=True, env=_env(), timeout=300)
     assert loud.returncode == 0, loud.stderr.decode()
     assert [ln for ln in loud.stderr.decode().splitlines() if is_noise(ln.encode())], loud.stderr.decode()
+
+
+def test_a_child_process_outliving_the_block_writes_to_stderr_not_to_a_reused_descriptor(tmp_path):
+    """A child started inside the block inherits fd 2 (the pipe) and writes after the block has ended:
+    its line reaches the real stderr through the reader, which owns the pipe and the saved stderr
+    until the pipe ends; a file opened after the block (which used to get one of their reused numbers)
+    receives nothing."""
+    script = textwrap.dedent(
+        f"""
+        import os, subprocess, sys, threading
+        from fastgha_core.commands import _stderr
+        _stderr.DRAIN_TIMEOUT_S = 0.05  # do not wait for the child's pipe to end
+        go = os.pipe()
+        with _stderr.native_stderr_filtered():
+            p = subprocess.Popen(["sh", "-c", "read x; echo CHILD-LATE-LINE >&2"], stdin=go[0])
+        files = [open({str(tmp_path)!r} + f"/f{{i}}", "wb") for i in range(4)]
+        os.write(go[1], b"go\\n"); p.wait()
+        for t in threading.enumerate():
+            if t.name == "fastgha-stderr-filter":
+                t.join()
+        for f in files:
+            f.close()
+        os.write(2, b"end\\n")
+        """
+    )
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, env=_env(), timeout=120)
+    assert r.returncode == 0, r.stderr.decode()
+    assert r.stderr.decode().splitlines() == ["CHILD-LATE-LINE", "end"], r.stderr.decode()
+    assert [(tmp_path / f"f{i}").read_bytes() for i in range(4)] == [b""] * 4

@@ -93,22 +93,41 @@ def _install():
         saved = os.dup(2)
     except (OSError, ValueError, AttributeError):
         return None
-    r, w = os.pipe()
+    try:
+        r, w = os.pipe()
+    except OSError:  # out of descriptors: unfiltered rather than failing the command
+        os.close(saved)
+        return None
     os.dup2(w, 2)
     os.close(w)
-    reader = threading.Thread(target=_forward, args=(r, saved), name="fastgha-stderr-filter", daemon=True)
+    reader = threading.Thread(target=_forward_and_close, args=(r, saved), name="fastgha-stderr-filter", daemon=True)
     reader.start()
     return r, saved, reader
 
 
+def _forward_and_close(src: int, dst: int) -> None:
+    """:func:`_forward`, then close both descriptors. The reader owns them: a child process started
+    inside the block inherits fd 2 (the pipe) and may outlive it, so the pipe can end after
+    :func:`_remove` has returned; closing them there would let their numbers be reused by files opened
+    later, into which the reader would then write the child's late lines (seen with a
+    ``sh -c 'sleep 7; echo x >&2'`` child)."""
+    try:
+        _forward(src, dst)
+    finally:
+        os.close(src)
+        os.close(dst)
+
+
+#: Seconds :func:`_remove` waits for the pipe to drain (all at once unless a child process still holds it)
+DRAIN_TIMEOUT_S = 5.0
+
+
 def _remove(state) -> None:
-    r, saved, reader = state
+    _r, saved, reader = state
     with contextlib.suppress(Exception):
         sys.stderr.flush()
-    os.dup2(saved, 2)  # closes the pipe's last write end: the reader drains it and ends
-    reader.join(timeout=5)
-    os.close(r)
-    os.close(saved)
+    os.dup2(saved, 2)  # closes the pipe's last write end (unless a child holds it): the reader drains it, closes r and saved, and ends
+    reader.join(timeout=DRAIN_TIMEOUT_S)  # a child's later lines still reach the real stderr through the reader
 
 
 @contextlib.contextmanager
