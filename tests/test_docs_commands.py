@@ -147,6 +147,8 @@ def test_quoted_model_options_exist_with_their_defaults():
         have = getattr(cfg, name)
         if isinstance(have, bool):
             ok = value in (("true", "on") if have else ("false", "off"))
+        elif isinstance(have, str):  # a mode (gaussians.photo_shapes, "off"): the quoted word is its value
+            ok = value == have
         else:
             ok = isinstance(have, (int, float)) and float(value) == float(have)
         if not ok:
