@@ -383,7 +383,8 @@ class FastGHA(nn.Module):
         z0 = torch.as_tensor(self.expression_space.neutral(), dtype=g.means.dtype, device=g.means.device)
         means = means + self.deform(g.features.detach(), g.means.detach(), z0)[0].detach().float().cpu()
         if anchor and view_index is not None and view_expressions is not None:  # drawn as animate() will: minus MLP(z_view)
-            means = means - self._view_residual(g.features.detach(), g.means.detach(), view_index, view_expressions).float().cpu()
+            f, x, dev = g.features.detach(), g.means.detach(), self.device
+            means = means - self._offsets_at_views(view_index, view_expressions, lambda sel, z: self.deform(f[sel].to(dev), x[sel].to(dev), z)[0]).cpu()
         if head_fit is not None:
             fit = head_fit
         else:
@@ -863,18 +864,21 @@ class FastGHA(nn.Module):
             avatar.deform_cache, avatar.deform_cache_owner, avatar.deform_cache_source = cache, id(self.deform), avatar.gaussians
         return cache
 
-    def _view_residual(self, features: Tensor, means: Tensor, view_index: Tensor, view_expressions: Tensor) -> Tensor:
-        """``[N, 3]``: the deformation MLP's offset of each Gaussian (``features [N, F]``, ``means [N, 3]``)
-        at its own view's expression (``view_index [N]`` into ``view_expressions [V, E]``; 0 for a
-        Gaussian without a view, index -1). No autograd."""
+    def _offsets_at_views(self, view_index: Tensor, view_expressions: Tensor, offset) -> Tensor:
+        """``[N, 3]`` float32 on the model's device: ``offset(sel, z)`` (the deformation MLP's ``dxyz`` of
+        the Gaussians ``sel`` at the expression ``z [E]``) for each Gaussian at its own view's expression
+        (``view_index [N]`` into ``view_expressions [V, E]``; 0 for a Gaussian without a view, index -1).
+        One MLP pass per view; no autograd. Used by the prior's binding (``build_prior(anchor=True)``)
+        and by ``residual_anchor``, so both draw the anchor the same way."""
         dev = self.device
-        out = torch.zeros(len(means), 3, device=dev)
         vi = view_index.to(dev).long()
+        ve = view_expressions.to(dev, torch.float32)
+        out = torch.zeros(len(vi), 3, device=dev)
         with torch.no_grad():
-            for v in range(int(view_expressions.shape[0])):
+            for v in range(int(ve.shape[0])):
                 sel = (vi == v).nonzero().squeeze(1)
                 if len(sel):
-                    out[sel] = self.deform(features[sel].to(dev), means[sel].to(dev), view_expressions[v].to(dev, torch.float32))[0].float()
+                    out[sel] = offset(sel, ve[v]).float()
         return out
 
     def residual_anchor(self, avatar: CanonicalAvatar) -> Tensor | None:
@@ -903,14 +907,7 @@ class FastGHA(nn.Module):
         hit = avatar.__dict__.get("_residual_anchor")
         if hit is not None and hit[0] is partial and hit[1] is vb:
             return hit[2]
-        ve = vb.expressions.to(self.device, torch.float32)
-        sv = vb.source_view.to(self.device).long()
-        anchor = torch.zeros(len(sv), 3, device=self.device)
-        with torch.no_grad():
-            for v in range(int(ve.shape[0])):
-                sel = (sv == v).nonzero().squeeze(1)
-                if len(sel):
-                    anchor[sel] = self.deform.forward_split(partial[sel], ve[v])[0].float()
+        anchor = self._offsets_at_views(vb.source_view, vb.expressions, lambda sel, z: self.deform.forward_split(partial[sel], z)[0])
         avatar.__dict__["_residual_anchor"] = (partial, vb, anchor)
         return anchor
 
