@@ -161,13 +161,18 @@ def test_report_columns_recover_the_camera_of_an_avatar_render(sample):
     pivot = pivot_of(model.animate(avatar, expr[0], camera=true))
     up = true.w2c[0, :3, 1]
     start = apply_correction(true, math.radians(10.0) * up, torch.tensor([0.005, 0.0, 0.0]), pivot)
-    cols, pred = aligned_columns(model, avatar, expr[0], start, target, m, None, None, None, "00_yaw+40.jpg", FAST)
     yaw_true = head_angles(true)[0]
+    ann = round(yaw_true) - 2  # the file name's yaw: 12 degrees from the start, near the truth
+    cols, pred = aligned_columns(model, avatar, expr[0], start, target, m, None, None, None, f"00_yaw{ann:+d}.jpg", FAST)
     assert abs(cols["yaw_tracked"] - yaw_true) == pytest.approx(10.0, abs=0.5)
     assert cols["yaw_aligned"] == pytest.approx(yaw_true, abs=1.0)
     assert cols["align_rotation_deg"] == pytest.approx(10.0, abs=1.0)
     assert cols["align_dyaw_deg"] == pytest.approx(yaw_true - cols["yaw_tracked"], abs=1.0)
-    assert cols["yaw_annotated"] == 40.0
+    assert cols["yaw_annotated"] == ann
+    # the second alignment starts at the annotated yaw (turned the right way) and ends at the truth too
+    assert cols["annot_start_yaw"] == pytest.approx(ann, abs=0.5)
+    assert cols["annot_start_yaw_aligned"] == pytest.approx(yaw_true, abs=1.0)
+    assert cols["annot_start_masked_psnr"] > cols["annot_start_masked_psnr_start"] + 3.0
     assert cols["aligned_masked_psnr"] > 30.0
     assert cols["aligned_identity_distance"] is None and cols["aligned_faces_in_render"] is None  # no face detector given
     assert pred.shape == (3, 128, 128)
@@ -184,7 +189,8 @@ def test_alignment_tables_put_both_cameras_side_by_side():
             "align_translation_mm": 4.0}
     rows = [
         dict(base, left_out="00_yaw+55.jpg", masked_psnr=15.0, aligned_masked_psnr=17.0, identity_distance=0.6, aligned_identity_distance=0.5,
-             yaw_annotated=55.0, yaw_tracked=36.7, yaw_aligned=41.2, align_rotation_deg=4.6),
+             yaw_annotated=55.0, yaw_tracked=36.7, yaw_aligned=41.2, align_rotation_deg=4.6, align_loss_end=0.02,
+             annot_start_yaw_aligned=52.0, annot_start_masked_psnr_start=14.0, annot_start_masked_psnr=16.5, annot_start_loss_end=0.03),
         dict(base, left_out="01.jpg", masked_psnr=19.0, aligned_masked_psnr=20.0, identity_distance=None, aligned_identity_distance=0.4,
              yaw_annotated=None, yaw_tracked=1.0, yaw_aligned=0.0, align_rotation_deg=1.0),
         {"set": "a", "steps": 0, "left_out": "x", "masked_psnr": 1.0},  # a row without the alignment is left out
@@ -196,5 +202,6 @@ def test_alignment_tables_put_both_cameras_side_by_side():
     assert len(lines) == 4
     c0 = [c.strip() for c in lines[2].strip("|").split("|")]
     assert c0[3:6] == ["+55", "36.7", "41.2"] and c0[9] == "15.00 -> 17.00"
+    assert c0[11] == "52.0 (14.00 -> 16.50; no)"  # from the annotation it ends at a higher loss than from the tracked yaw
     assert [c.strip() for c in lines[3].strip("|").split("|")][3] == "n/a"
     assert align_summary_table(rows[2:]) == "" and align_photo_table([]) == ""

@@ -40,7 +40,9 @@ without the folder the script says so and exits 0.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import math
 import logging
 import os
 import time
@@ -179,20 +181,27 @@ ALIGNED_KEYS = ("masked_psnr", "masked_ssim", "identity_distance", "faces_in_ren
 
 
 def aligned_columns(model, avatar, expression: torch.Tensor, camera, target: torch.Tensor, m: torch.Tensor, faces, t_desc, t_box, name: str,
-                    config=None) -> tuple[dict, torch.Tensor]:
+                    config=None, from_annotation: float = 5.0) -> tuple[dict, torch.Tensor]:
     """The test-view pose alignment diagnostic of one left-out photo (``refine/testpose.py``).
 
     The frozen ``avatar`` (drawn as ``model.animate`` draws it at ``expression [E]``, the tracked one)
     is aligned to ``target [1, 3, S, S]`` (matted, mask ``m [1, 1, S, S]``) from the tracked
     ``camera`` (batch ``[1]``, ``S x S``, world = the head frame); returns the row's extra columns
     (``aligned_<score>`` for the scores of ``_score``; the correction ``align_rotation_deg`` /
-    ``align_translation_mm`` and its ``align_d{yaw,pitch,roll}_deg``; the head's ``yaw_tracked`` /
+    ``align_translation_mm`` (and its camera-frame components ``align_translation_xyz_mm``: right,
+    down, away from the camera) and its ``align_d{yaw,pitch,roll}_deg``; the head's ``yaw_tracked`` /
     ``yaw_aligned`` (and pitch, roll) in ``tracking.fit.head_angles_deg``'s convention;
     ``yaw_annotated`` from the file name ``name`` or None; ``align_s``) and the aligned render
-    ``[3, S, S]``."""
+    ``[3, S, S]``.
+
+    ``from_annotation`` > 0: where the annotated yaw differs from the tracked one by more than that
+    many degrees, a second alignment starts from the tracked camera turned about the head's up axis
+    to the annotated yaw (no yaw sweep), and ``annot_start_*`` give where it ends (``yaw``,
+    ``masked_psnr``, ``loss_end``) and its masked PSNR before aligning (``masked_psnr_start``): which
+    of the two ends the frozen avatar prefers (the lower ``loss_end``)."""
     from ..render import render
     from ..tracking.realsets import annotated_yaw
-    from .testpose import align_camera, head_angles
+    from .testpose import AlignConfig, align_camera, apply_correction, head_angles, pivot_of
 
     res = align_camera(lambda c: model.animate(avatar, expression, camera=c), camera, target[0], m[0], config)
     ro = render(model.animate(avatar, expression, camera=res.camera), res.camera, background=BACKGROUND_RGB)
@@ -203,14 +212,37 @@ def aligned_columns(model, avatar, expression: torch.Tensor, camera, target: tor
     cols.update({
         "align_rotation_deg": round(res.rotation_deg, 2),
         "align_translation_mm": round(res.translation_mm, 1),
+        "align_translation_xyz_mm": [round(1000 * float(x), 1) for x in res.translation],  # camera frame: right, down, away
         **{f"align_d{a}_deg": round(y - x, 2) for a, x, y in zip(("yaw", "pitch", "roll"), a0, a1)},
         **{f"{a}_tracked": round(x, 2) for a, x in zip(("yaw", "pitch", "roll"), a0)},
         **{f"{a}_aligned": round(y, 2) for a, y in zip(("yaw", "pitch", "roll"), a1)},
         "yaw_annotated": annotated_yaw(name),
+        "align_start_yaw_deg": res.start_yaw_deg,
         "align_loss_start": round(res.loss_start, 5),
         "align_loss_end": round(res.loss_end, 5),
         "align_s": round(res.seconds, 1),
     })
+    ann = cols["yaw_annotated"]
+    if from_annotation > 0 and ann is not None and abs(ann - a0[0]) > from_annotation:
+        up = camera.flatten().w2c[0, :3, 1].float()
+        pivot = pivot_of(model.animate(avatar, expression, camera=camera))
+        d = math.radians(ann - a0[0])
+        start = apply_correction(camera, d * up, torch.zeros(3), pivot)
+        if (head_angles(start)[0] - a0[0]) * (ann - a0[0]) < 0:  # the up axis turns the other way
+            start = apply_correction(camera, -d * up, torch.zeros(3), pivot)
+        cfg = dataclasses.replace(config or AlignConfig(), yaw_sweep_deg=())
+        r2 = align_camera(lambda c: model.animate(avatar, expression, camera=c), start, target[0], m[0], cfg, pivot=pivot)
+        ro0 = render(model.animate(avatar, expression, camera=start), start, background=BACKGROUND_RGB)
+        sc0 = _score(ro0.rgb.clamp(0, 1), ro0.alpha, target, m, None, None, None)
+        ro2 = render(model.animate(avatar, expression, camera=r2.camera), r2.camera, background=BACKGROUND_RGB)
+        sc2 = _score(ro2.rgb.clamp(0, 1), ro2.alpha, target, m, None, None, None)
+        cols.update({
+            "annot_start_yaw": round(head_angles(start)[0], 2),
+            "annot_start_masked_psnr_start": sc0["masked_psnr"],
+            "annot_start_yaw_aligned": round(head_angles(r2.camera)[0], 2),
+            "annot_start_masked_psnr": sc2["masked_psnr"],
+            "annot_start_loss_end": round(r2.loss_end, 5),
+        })
     return cols, pred[0]
 
 
@@ -455,7 +487,8 @@ def align_photo_table(rows: list[dict]) -> str:
         return ""
     out = (
         "| set | photo | steps | yaw annotated | yaw tracked | yaw aligned | pitch tracked -> aligned | roll change | correction (deg; mm) "
-        "| masked PSNR tracked -> aligned | identity tracked -> aligned |\n|---|---|---:|---:|---:|---:|---|---:|---|---|---|\n"
+        "| masked PSNR tracked -> aligned | identity tracked -> aligned | from the annotated yaw: yaw aligned (PSNR start -> aligned; lower loss than from the tracked yaw?) |"
+        "\n|---|---|---:|---:|---:|---:|---|---:|---|---|---|---|\n"
     )
     for r in rows:
         mv = f" ({r['mirror']})" if r.get("mirror") else ""
@@ -463,9 +496,16 @@ def align_photo_table(rows: list[dict]) -> str:
             f"| {r['set']}{mv} | {r['left_out']} | {r['steps']} | {_fmt(r['yaw_annotated'], '+.0f')} | "
             f"{r['yaw_tracked']:.1f} | {r['yaw_aligned']:.1f} | {r['pitch_tracked']:.1f} -> {r['pitch_aligned']:.1f} | {r['align_droll_deg']:+.1f} | "
             f"{r['align_rotation_deg']:.1f}; {r['align_translation_mm']:.1f} | {r['masked_psnr']:.2f} -> {r['aligned_masked_psnr']:.2f} | "
-            f"{_fmt(r['identity_distance'], '.3f')} -> {_fmt(r['aligned_identity_distance'], '.3f')} |\n"
+            f"{_fmt(r['identity_distance'], '.3f')} -> {_fmt(r['aligned_identity_distance'], '.3f')} | {_from_annotation(r)} |\n"
         )
     return out
+
+
+def _from_annotation(r: dict) -> str:
+    if "annot_start_yaw_aligned" not in r:
+        return "-"
+    better = "yes" if r["annot_start_loss_end"] < r["align_loss_end"] else "no"
+    return f"{r['annot_start_yaw_aligned']:.1f} ({r['annot_start_masked_psnr_start']:.2f} -> {r['annot_start_masked_psnr']:.2f}; {better})"
 
 
 def main(argv=None) -> int:
