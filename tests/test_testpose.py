@@ -205,3 +205,15 @@ def test_alignment_tables_put_both_cameras_side_by_side():
     assert c0[11] == "52.0 (14.00 -> 16.50; no)"  # from the annotation it ends at a higher loss than from the tracked yaw
     assert [c.strip() for c in lines[3].strip("|").split("|")][3] == "n/a"
     assert align_summary_table(rows[2:]) == "" and align_photo_table([]) == ""
+
+
+def test_alignment_never_ends_worse_than_the_given_camera():
+    """Steps far too large throw the camera off; the given camera is then returned unchanged."""
+    g = _head()
+    true = _camera(10.0)
+    target, mask = _target(g, true)
+    cfg = AlignConfig(levels=((64, 0.0, 4),), lr_rotation=0.4, lr_translation=0.03, yaw_sweep_deg=())
+    res = align_camera(g, true, target, mask, cfg)
+    assert res.losses[-1] > res.loss_start  # the optimiser did end worse
+    assert res.loss_end == res.loss_start and res.rotation_deg == 0.0 and res.translation_mm == 0.0
+    assert torch.equal(res.camera.w2c, true.w2c)
