@@ -52,7 +52,6 @@ def test_below_chin_splits_at_the_chin_along_the_heads_up_axis():
 
 
 def test_reconstruct_draws_only_the_mirrored_gaussians_below_the_chin_under(head_case):
-    from fastgha_core.model import fastgha as F
     from fastgha_core.model.fastgha import load_model
 
     surface, cams, sd, fg = head_case
@@ -84,7 +83,6 @@ def test_reconstruct_draws_only_the_mirrored_gaussians_below_the_chin_under(head
     assert bool(vb1.under[mirrored & below_chin(pts, surface, 0.01)].all())  # every mirrored Gaussian clearly below the chin is drawn under
     assert not bool(added[~below_chin(pts, surface, -0.01)].any())  # none clearly above it is added
     assert int(added.sum()) < int(mirrored.sum())  # the mirrored face and hair are left as they were
-    assert F.MIRROR_UNDER_CHIN_MARGIN_M >= 0
     # per frame the added Gaussians move away from the frame's camera; nothing else changes
     z = torch.zeros(model.config.expression_dim)
     cam = cams[0:1]
