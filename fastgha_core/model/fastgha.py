@@ -49,6 +49,7 @@ log = logging.getLogger(__name__)
 HAIR_CARVE_DILATE_PX = 1  # reconstruct(): the hair layer is carved by the inputs' mattes dilated by this many pixels (model/surface.py hair_carve_fractions)
 HAIR_CARVE_MAX_UP = 0.5  # ... only vertices whose outward normal's up component is at most this (the top of the head, normals within 60 deg of up, keeps its fitted thickness: carved by all views, phone-5's pitch-down photo left out lost 12.28 -> 10.85 dB; mattes cut fine hair on top)
 SHELL_CARVE_DILATE_PX = -2  # reconstruct(): the back-of-head shell is carved into the inputs' mattes eroded by 2 pixels: its discs (5.5 mm) reach beyond their centres (model/surface.py carve_into_mattes; video-6 at its own cameras: dilated by 1 23.89 dB, eroded by 1 23.98, by 2 24.02, the bald shell 24.03)
+MIRROR_UNDER_CHIN_MARGIN_M = 0.0  # reconstruct(), gaussians.mirror_under_below_chin: the mirrored Gaussians at least this far below the tracked chin are drawn under the others (docs/model-card.md "Mirrored views below the chin")
 OFF_HEAD_HULL_COLLAR = False  # reconstruct() with gaussians.off_head_hull: also move the mesh's own pixels below its neck ring whose point is outside the other views' hull (model/surface.py off_head_on_hull)
 OFF_HEAD_HULL_DILATE_PX = 2  # ... the other views' mattes dilated by this many pixels
 OFF_HEAD_HULL_FREE_TOL_M = None  # ... and, when set (metres), the space in front of the head each other view sees is empty (up to this tolerance)
@@ -567,7 +568,10 @@ class FastGHA(nn.Module):
         point (``avatar.view_blend``, ``model/viewblend.py``) for view-dependent frames. With
         ``config.gaussians.mirror_views`` (on by default), an ict53 model and ``surface_mode="replace"``, the input views turned by
         at least ``mirror_min_yaw_deg`` also add their left-right mirror images as virtual views of the
-        unseen side of the head, after the real views' Gaussians (``model/mirror.py``). On a surface in
+        unseen side of the head, after the real views' Gaussians (``model/mirror.py``); with
+        ``gaussians.mirror_under_below_chin`` those of them lower than the tracked chin (the mirrored neck
+        and torso, which are not symmetric about a turned head) are drawn under the others in every
+        frame (``ViewBlend.under``, ``surface.below_chin``). On a surface in
         ``"replace"`` mode the fitted hair thickness is thinned per vertex where it would stand out
         beyond an input's matte (``gaussians.hair_carve``, ``surface.hair_carve_fractions``), the
         back-of-head shell lies under that hair (``shell_on_hair``) and inside every input's matte
@@ -751,6 +755,11 @@ class FastGHA(nn.Module):
                     under = os_
                 else:
                     sharp = os_ if sharp is None else sharp | os_
+            if v > v_real and self.config.gaussians.mirror_under_below_chin:  # the mirrored views' neck and body drawn under the others (model/surface.py below_chin)
+                from .surface import below_chin
+
+                mb = (view_index >= v_real) & below_chin(g.means, surface, MIRROR_UNDER_CHIN_MARGIN_M)
+                under = mb if under is None else under | mb
             offsets = None
             if v > v_real and self.config.gaussians.mirror_blend_offset_deg > 0:  # mirrored views count as further from every render camera
                 offsets = torch.zeros(v, device=dev)

@@ -88,6 +88,7 @@ __all__ = [
     "sample_photo_colours",
     "hull_ray_depth",
     "off_head_on_hull",
+    "below_chin",
 ]
 
 HAIR_CANDIDATES_M = (0.0, 0.005, 0.01, 0.015, 0.02, 0.025, 0.03)  # fit_hair_thickness' default choices (metres)
@@ -1066,3 +1067,39 @@ def off_head_draw_flags(sd: SurfaceDepth, cameras: Cameras, foreground: Tensor, 
     if mode == "drop":
         return SurfaceDepth(sd.t, sd.hit, sd.beyond_face | bad.to(sd.beyond_face.device), sd.face_hit), None
     return sd, bad
+
+
+def below_chin(points: Tensor, surface: HeadSurface, margin_m: float = 0.0) -> Tensor:
+    """``bool [N]``: which of ``points [N, 3]`` (world, metres) lie lower than the tracked head's chin
+    by more than ``margin_m`` metres, measured along the head's up axis.
+
+    The chin is ICT-FaceKit's landmark 8 (``HeadModel.landmarks68``, the Multi-PIE chin point) of
+    ``surface``'s identity at the neutral expression; the up axis is the head frame's +y
+    (``docs/conventions.md``), both moved into the world by ``surface.head_to_world`` when set.
+    ``margin_m`` may be negative (then points up to that far above the chin count too).
+
+    Why (issue 17, the real photo sets' leave-one-out renders, ``docs/model-card.md`` "Mirrored
+    views below the chin"): a mirrored view (``model/mirror.py``) is the mirror image of a turned
+    photo, a guess at the unseen side of a head that is left-right symmetric; below the chin the
+    photo shows the neck, the collar and the shoulders, which are not: the torso is turned less than
+    the head, or not at all, so the mirrored neck and T-shirt land on the wrong side and draw skin
+    over the shoulders. ``FastGHA.reconstruct`` draws those Gaussians under the others
+    (``GaussianHeadConfig.mirror_under_below_chin``).
+    Raises ``ValueError`` when ``points`` is not ``[N, 3]``.
+    """
+    from ..data.headmodel import HeadModel
+
+    if points.ndim != 2 or points.shape[-1] != 3:
+        raise ValueError(f"below_chin: points must be [N, 3], got {list(points.shape)}")
+    head = HeadModel.load()
+    ident = np.zeros(head.num_identity, np.float32)
+    n = min(head.num_identity, len(surface.identity))
+    ident[:n] = surface.identity[:n]
+    chin = np.asarray(head.vertices(ident, None), dtype=np.float64)[int(head.landmarks68[8])]
+    up = np.array([0.0, 1.0, 0.0])
+    if surface.head_to_world is not None:
+        h = np.asarray(surface.head_to_world, dtype=np.float64)
+        chin, up = h[:3, :3] @ chin + h[:3, 3], h[:3, :3] @ up
+    c = torch.as_tensor(chin, dtype=torch.float32, device=points.device)
+    u = torch.as_tensor(up, dtype=torch.float32, device=points.device)
+    return ((points.detach().float() - c) @ u) < -float(margin_m)
