@@ -115,8 +115,11 @@ class RefineConfig:
             with ``smooth_grid``.
         match_animation: render the inputs as ``FastGHA.animate`` draws a frame: the expression
             prior's shading factor on the colours, and the avatar's appended Gaussians (back-of-head
-            shell, mouth interior, lids, with their expression gates) drawn as fixed Gaussians
-            (False: the network's Gaussians alone, without the shading).
+            shell, mouth interior, lids, with their expression gates) drawn as fixed Gaussians,
+            and, on avatars with per-view data (a tracked head surface), each input view drawn as
+            ``animate(..., camera=)`` draws a frame at its camera: the view-dependent blending and
+            the off-head Gaussians pushed under (``FastGHA.blend_views``). False: the network's
+            Gaussians alone, without the shading or the blending.
         keep_binding: the refined avatar keeps the feed-forward avatar's expression-prior binding
             and appended Gaussians (shell, mouth interior, lids), so it animates exactly as the
             refinement rendered it (False: the head is refitted to the refined Gaussians and the
@@ -415,6 +418,31 @@ def _render_view(
     return rgb.permute(2, 0, 1), alpha[0][None], depth[None], z, uv
 
 
+def _input_view_blend(model, avatar: CanonicalAvatar, g0: Gaussians, dxyz: Tensor, cams: Cameras, expressions: Tensor | None):
+    """Per input view ``i``: ``(f [N], k [N])``, the opacity factor ``FastGHA.blend_views`` gives each
+    of the avatar's ``N`` reconstructed Gaussians at camera ``i`` (``model/viewblend.py``: the
+    view-dependent blending of real-photo avatars) and the depth factor that draws the off-head ones
+    under the others there (``push_under``: centre ``c + k (mean - c)``, scales ``x k``, ``c`` the
+    camera centre; 1 for the others). Constants, from the Gaussians deformed to view ``i``'s
+    expression (``dxyz [V, N, 3]``). None when ``blend_views`` leaves frames unchanged (no per-view
+    data, ``gaussians.view_blend_tau_deg`` 0: network-depth avatars), so those refine as before."""
+    n = len(g0)
+    vb = avatar.view_blend
+    if vb is None or len(vb) != n or float(model.config.gaussians.view_blend_tau_deg) <= 0:
+        return None
+    out = []
+    with torch.no_grad():
+        for i in range(len(cams.K)):
+            probe = g0.replace(means=g0.means + dxyz[i], opacities=torch.ones(n))
+            z = None if expressions is None else expressions[i]
+            # the probe stands for the frame's first N Gaussians (animate's trailing ones are not needed)
+            b = model.blend_views(avatar, probe.to(model.device), cams[i : i + 1].to(model.device), None if z is None else z.to(model.device))
+            b = b.to("cpu")
+            k = (b.scales[:n, 0] / probe.scales[:, 0].clamp_min(1e-12)).float()
+            out.append((b.opacities[:n].float(), k))
+    return out
+
+
 # ----------------------------------------------------------------------------- main entry
 def refine_avatar(
     model,
@@ -599,6 +627,9 @@ def _refine_avatar(
         )
         for ex in extra
     ]
+    # each input view drawn as ``animate(..., camera=)`` draws a frame there: the view-dependent blend
+    # factors and the off-head Gaussians pushed under the others (``FastGHA.blend_views``)
+    blend = _input_view_blend(model, avatar, g0, dxyz, tcams, expressions) if config.match_animation else None
     t_setup = time.perf_counter() - t_start
     losses: list[float] = []
     t0 = time.perf_counter()
@@ -620,17 +651,26 @@ def _refine_avatar(
         total = torch.zeros(())
         for i in ((step * nv + j) % v for j in range(nv)):  # all views, or nv of them in turn
             col_i = (colors + drgb[i]).clamp(0, 1)
+            means_i, opac_i, g_i = means + dxyz[i], opac, g0
+            if blend is not None:
+                f_i, k_i = blend[i]
+                c_i = centers[i]
+                means_i = c_i + k_i[:, None] * (means_i - c_i)  # pushed under: the same splat, deeper
+                opac_i = opac * f_i
+                g_i = g0.replace(scales=g0.scales * k_i[:, None])
             if extra:
                 col_i = (col_i * shade[i][:, None]).clamp(0, 1)
                 ex, gv = extra[i], extra_all[i]
+                if blend is not None:
+                    gv = gv.replace(scales=torch.cat([g_i.scales, ex.scales]))
                 ls_i = None if log_scale is None else torch.cat([log_scale, torch.zeros(len(ex))])
                 rgb, alpha, depth, z, uv = _render_view(
-                    gv, torch.cat([means + dxyz[i], ex.means]), torch.cat([col_i, ex.colors]),
-                    torch.cat([opac * gate_rec[i], ex.opacities]), K[i], w2c[i], size, bg, ls_i,
+                    gv, torch.cat([means_i, ex.means]), torch.cat([col_i, ex.colors]),
+                    torch.cat([opac_i * gate_rec[i], ex.opacities]), K[i], w2c[i], size, bg, ls_i,
                 )
                 z, uv = z[:n], uv[:n]
             else:
-                rgb, alpha, depth, z, uv = _render_view(g0, means + dxyz[i], col_i, opac, K[i], w2c[i], size, bg, log_scale)
+                rgb, alpha, depth, z, uv = _render_view(g_i, means_i, col_i, opac_i, K[i], w2c[i], size, bg, log_scale)
             l_photo = (rgb - targets[i]).abs().mean()
             l_sil = ((alpha - tmasks[i]) ** 2).mean()
             loss = config.w_photo * l_photo + config.w_silhouette * l_sil

@@ -47,14 +47,16 @@ def read_request(folder: str | Path):
 
 
 def render_inputs(model, avatar, cams: Cameras, expressions, size: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Render ``avatar`` at ``cams [V]`` (resized to ``size``) with each view's expression: rgb, alpha."""
+    """Render ``avatar`` at ``cams [V]`` (resized to ``size``) with each view's expression: rgb, alpha.
+    Each view is drawn as a frame at that camera (``animate(..., camera=)``: the view-dependent blending
+    of avatars on a tracked head; network-depth avatars ignore the camera)."""
     from ..constants import BACKGROUND_RGB
     from ..render import render
 
     rgbs, alphas = [], []
     cams = cams.resize(size, size) if (cams.width, cams.height) != (size, size) else cams
     for i in range(len(cams.K)):
-        g = model.animate(avatar, expressions[i]) if expressions is not None else avatar.gaussians
+        g = model.animate(avatar, expressions[i], camera=cams[i : i + 1]) if expressions is not None else avatar.gaussians
         out = render(g, cams[i : i + 1], background=BACKGROUND_RGB)
         rgbs.append(out.rgb[0].clamp(0, 1))
         alphas.append(out.alpha[0])
