@@ -579,13 +579,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return {"avatar_id": meta["avatar_id"], "status": "ready", "stage": "ready", "stage_progress": 1.0, "progress": 1.0,
                 "queue_position": None, "elapsed_ms": None, "avatar": avatar}  # fmt: skip
 
+    async def _ready_status(ctx: ServerContext, avatar_id: str, meta: dict) -> dict:
+        """A ready avatar's status: its job's snapshot while the job is still in memory (it keeps its
+        elapsed_ms), else the stored one (elapsed_ms null); the same for /status and /events."""
+        done = ctx.jobs.get(avatar_id)
+        return done.snapshot() if done is not None and done.status == "ready" else await _stored_status(ctx, meta)
+
     @app.get("/v1/avatars/{avatar_id}/status", tags=["avatars"])
     async def avatar_status(avatar_id: str, request: Request):
         """The creation job's status: ``queued`` / ``running`` (``stage``, ``progress``) / ``ready`` / ``failed``."""
         job, meta = await _job_or_meta(request, avatar_id)
         if job is None:
-            done = _ctx(request).jobs.get(avatar_id)  # a ready job still in memory keeps its elapsed_ms
-            return done.snapshot() if done is not None and done.status == "ready" else await _stored_status(_ctx(request), meta)
+            return await _ready_status(_ctx(request), avatar_id, meta)
         return JSONResponse(job.snapshot(), headers=None if job.done else {"Retry-After": "1"})
 
     @app.get("/v1/avatars/{avatar_id}/events", tags=["avatars"], response_class=StreamingResponse)
@@ -595,7 +600,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
         async def events():
             if job is None:
-                yield f"event: ready\ndata: {json.dumps(await _stored_status(_ctx(request), meta))}\n\n"
+                yield f"event: ready\ndata: {json.dumps(await _ready_status(_ctx(request), avatar_id, meta))}\n\n"
                 return
             async for snap in _ctx(request).jobs.watch(job):
                 if snap is None:

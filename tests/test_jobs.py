@@ -868,3 +868,24 @@ def test_fastgha_client_sends_the_head_of_a_folder_fastgha_track_wrote(server, t
     off = CanonicalAvatar.load(server.data / "avatars" / f"{plain.avatar_id}.safetensors")
     on_d, off_d = _head_distance(stored, head_part), _head_distance(off, head_part)
     assert on_d < 0.5 * off_d, (on_d, off_d)
+
+
+def test_events_of_a_ready_job_still_in_memory_match_its_status(server, samples):
+    """docs/protocol.md: elapsed_ms is null only once the job is no longer in memory; the events of an
+    avatar whose job finished moments ago carried the stored status (elapsed_ms null) while /status
+    gave the job's own snapshot."""
+    files, cams = _sample_parts(samples)
+    deadline = time.monotonic() + 240
+    while True:  # earlier tests may still hold this key's one job slot
+        r = _post(server, files, KEYS[2], {"cameras": cams})
+        if r.status_code not in (429, 503) or time.monotonic() > deadline:
+            break
+        time.sleep(0.5)
+    assert r.status_code == 202, r.text
+    job = r.json()
+    st = _wait(server, job, lambda s: s["status"] in ("ready", "failed"))
+    assert st["status"] == "ready" and st["elapsed_ms"] is not None and st["elapsed_ms"] > 0, st
+    events: list = []
+    _sse(server, job, events)
+    assert [e[0] for e in events] == ["ready"]
+    assert events[0][1] == _status(server, job) == st
