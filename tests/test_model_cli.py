@@ -34,16 +34,25 @@ def model_dir(tmp_path_factory):
     return folder
 
 
-def _request(folder, masks: bool):
+def _request(folder, masks: bool, n: int = 3):
     folder.mkdir()
-    cams = orbit_cameras(3, width=40, height=36)
+    cams = orbit_cameras(n, width=40, height=36)
     rng = np.random.default_rng(0)
-    for i in range(3):
+    for i in range(n):
         Image.fromarray(rng.integers(0, 255, (36, 40, 3), dtype=np.uint8)).save(folder / f"view{i}.png")
         if masks:
             Image.fromarray(np.full((36, 40), 255, np.uint8)).save(folder / f"view{i}_mask.png")
     (folder / "cameras.json").write_text(json.dumps(cameras_to_json(cams)))
     return folder
+
+
+def test_reconstruct_from_one_photo_says_one_view(tmp_path, model_dir, capsys):
+    """The README's one-photo example (the astronaut) printed "from 1 views"."""
+    req = _request(tmp_path / "req", masks=True, n=1)
+    out = tmp_path / "avatar.safetensors"
+    assert main(["reconstruct", "--input", str(req), "--model", str(model_dir), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert f"reconstructed {len(CanonicalAvatar.load(out))} Gaussians from 1 view at " in printed, printed
 
 
 def test_reconstruct_then_animate(tmp_path, model_dir, capsys):
