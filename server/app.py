@@ -276,7 +276,9 @@ def _boundary(ctype: str) -> bytes | None:
 async def _parse_form(request: Request, s: Settings):
     ctype = request.headers.get("content-type", "")
     if not ctype.lower().startswith("multipart/form-data"):
-        raise ApiError(415, "invalid_multipart", f"expected multipart/form-data, got {ctype[:80]!r}")
+        got = f"Content-Type {ctype[:80]!r}" if ctype else "no Content-Type"
+        raise ApiError(415, "invalid_multipart", f"expected multipart/form-data (each photo a file part named 'images', "
+                                                 f"as curl -F images=@me.jpg sends), got {got}")  # fmt: skip
     body = await _read_body(request, s.max_upload_bytes)
     boundary = _boundary(ctype)
     if boundary is None:

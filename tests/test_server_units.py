@@ -409,3 +409,17 @@ def test_binary_request_sizes_are_the_ones_docs_protocol_md_gives():
     assert len(bare) == 11 + 4 * e == int(m.group(1))
     assert len(with_cam) - len(bare) == int(m.group(2))
     assert parse_binary_message(with_cam, SPACE).camera.width == 96
+
+
+@pytest.mark.parametrize(("ctype", "got"), [("", "got no Content-Type"), ("application/json", "got Content-Type 'application/json'")])
+def test_a_creation_that_is_not_multipart_says_what_to_send(ctype, got):
+    """``curl -X POST .../v1/avatars`` (no body) was answered "expected multipart/form-data, got ''"."""
+    from types import SimpleNamespace
+
+    from server.app import _parse_form
+
+    request = SimpleNamespace(headers={"content-type": ctype} if ctype else {})
+    with pytest.raises(ApiError) as e:
+        asyncio.run(_parse_form(request, SimpleNamespace(max_upload_bytes=1024)))
+    assert e.value.status == 415 and e.value.code == "invalid_multipart"
+    assert e.value.message.endswith(got) and "'images'" in e.value.message and "curl -F images=@me.jpg" in e.value.message
