@@ -252,13 +252,15 @@ async def _read_body(request: Request, limit: int) -> bytes:
         except ValueError:
             raise ApiError(400, "invalid_multipart", "Content-Length is not a number") from None
         if n > limit:
-            raise ApiError(413, "upload_too_large", f"upload of {n} bytes exceeds the limit of {limit}")
+            raise ApiError(413, "upload_too_large", f"upload of {n} bytes exceeds the server's limit of {limit} bytes "
+                                                    "(FASTGHA_MAX_UPLOAD_BYTES): send fewer or smaller photos")  # fmt: skip
     chunks, total = [], 0
     try:
         async for chunk in request.stream():
             total += len(chunk)
             if total > limit:
-                raise ApiError(413, "upload_too_large", f"upload exceeds the limit of {limit} bytes")
+                raise ApiError(413, "upload_too_large", f"upload exceeds the server's limit of {limit} bytes "
+                                                        "(FASTGHA_MAX_UPLOAD_BYTES): send fewer or smaller photos")  # fmt: skip
             chunks.append(chunk)
     except ClientDisconnect:  # nobody is left to answer; its place in the queue is released by the caller
         raise ApiError(400, "client_disconnected", "the client went away before the upload was complete") from None
