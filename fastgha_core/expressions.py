@@ -220,6 +220,8 @@ class ExpressionSpace:
             typo = next((k for k in unknown if k not in sided and str(k).lower() not in _POSE_NAMES), None)
             if typo is not None and (meant := self._closest(str(typo))):
                 hint += f"; did you mean {meant!r} for {typo!r}?"
+            elif typo is not None and (within := self._containing(str(typo))):  # "smile", "blink": part of a name
+                hint += f"; names containing {typo!r}: {within}"
             raise ValueError(
                 f"expression space {self.name!r}: unknown name(s) {unknown[:8]}{'...' if len(unknown) > 8 else ''}; "
                 f"expected names like {list(index)[:3]}{hint}"
@@ -261,6 +263,16 @@ class ExpressionSpace:
                 hits.append(folded[v])
             hits.extend(near.get(v, ()))  # one letter dropped (v == k), changed or swapped
         return min(hits, key=lambda n: (abs(len(_fold(n)) - len(k)), hits.index(n))) if hits else None
+
+    def _containing(self, key: str, limit: int = 6) -> list[str]:
+        """The space's own names whose folded letters (:func:`_fold`) contain ``key``'s, at most
+        ``limit`` of them (``smile`` -> ``mouthSmile_L``, ``mouthSmile_R``); none for a key under 3 or
+        over ``_MAX_SUGGESTED_LEN`` letters. Only for the error message, for the first unknown name that
+        is no typo: one pass over the names."""
+        k = _fold(key)
+        if not 3 <= len(k) <= _MAX_SUGGESTED_LEN:
+            return []
+        return [n for n in self._names if k in _fold(n)][:limit]
 
     def _sided(self, key: str) -> tuple[str, str] | None:
         """The left and right names a side-less name stands for (``eyeBlink`` -> ``eyeBlinkLeft``,

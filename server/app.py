@@ -252,13 +252,15 @@ async def _read_body(request: Request, limit: int) -> bytes:
         except ValueError:
             raise ApiError(400, "invalid_multipart", "Content-Length is not a number") from None
         if n > limit:
-            raise ApiError(413, "upload_too_large", f"upload of {n} bytes exceeds the limit of {limit}")
+            raise ApiError(413, "upload_too_large", f"upload of {n} bytes exceeds the server's limit of {limit} bytes "
+                                                    "(FASTGHA_MAX_UPLOAD_BYTES): send fewer or smaller photos")  # fmt: skip
     chunks, total = [], 0
     try:
         async for chunk in request.stream():
             total += len(chunk)
             if total > limit:
-                raise ApiError(413, "upload_too_large", f"upload exceeds the limit of {limit} bytes")
+                raise ApiError(413, "upload_too_large", f"upload exceeds the server's limit of {limit} bytes "
+                                                        "(FASTGHA_MAX_UPLOAD_BYTES): send fewer or smaller photos")  # fmt: skip
             chunks.append(chunk)
     except ClientDisconnect:  # nobody is left to answer; its place in the queue is released by the caller
         raise ApiError(400, "client_disconnected", "the client went away before the upload was complete") from None
@@ -276,7 +278,9 @@ def _boundary(ctype: str) -> bytes | None:
 async def _parse_form(request: Request, s: Settings):
     ctype = request.headers.get("content-type", "")
     if not ctype.lower().startswith("multipart/form-data"):
-        raise ApiError(415, "invalid_multipart", f"expected multipart/form-data, got {ctype[:80]!r}")
+        got = f"Content-Type {ctype[:80]!r}" if ctype else "no Content-Type"
+        raise ApiError(415, "invalid_multipart", f"expected multipart/form-data (each photo a file part named 'images', "
+                                                 f"as curl -F images=@me.jpg sends), got {got}")  # fmt: skip
     body = await _read_body(request, s.max_upload_bytes)
     boundary = _boundary(ctype)
     if boundary is None:
@@ -579,13 +583,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return {"avatar_id": meta["avatar_id"], "status": "ready", "stage": "ready", "stage_progress": 1.0, "progress": 1.0,
                 "queue_position": None, "elapsed_ms": None, "avatar": avatar}  # fmt: skip
 
+    async def _ready_status(ctx: ServerContext, avatar_id: str, meta: dict) -> dict:
+        """A ready avatar's status: its job's snapshot while the job is still in memory (it keeps its
+        elapsed_ms), else the stored one (elapsed_ms null); the same for /status and /events."""
+        done = ctx.jobs.get(avatar_id)
+        return done.snapshot() if done is not None and done.status == "ready" else await _stored_status(ctx, meta)
+
     @app.get("/v1/avatars/{avatar_id}/status", tags=["avatars"])
     async def avatar_status(avatar_id: str, request: Request):
         """The creation job's status: ``queued`` / ``running`` (``stage``, ``progress``) / ``ready`` / ``failed``."""
         job, meta = await _job_or_meta(request, avatar_id)
         if job is None:
-            done = _ctx(request).jobs.get(avatar_id)  # a ready job still in memory keeps its elapsed_ms
-            return done.snapshot() if done is not None and done.status == "ready" else await _stored_status(_ctx(request), meta)
+            return await _ready_status(_ctx(request), avatar_id, meta)
         return JSONResponse(job.snapshot(), headers=None if job.done else {"Retry-After": "1"})
 
     @app.get("/v1/avatars/{avatar_id}/events", tags=["avatars"], response_class=StreamingResponse)
@@ -595,7 +604,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
         async def events():
             if job is None:
-                yield f"event: ready\ndata: {json.dumps(await _stored_status(_ctx(request), meta))}\n\n"
+                yield f"event: ready\ndata: {json.dumps(await _ready_status(_ctx(request), avatar_id, meta))}\n\n"
                 return
             async for snap in _ctx(request).jobs.watch(job):
                 if snap is None:

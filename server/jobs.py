@@ -137,7 +137,8 @@ def _open_checked(data: bytes, name: str, max_pixels: int):
         raise ApiError(400, "invalid_image", f"{name} is not a readable JPEG or PNG image{_why(e)}") from None
     w, h = im.size
     if w * h > max_pixels:
-        raise ApiError(413, "image_too_large", f"{name} has {w}x{h} = {w * h} pixels; the limit is {max_pixels}")
+        raise ApiError(413, "image_too_large", f"{name} has {w}x{h} = {w * h} pixels; the server's limit is {max_pixels} "
+                                               "per image (FASTGHA_MAX_IMAGE_PIXELS): send it downscaled")  # fmt: skip
     return im
 
 
@@ -168,7 +169,7 @@ def probe_request(
         total += p.size[0] * p.size[1]
     if total > max_request_pixels:
         raise ApiError(
-            413, "request_too_large", f"the {len(images) + len(masks or [])} files hold {total} pixels together; the limit per request is {max_request_pixels}"
+            413, "request_too_large", f"the {len(images) + len(masks or [])} files hold {total} pixels together; the server's limit per request is {max_request_pixels} (FASTGHA_MAX_REQUEST_PIXELS): send fewer or downscaled photos"
         )
     for i, p in enumerate(images):
         w, h = p.size

@@ -252,7 +252,7 @@ def _closed_port() -> int:
 
 @pytest.mark.parametrize("command", ["client", "loadtest"])
 def test_an_unreachable_server_says_what_to_do(command, capsys, tmp_path, not_fastgha_http):
-    """`fastgha serve` opens its port only after a start-up of 20-40 s: a client started at once got
+    """`fastgha serve` opens its port only after a start-up of 10-40 s: a client started at once got
     'Connection refused' and nothing more. Also https:// to the plain-HTTP server and a path in --url
     (http://host:port/v1) get the fix in the same line; all exit 2 before creating anything."""
     from pathlib import Path

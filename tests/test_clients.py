@@ -298,8 +298,9 @@ def _protocol_example() -> str:
 
 def test_protocol_docs_python_example_runs_as_written(server, request_dir, tmp_path, monkeypatch):
     """docs/protocol.md's hand-written example, run as a user would (its URLs pointed at the test
-    server, its ``req/`` folder made from the sample): it creates an avatar and gets a frame. Its
-    synchronous creation waits for the job, so it must not keep httpx's 5 s default timeout: behind
+    server, its shipped sample folder swapped for the test's, which has the same file names): it creates
+    an avatar and gets a frame. Its synchronous creation waits for the job, so it must not keep
+    httpx's 5 s default timeout: behind
     three queued creations of tracked photos that example failed with ``httpx.ReadTimeout``."""
     import ast
 
@@ -309,11 +310,9 @@ def test_protocol_docs_python_example_runs_as_written(server, request_dir, tmp_p
     for call in posts:
         timeout = next((k.value for k in call.keywords if k.arg == "timeout"), None)
         assert isinstance(timeout, ast.Constant) and timeout.value >= 60, ast.unparse(call)
-    req = tmp_path / "req"
-    req.mkdir()
-    for i, p in enumerate(sorted(request_dir.glob("[0-9][0-9].jpg"))):
-        (req / f"{i}.jpg").write_bytes(p.read_bytes())
-    (req / "cameras.json").write_text((request_dir / "cameras.json").read_text())
+    shipped = 'req = "fastgha_core/assets/samples/synth_1000000/request"'  # the example reads the shipped sample
+    assert shipped in code and sorted(p.name for p in request_dir.glob("[0-9][0-9].jpg")) == [f"{i:02d}.jpg" for i in range(4)]
+    code = code.replace(shipped, f"req = {str(request_dir)!r}")  # same names (00.jpg ... 03.jpg), the test's sample
     monkeypatch.chdir(tmp_path)
     scope = {"KEY": API_KEY}
     host = server.base.split("://", 1)[1]

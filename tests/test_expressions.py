@@ -254,6 +254,18 @@ def test_names_far_from_any_accepted_one_get_no_guess():
     assert "did you mean" not in str(e.value) and "Live Link" in str(e.value) and "per side" in str(e.value)
 
 
+def test_a_word_inside_accepted_names_lists_them():
+    """What a new user types for a smile or a blink ("smile", "Blink") is no typo of one name: the
+    message lists the space's names that contain it (still refused), and nothing for a word no name holds."""
+    with pytest.raises(ValueError, match=r"names containing 'smile': \['mouthSmile_L', 'mouthSmile_R'\]$"):
+        get_space("ict53").parse({"smile": 1.0})
+    with pytest.raises(ValueError, match=r"names containing 'Blink': \['eyeBlink_L', 'eyeBlink_R'\]$"):
+        get_space("ict53").parse({"Blink": 1.0})
+    with pytest.raises(ValueError) as e:
+        get_space("ict53").parse({"zzz": 1.0, "ab": 1.0})
+    assert "containing" not in str(e.value) and "did you mean" not in str(e.value)
+
+
 def test_side_less_names_in_other_cases_say_which_sided_names_to_send():
     """``eyeblink`` / ``mouth_smile`` (case and ``_`` aside, a side-less name) get the per-side hint,
     not a guess of one side."""

@@ -34,16 +34,31 @@ def model_dir(tmp_path_factory):
     return folder
 
 
-def _request(folder, masks: bool):
+def _request(folder, masks: bool, n: int = 3):
     folder.mkdir()
-    cams = orbit_cameras(3, width=40, height=36)
+    cams = orbit_cameras(n, width=40, height=36)
     rng = np.random.default_rng(0)
-    for i in range(3):
+    for i in range(n):
         Image.fromarray(rng.integers(0, 255, (36, 40, 3), dtype=np.uint8)).save(folder / f"view{i}.png")
         if masks:
             Image.fromarray(np.full((36, 40), 255, np.uint8)).save(folder / f"view{i}_mask.png")
     (folder / "cameras.json").write_text(json.dumps(cameras_to_json(cams)))
     return folder
+
+
+def test_one_photo_and_one_frame_are_said_in_the_singular(tmp_path, model_dir, capsys):
+    """The README's one-photo example (the astronaut) printed "from 1 views"; animate with its one
+    tracked expression, "rendered 1 frames"."""
+    req = _request(tmp_path / "req", masks=True, n=1)
+    out = tmp_path / "avatar.safetensors"
+    assert main(["reconstruct", "--input", str(req), "--model", str(model_dir), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert f"reconstructed {len(CanonicalAvatar.load(out))} Gaussians from 1 view at " in printed, printed
+    (tmp_path / "one.json").write_text(json.dumps([{"jawOpen": 0.5}]))  # and animate's "rendered 1 frames"
+    args = ["animate", "--avatar", str(out), "--model", str(model_dir), "--expressions", str(tmp_path / "one.json"),
+            "--size", "24", "--out", str(tmp_path / "frames")]
+    assert main(args) == 0
+    assert "rendered 1 frame at 24^2 in " in capsys.readouterr().out
 
 
 def test_reconstruct_then_animate(tmp_path, model_dir, capsys):

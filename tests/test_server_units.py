@@ -409,3 +409,36 @@ def test_binary_request_sizes_are_the_ones_docs_protocol_md_gives():
     assert len(bare) == 11 + 4 * e == int(m.group(1))
     assert len(with_cam) - len(bare) == int(m.group(2))
     assert parse_binary_message(with_cam, SPACE).camera.width == 96
+
+
+@pytest.mark.parametrize(("ctype", "got"), [("", "got no Content-Type"), ("application/json", "got Content-Type 'application/json'")])
+def test_a_creation_that_is_not_multipart_says_what_to_send(ctype, got):
+    """``curl -X POST .../v1/avatars`` (no body) was answered "expected multipart/form-data, got ''"."""
+    from types import SimpleNamespace
+
+    from server.app import _parse_form
+
+    request = SimpleNamespace(headers={"content-type": ctype} if ctype else {})
+    with pytest.raises(ApiError) as e:
+        asyncio.run(_parse_form(request, SimpleNamespace(max_upload_bytes=1024)))
+    assert e.value.status == 415 and e.value.code == "invalid_multipart"
+    assert e.value.message.endswith(got) and "'images'" in e.value.message and "curl -F images=@me.jpg" in e.value.message
+
+
+def test_an_oversized_upload_names_the_setting_and_what_to_do():
+    """A 60 MB upload was answered "upload of 60000174 bytes exceeds the limit of 33554432": no unit,
+    nothing for the user to do, nothing for the operator to change."""
+    from types import SimpleNamespace
+
+    from server.app import _read_body
+
+    async def chunks():
+        yield b"x" * 600
+        yield b"x" * 600
+
+    for headers in ({"content-length": "2000"}, {}):  # declared too long, or found too long while reading
+        request = SimpleNamespace(headers=headers, stream=chunks)
+        with pytest.raises(ApiError) as e:
+            asyncio.run(_read_body(request, 1000))
+        assert (e.value.status, e.value.code) == (413, "upload_too_large")
+        assert "limit of 1000 bytes" in e.value.message and "FASTGHA_MAX_UPLOAD_BYTES" in e.value.message, e.value.message

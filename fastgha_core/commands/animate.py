@@ -194,5 +194,5 @@ def run(args) -> int:
         if writer is not None:
             writer.close()
     dt = time.perf_counter() - t0
-    print(f"rendered {len(codes)} frames at {args.size}^2 in {dt:.2f} s ({len(codes) / max(dt, 1e-9):.1f} fps), {blend_summary(model, avatar)} -> {out}")
+    print(f"rendered {len(codes)} frame{'s' if len(codes) != 1 else ''} at {args.size}^2 in {dt:.2f} s ({len(codes) / max(dt, 1e-9):.1f} fps), {blend_summary(model, avatar)} -> {out}")
     return 0

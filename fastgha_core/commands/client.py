@@ -108,7 +108,7 @@ def unreachable(url: str, error: BaseException | str) -> str:
     text = str(error)
     if "Connection refused" in text or "Errno 111" in text:
         return (f"cannot reach the server at {url}: {text} (nothing listens there: start one with `fastgha serve`; "
-                "it opens its port only after its start-up, 20-40 s, when its log says 'start-up done')")  # fmt: skip
+                "it opens its port only after its start-up, 10-40 s, when its log says 'start-up done')")  # fmt: skip
     if url.lower().startswith("https://") and ("SSL" in text or "WRONG_VERSION_NUMBER" in text):
         return (f"cannot reach the server at {url}: {text} (`fastgha serve` speaks plain HTTP: use http://; "
                 "TLS belongs to a reverse proxy in front of it, docs/deploy.md)")  # fmt: skip

@@ -204,7 +204,7 @@ def run(args) -> int:
         avatar, refine_note = _refine(args, model, avatar, paths, images, cams, masks)
     avatar.save(args.out)
     print(
-        f"reconstructed {len(avatar)} Gaussians from {len(imgs)} views at {model.config.input_size}^2 "
+        f"reconstructed {len(avatar)} Gaussians from {len(imgs)} view{'s' if len(imgs) != 1 else ''} at {model.config.input_size}^2 "
         f"in {dt * 1000:.0f} ms{refine_note} (model {model.config.name!r}, expression space {model.config.expression_space}) -> {args.out}"
     )
     print(_blend_note(model, avatar, surface is not None, photos=len(imgs)))
