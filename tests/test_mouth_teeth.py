@@ -123,7 +123,7 @@ def test_gaussians_inside_the_closed_mouth_fade_as_it_opens(monkeypatch):
     nrm = vertex_normals(v, basis.bind_faces)
     outside = v[lips] + 0.001 * nrm[lips]  # 1 mm off the lips' skin
     pts = np.concatenate([v[front], outside]).astype(np.float32)
-    b = P.bind(pts, fit, basis)
+    b = P.bind(pts, fit, basis, hide_inside=True)
     grp = b.groups().numpy()
     hide = P.lip_hide_group(basis)
     assert (grp[: len(front)] == hide).mean() > 0.9
@@ -133,5 +133,38 @@ def test_gaussians_inside_the_closed_mouth_fade_as_it_opens(monkeypatch):
     z[int(np.argmax(basis.gates[0]))] = 1.0
     f1 = P.opacity_factors(z, basis, b.groups() + 1)
     assert torch.all(f0 == 1.0) and torch.all(f1[: len(front)][torch.from_numpy(grp[: len(front)] == hide)] == 0.0)
+    assert (P.bind(pts, fit, basis).groups().numpy() == -1).all()  # the default: not hidden
     monkeypatch.setattr(P, "HIDE_INSIDE_MOUTH", False)
-    assert (P.bind(pts, fit, basis).groups().numpy() == -1).all()
+    assert (P.bind(pts, fit, basis, hide_inside=True).groups().numpy() == -1).all()
+
+
+def test_only_avatars_on_a_tracked_head_hide_the_inside_of_the_mouth():
+    """``build_prior`` hides the Gaussians inside the fitted mouth only when it binds to a given
+    (tracked) head: on the network's depth (every synthetic evaluation) the binding is bit for bit the
+    one without the rule, whose inside Gaussians are the avatar's own lips and opening."""
+    from fastgha_core.config import get_preset
+    from fastgha_core.gaussians import Gaussians
+    from fastgha_core.model.fastgha import FastGHA
+
+    torch.manual_seed(0)
+    model = FastGHA(get_preset("tiny")).eval()
+    basis = model.head_basis()
+    fit = P.generic_fit(basis)
+    v = fit.vertices
+    skin = torch.from_numpy(v[: 11248 : 3].copy())
+    teeth = basis.interior_vertices[_teeth_rows(basis)]
+    inside = torch.from_numpy(v[teeth[v[teeth, 2] > np.percentile(v[teeth, 2], 90)]].copy())
+    pts = torch.cat([skin, inside])
+    n = len(pts)
+    g = Gaussians(pts, torch.tensor([1.0, 0, 0, 0]).expand(n, 4).clone(), torch.full((n, 3), 0.002), torch.full((n,), 0.9), torch.full((n, 3), 0.6), torch.randn(n, 32) * 0.1)
+    with torch.no_grad():
+        model.deform.out.weight.zero_()
+        model.deform.out.bias.zero_()
+        _, b_depth, _ = model.build_prior(g)
+        _, b_tracked, _ = model.build_prior(g, head_fit=fit)
+    hide = P.lip_hide_group(basis)
+    ins = slice(len(skin), n)
+    assert not (b_depth.groups()[:n][ins] == hide).any()
+    ref = P.bind(g.means, P.fit_head(g.means[g.opacities > 0.2].numpy(), basis), basis, tuple(model.config.deform.prior_fade))
+    assert torch.equal(b_depth.groups()[:n], ref.groups()) and torch.equal(b_depth.vertex_ids[:n], ref.vertex_ids)
+    assert (b_tracked.groups()[:n][ins] == hide).float().mean() > 0.9
