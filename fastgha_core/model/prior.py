@@ -119,7 +119,7 @@ INTERIOR_SHADE = (0.65, 0.69, 0.53)
 # The teeth's colour where they meet the lips (their front; deeper teeth darken as before, ``1 - 0.7 *
 # depth``): TEETH_FRONT_LUMA, the mean luma of the brightest 30% of the teeth's pixels that the
 # synthetic renderer shows when the lips part off the teeth (0.647, 10 training subjects, frontal;
-# ``bench/interior_colors.py --visible``), with TEETH_CHROMA, the hue (RGB over luma) of the teeth in
+# ``bench/interior_colors.py``, ``visible_teeth``), with TEETH_CHROMA, the hue (RGB over luma) of the teeth in
 # the real sets' photos that show them (studio-4 and phone-5's smiles: 1.15 / 0.96 / 0.81 and
 # 1.13 / 0.96 / 0.86). Until 2026-12-01 the front teeth were INTERIOR_SHADE[0] * (0.86, 0.83, 0.75):
 # luma 0.54 and a near-neutral grey, which next to the red mouth and warm skin of real photos read as
