@@ -393,7 +393,8 @@ class FastGHA(nn.Module):
                 fit = fit_head((means[solid] if int(solid.sum()) >= 100 else means).numpy(), basis)
             except (ValueError, np.linalg.LinAlgError):  # too few Gaussians or a degenerate cloud: the generic head
                 fit = generic_fit(basis)
-        binding = bind(means, fit, basis, tuple(self.config.deform.prior_fade))
+        # on a tracked head, Gaussians inside the fitted mouth are photos' teeth: they fade as it opens
+        binding = bind(means, fit, basis, tuple(self.config.deform.prior_fade), hide_inside=head_fit is not None)
         shift = back = None
         if view_expressions is not None:
             if view_index is None or view_index.shape != (len(g),):

@@ -29,8 +29,9 @@ Pieces (all numpy/torch on CPU, no learning):
 - ``PriorRuntime.rotation(z)`` (config ``deform.prior_rotate``, off by default): each bound Gaussian's
   covariance turns with its triangle of the fitted head (the triangle's frame on the neutral and the
   displaced head), faded by its weight; from the binding alone, nothing more is saved.
-- ``mouth_interior(fit, basis)``: Gaussians on the teeth, gums/tongue and mouth-socket meshes of the
-  fitted head, coloured as the synthetic renderer shows them (``INTERIOR_SHADE``) and set back behind
+- ``mouth_interior(fit, basis)``: Gaussians on the teeth (every vertex, ``TEETH_STEP``), gums/tongue
+  and mouth-socket meshes of the fitted head, coloured as the synthetic renderer shows them
+  (``INTERIOR_SHADE``; the front teeth ``teeth_front_color``) and set back behind
   the avatar's own lips (``interior_inset``), bound to their own vertex (so they follow the jaw), with
   an opacity gate that is 0 while the lips are closed; and Gaussians on the upper eyelids, coloured
   like the avatar's skin, and on the upper lashes, dark (the avatar's darkest colours at the open
@@ -70,6 +71,7 @@ __all__ = [
     "fit_head",
     "bind",
     "mouth_interior",
+    "teeth_front_color",
     "interior_inset",
     "back_shell",
     "back_shell_vertices",
@@ -114,6 +116,23 @@ TEETH_SCALE = 0.0012  # metres, the teeth Gaussians' scale (gums and socket: 0.9
 # 1.5-1.9x too bright: a pale red opening whose edge against the lips dlib placed inside the opening,
 # reading the held-out jawOpen lip gap at 0.60-0.85 of the truth's (issue 16; docs/model-card.md).
 INTERIOR_SHADE = (0.65, 0.69, 0.53)
+# The teeth's colour where they meet the lips (their front; deeper teeth darken as before, ``1 - 0.7 *
+# depth``): TEETH_FRONT_LUMA, the mean luma of the brightest 30% of the teeth's pixels that the
+# synthetic renderer shows when the lips part off the teeth (0.647, 10 training subjects, frontal;
+# ``bench/interior_colors.py``, ``visible_teeth``), with TEETH_CHROMA, the hue (RGB over luma) of the teeth in
+# the real sets' photos that show them (studio-4 and phone-5's smiles: 1.15 / 0.96 / 0.81 and
+# 1.13 / 0.96 / 0.86). Until 2026-12-01 the front teeth were INTERIOR_SHADE[0] * (0.86, 0.83, 0.75):
+# luma 0.54 and a near-neutral grey, which next to the red mouth and warm skin of real photos read as
+# a teal cast ("greenish teeth"; docs/model-card.md "Teeth on real avatars").
+TEETH_FRONT_LUMA = 0.65
+TEETH_CHROMA = (1.14, 0.96, 0.83)
+# Every TEETH_STEP-th teeth vertex of ICT-FaceKit carries a Gaussian (1: all 4412, about 1 mm apart):
+# at every 2nd (1.4 mm apart) most of a tooth row hid behind the gums' and socket's larger Gaussians
+# and the lower teeth showed as 3-5 grey dots instead of a row
+TEETH_STEP = 1
+TEETH_UPPER_AS_BEFORE = False  # True: the new sampling and colour for the lower row only (measured, not kept)
+# reconstructed Gaussians inside the fitted mouth fade out as it opens (``_inside_mouth``)
+HIDE_INSIDE_MOUTH = True
 # The mouth interior moves back as deep as the avatar's lips sit behind the fitted lips (``interior_inset``),
 # at most INTERIOR_INSET_MAX, measured on at least INSET_MIN_POINTS lip Gaussians.
 INTERIOR_INSET_MAX = 0.006  # metres
@@ -300,11 +319,18 @@ def _ict_basis() -> HeadBasis:
     gums = np.flatnonzero(reg.gums > 0)
     sock = np.flatnonzero((reg.mouth_interior > 0) & (reg.gums <= 0))
     # Subsample to a few thousand points (every k-th vertex in the archive order keeps them spread).
-    teeth, gums, sock = teeth[::2], gums[::2], sock[::2]
+    jaw_moves = np.linalg.norm(m.expression_basis[m.expression_names.index("jawOpen")], axis=1) > 0.01  # [Nv] the lower jaw
+    if TEETH_UPPER_AS_BEFORE:  # the lower row only: every vertex, ivory (see TEETH_STEP)
+        lower = teeth[jaw_moves[teeth]][::TEETH_STEP]
+        teeth = np.sort(np.concatenate([lower, teeth[~jaw_moves[teeth]][::2]]))
+    else:
+        teeth = teeth[::TEETH_STEP]
+    gums, sock = gums[::2], sock[::2]
     depth_in = np.clip((lm[48:68, 2].max() - v[:, 2]) / 0.045, 0, 1)
     # albedo-like colours darkened by INTERIOR_SHADE: the inside of a mouth is lit far less than the face
     sh_t, sh_g, sh_s = INTERIOR_SHADE
-    teeth_c = sh_t * np.array([0.86, 0.83, 0.75])[None] * (1.0 - 0.7 * depth_in[teeth])[:, None]
+    front_c = np.where((jaw_moves[teeth] | (not TEETH_UPPER_AS_BEFORE))[:, None], teeth_front_color()[None], sh_t * np.array([0.86, 0.83, 0.75])[None])
+    teeth_c = front_c * (1.0 - 0.7 * depth_in[teeth])[:, None]
     gum_c = sh_g * np.array([0.62, 0.28, 0.28])[None] * (1.0 - 0.6 * depth_in[gums])[:, None]
     sock_c = sh_s * np.array([0.26, 0.09, 0.09])[None] * (1.0 - 0.6 * depth_in[sock])[:, None]
     ids = np.concatenate([teeth, gums, sock]).astype(np.int64)
@@ -315,7 +341,8 @@ def _ict_basis() -> HeadBasis:
     # Closed eyelids: the skin the blink blendshapes pull over the eye, as Gaussians that appear as
     # the lids close (a few-view reconstruction has no skin under the open lids to move down).
     groups = [np.zeros(len(ids), np.int64)]
-    # teeth splats about as wide as their sampling (1.4 mm apart): at the gums' 2 mm they grew 2-3 mm
+    # teeth splats about as wide as their sampling was (every 2nd vertex, 1.4 mm apart; every vertex
+    # since 2026-12-01, 1.0 mm, TEETH_STEP): at the gums' 2 mm they grew 2-3 mm
     # past the teeth's edges, a white band under the upper lip and a rim over the lower one that dlib
     # took for the inner lips (jawOpen lip-gap change on the real sets +0.005 to +0.015, synthetic
     # response 0.65 -> 0.68)
@@ -394,6 +421,13 @@ def _ict_basis() -> HeadBasis:
         lip_landmarks=np.asarray(m.landmarks68[48:68], np.int64),
         seam=seam_flag,
     )
+
+
+def teeth_front_color() -> np.ndarray:
+    """``[3]`` sRGB of the teeth Gaussians nearest the lips: luma ``TEETH_FRONT_LUMA`` (Rec. 601) with
+    the hue ``TEETH_CHROMA`` (RGB over its luma; see their comment)."""
+    c = np.asarray(TEETH_CHROMA, np.float64)
+    return (TEETH_FRONT_LUMA * c / float(c @ _LUMA)).astype(np.float32)
 
 
 def _lip_seam(m, faces: np.ndarray, reg) -> tuple[np.ndarray, np.ndarray]:
@@ -737,8 +771,12 @@ class PriorBinding:
         )
 
 
-def bind(points: np.ndarray | Tensor, fit: HeadFit, basis: HeadBasis, fade: tuple[float, float] = (0.006, 0.025), k: int = 4) -> PriorBinding:
+def bind(points: np.ndarray | Tensor, fit: HeadFit, basis: HeadBasis, fade: tuple[float, float] = (0.006, 0.025), k: int = 4, hide_inside: bool = False) -> PriorBinding:
     """Bind ``points [N, 3]`` to their nearest triangle of the fitted surface (see module doc).
+
+    ``hide_inside``: points nearer the fitted mouth interior than the skin fade out as the mouth opens
+    (``_inside_mouth``; for avatars on a tracked head surface, whose photos' Gaussians lie on the
+    tracked mesh).
 
     ``fade = (d0, d1)`` metres: full weight up to ``d0`` from the surface, none beyond ``d1``.
     The nearest triangle is searched among the ``k`` triangles with the nearest centroids, leaving out
@@ -769,6 +807,8 @@ def bind(points: np.ndarray | Tensor, fit: HeadFit, basis: HeadBasis, fade: tupl
     # gate group: -1, or G - 1 + k for Gaussians that fade out with gate k (eyes under closing lids)
     hg = basis.hide_group[ids[:, 0]].astype(np.int64)
     group = np.where((hg > 0) & (d < d1), basis.gates.shape[0] - 1 + hg, -1)
+    if hide_inside:
+        group[_inside_mouth(p, d, fit, basis) & (group < 0)] = lip_hide_group(basis)
     return PriorBinding(
         torch.from_numpy(ids.astype(np.int64)),
         torch.from_numpy(bc.astype(np.float32)),
@@ -778,6 +818,32 @@ def bind(points: np.ndarray | Tensor, fit: HeadFit, basis: HeadBasis, fade: tupl
         basis.space,
         torch.from_numpy(group),
     )
+
+
+def _inside_mouth(points: np.ndarray, skin_dist: np.ndarray, fit: HeadFit, basis: HeadBasis) -> np.ndarray:
+    """``[N]`` bool: ``points [N, 3]`` nearer the fitted head's mouth interior (the vertices only
+    ``basis.mouth_faces`` use: teeth, gums/tongue, socket) than their distance ``skin_dist [N]`` to the
+    nearest skin triangle (``bind``'s). All False without mouth faces or with ``HIDE_INSIDE_MOUTH`` off.
+
+    Why (issue 16, real photo sets): a photo that shows its teeth (studio-4's and phone-5's smiles)
+    puts their pixels on the tracked head's mouth; undone to the neutral head they sit inside the
+    closed mouth, unseen, but bound to the nearest skin (the lower lip, the mouth's corners) they
+    moved into the opening with ``jawOpen``: beige blobs and pink patches over the avatar's own
+    interior. ``bind(..., hide_inside=True)`` gives them ``lip_hide_group``: they fade out as the
+    mouth opens. Only on a tracked head surface (``FastGHA.build_prior`` with ``head_fit``): on the
+    network's depth the Gaussians inside the fitted mouth are the avatar's own lips and opening
+    (450-750 per held-out synthetic subject, 7 mm median from the skin); hiding them cost 1.6 dB of
+    the mouth's PSNR on jawOpen (draw B, 256²)."""
+    from scipy.spatial import cKDTree
+
+    if not HIDE_INSIDE_MOUTH or basis.mouth_faces is None or not basis.mouth_faces.any() or len(points) == 0:
+        return np.zeros(len(points), bool)
+    f = basis.bind_faces
+    inner = np.setdiff1d(np.unique(f[basis.mouth_faces]), np.unique(f[~basis.mouth_faces]))
+    if not len(inner):
+        return np.zeros(len(points), bool)
+    di, _ = cKDTree(fit.vertices[inner].astype(np.float32)).query(points, workers=-1)
+    return di < skin_dist
 
 
 def _lid_skin_colors(points: np.ndarray, M: np.ndarray, tree, colors: np.ndarray, k: int = 16) -> np.ndarray:
