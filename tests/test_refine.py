@@ -267,14 +267,11 @@ def test_refinement_render_matches_a_plain_reference_on_outputs_and_gradients():
         torch.testing.assert_close(x / scale, y / scale, rtol=0, atol=2e-4, msg=name)
 
 
-@pytest.mark.parametrize("match_animation", [True, False])
-def test_refinement_renders_the_inputs_as_animate_draws_them(sample, monkeypatch, match_animation):
-    """With ``match_animation`` the first step's render of an input view (no corrections yet) is the
-    frame ``FastGHA.animate`` + ``render`` draws at that view's expression (the prior's shading, the
-    back-of-head shell and gated interior included); without it, it is not."""
+def record_renders(monkeypatch) -> list:
+    """Patch ``fastgha_core.refine._render_view`` so that every render the refinement makes appends its
+    rgb ``[3, S, S]`` (detached) to the returned list, in order (also used by tests/test_surface_viewblend.py)."""
     import fastgha_core.refine as refine_mod
 
-    model, avatar, images, masks, cams, expr = sample
     first = []
     real = refine_mod._render_view
 
@@ -284,6 +281,16 @@ def test_refinement_renders_the_inputs_as_animate_draws_them(sample, monkeypatch
         return out
 
     monkeypatch.setattr(refine_mod, "_render_view", spy)
+    return first
+
+
+@pytest.mark.parametrize("match_animation", [True, False])
+def test_refinement_renders_the_inputs_as_animate_draws_them(sample, monkeypatch, match_animation):
+    """With ``match_animation`` the first step's render of an input view (no corrections yet) is the
+    frame ``FastGHA.animate`` + ``render`` draws at that view's expression (the prior's shading, the
+    back-of-head shell and gated interior included); without it, it is not."""
+    model, avatar, images, masks, cams, expr = sample
+    first = record_renders(monkeypatch)
     cfg = RefineConfig(steps=1, resolution=64, views_per_step=1, match_animation=match_animation)
     refine_avatar(model, avatar, images, cams, masks, config=cfg, expressions=expr)
     frame = render_inputs(model, avatar, prepare_targets(images, cams, masks, 64)[2][0:1], expr[0:1], 64)[0][0]

@@ -267,7 +267,8 @@ def test_refinement_renders_each_input_as_the_frame_drawn_at_its_camera(tiny, mo
     rendered before) differs. Without the blending, refinement fitted colours to a mix of views that
     frames never show, and real-photo avatars came out speckled in novel views (docs/model-card.md,
     test-time refinement)."""
-    import fastgha_core.refine as refine_mod
+    from test_refine import record_renders
+
     from fastgha_core.constants import BACKGROUND_RGB
     from fastgha_core.refine import RefineConfig, prepare_targets, refine_avatar
     from fastgha_core.refine.measure import render_inputs
@@ -279,15 +280,7 @@ def test_refinement_renders_each_input_as_the_frame_drawn_at_its_camera(tiny, mo
     imgs = torch.rand(3, 3, s, s, generator=torch.Generator().manual_seed(4))
     expr = torch.zeros(3, tiny.config.expression_dim)
     expr[1, 0] = 0.6  # a view whose expression moves the Gaussians
-    first = []
-    real = refine_mod._render_view
-
-    def spy(*a):
-        out = real(*a)
-        first.append(out[0].detach())
-        return out
-
-    monkeypatch.setattr(refine_mod, "_render_view", spy)
+    first = record_renders(monkeypatch)
     refine_avatar(tiny, av, imgs, cams, config=RefineConfig(steps=1, resolution=64, views_per_step=0), expressions=expr)
     tcams = prepare_targets(imgs, cams, None, 64)[2]
     frames = render_inputs(tiny, av, tcams, expr, 64)[0]
