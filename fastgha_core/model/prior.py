@@ -130,7 +130,6 @@ TEETH_CHROMA = (1.14, 0.96, 0.83)
 # at every 2nd (1.4 mm apart) most of a tooth row hid behind the gums' and socket's larger Gaussians
 # and the lower teeth showed as 3-5 grey dots instead of a row
 TEETH_STEP = 1
-TEETH_UPPER_AS_BEFORE = False  # True: the new sampling and colour for the lower row only (measured, not kept)
 # reconstructed Gaussians inside the fitted mouth fade out as it opens (``_inside_mouth``)
 HIDE_INSIDE_MOUTH = True
 # The mouth interior moves back as deep as the avatar's lips sit behind the fitted lips (``interior_inset``),
@@ -319,18 +318,12 @@ def _ict_basis() -> HeadBasis:
     gums = np.flatnonzero(reg.gums > 0)
     sock = np.flatnonzero((reg.mouth_interior > 0) & (reg.gums <= 0))
     # Subsample to a few thousand points (every k-th vertex in the archive order keeps them spread).
-    jaw_moves = np.linalg.norm(m.expression_basis[m.expression_names.index("jawOpen")], axis=1) > 0.01  # [Nv] the lower jaw
-    if TEETH_UPPER_AS_BEFORE:  # the lower row only: every vertex, ivory (see TEETH_STEP)
-        lower = teeth[jaw_moves[teeth]][::TEETH_STEP]
-        teeth = np.sort(np.concatenate([lower, teeth[~jaw_moves[teeth]][::2]]))
-    else:
-        teeth = teeth[::TEETH_STEP]
+    teeth = teeth[::TEETH_STEP]
     gums, sock = gums[::2], sock[::2]
     depth_in = np.clip((lm[48:68, 2].max() - v[:, 2]) / 0.045, 0, 1)
     # albedo-like colours darkened by INTERIOR_SHADE: the inside of a mouth is lit far less than the face
-    sh_t, sh_g, sh_s = INTERIOR_SHADE
-    front_c = np.where((jaw_moves[teeth] | (not TEETH_UPPER_AS_BEFORE))[:, None], teeth_front_color()[None], sh_t * np.array([0.86, 0.83, 0.75])[None])
-    teeth_c = front_c * (1.0 - 0.7 * depth_in[teeth])[:, None]
+    _, sh_g, sh_s = INTERIOR_SHADE  # the teeth take teeth_front_color() instead of INTERIOR_SHADE[0]
+    teeth_c = teeth_front_color()[None] * (1.0 - 0.7 * depth_in[teeth])[:, None]
     gum_c = sh_g * np.array([0.62, 0.28, 0.28])[None] * (1.0 - 0.6 * depth_in[gums])[:, None]
     sock_c = sh_s * np.array([0.26, 0.09, 0.09])[None] * (1.0 - 0.6 * depth_in[sock])[:, None]
     ids = np.concatenate([teeth, gums, sock]).astype(np.int64)
