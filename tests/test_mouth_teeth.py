@@ -107,7 +107,7 @@ def test_front_teeth_luma_matches_what_the_synthetic_renderer_shows():
         mod.visible_teeth([1_000_000])
 
 
-def test_gaussians_inside_the_closed_mouth_fade_as_it_opens(monkeypatch):
+def test_gaussians_inside_the_closed_mouth_fade_as_it_opens():
     """A photo's teeth pixels undone to the neutral head sit inside the closed mouth; ``bind`` gives
     points nearer the mouth interior than the skin the lip-hiding group (they fade with the mouth
     gate), and leaves points on or just off the skin (lips, cheeks) alone."""
@@ -134,8 +134,6 @@ def test_gaussians_inside_the_closed_mouth_fade_as_it_opens(monkeypatch):
     f1 = P.opacity_factors(z, basis, b.groups() + 1)
     assert torch.all(f0 == 1.0) and torch.all(f1[: len(front)][torch.from_numpy(grp[: len(front)] == hide)] == 0.0)
     assert (P.bind(pts, fit, basis).groups().numpy() == -1).all()  # the default: not hidden
-    monkeypatch.setattr(P, "HIDE_INSIDE_MOUTH", False)
-    assert (P.bind(pts, fit, basis, hide_inside=True).groups().numpy() == -1).all()
 
 
 def test_only_avatars_on_a_tracked_head_hide_the_inside_of_the_mouth():

@@ -130,8 +130,6 @@ TEETH_CHROMA = (1.14, 0.96, 0.83)
 # at every 2nd (1.4 mm apart) most of a tooth row hid behind the gums' and socket's larger Gaussians
 # and the lower teeth showed as 3-5 grey dots instead of a row
 TEETH_STEP = 1
-# reconstructed Gaussians inside the fitted mouth fade out as it opens (``_inside_mouth``)
-HIDE_INSIDE_MOUTH = True
 # The mouth interior moves back as deep as the avatar's lips sit behind the fitted lips (``interior_inset``),
 # at most INTERIOR_INSET_MAX, measured on at least INSET_MIN_POINTS lip Gaussians.
 INTERIOR_INSET_MAX = 0.006  # metres
@@ -816,7 +814,7 @@ def bind(points: np.ndarray | Tensor, fit: HeadFit, basis: HeadBasis, fade: tupl
 def _inside_mouth(points: np.ndarray, skin_dist: np.ndarray, fit: HeadFit, basis: HeadBasis) -> np.ndarray:
     """``[N]`` bool: ``points [N, 3]`` nearer the fitted head's mouth interior (the vertices only
     ``basis.mouth_faces`` use: teeth, gums/tongue, socket) than their distance ``skin_dist [N]`` to the
-    nearest skin triangle (``bind``'s). All False without mouth faces or with ``HIDE_INSIDE_MOUTH`` off.
+    nearest skin triangle (``bind``'s). All False without mouth faces.
 
     Why (issue 16, real photo sets): a photo that shows its teeth (studio-4's and phone-5's smiles)
     puts their pixels on the tracked head's mouth; undone to the neutral head they sit inside the
@@ -829,7 +827,7 @@ def _inside_mouth(points: np.ndarray, skin_dist: np.ndarray, fit: HeadFit, basis
     the mouth's PSNR on jawOpen (draw B, 256²)."""
     from scipy.spatial import cKDTree
 
-    if not HIDE_INSIDE_MOUTH or basis.mouth_faces is None or not basis.mouth_faces.any() or len(points) == 0:
+    if basis.mouth_faces is None or not basis.mouth_faces.any() or len(points) == 0:
         return np.zeros(len(points), bool)
     f = basis.bind_faces
     inner = np.setdiff1d(np.unique(f[basis.mouth_faces]), np.unique(f[~basis.mouth_faces]))
