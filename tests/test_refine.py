@@ -350,3 +350,70 @@ def test_realign_to_pixels_undoes_the_mlp_residual_of_the_own_expression(sample)
     moved = ~stay
     before, after = landed(g.means)[moved], landed(m)[moved]
     assert float(after.median()) < 0.25 * float(before.median())
+
+
+def test_photos_preset_changes_colours_only_and_keeps_every_gaussian(sample):
+    """REFINE_PRESETS['photos'] (real photos): opacities, scales, positions and the Gaussian count
+    stay exactly the network's; only colours move, and they fit the inputs better."""
+    import dataclasses
+
+    from fastgha_core.refine import REFINE_PRESETS
+
+    model, avatar, images, masks, cams, expr = sample
+    cfg = dataclasses.replace(REFINE_PRESETS["photos"], steps=6, resolution=64)
+    assert cfg.lr_opacity == 0 and cfg.lr_scale == 0 and not cfg.optimize_cameras and cfg.photo_in_mask
+    res = refine_avatar(model, avatar, images, cams, masks, config=cfg, expressions=expr)
+    g0, g1 = avatar.gaussians, res.avatar.gaussians
+    assert len(g1) == len(g0)  # nothing pruned
+    for name in ("means", "scales", "quats", "opacities"):
+        assert torch.equal(getattr(g1, name), getattr(g0, name)), name
+    n = avatar.num_reconstructed
+    assert float((g1.colors[:n] - g0.colors[:n]).abs().max()) > 0.01
+    assert torch.equal(g1.colors[n:], g0.colors[n:])  # appended Gaussians are not refined
+    assert torch.equal(res.cameras.w2c, cams.w2c.float())
+    targets, tmask, tcams = prepare_targets(images, cams, masks, 64)
+    before = masked_psnr(render_inputs(model, avatar, tcams, expr, 64)[0], targets, tmask)
+    after = masked_psnr(render_inputs(model, res.avatar, tcams, expr, 64)[0], targets, tmask)
+    assert float(after.mean()) > float(before.mean()) + 0.2
+
+
+def test_photo_in_mask_ignores_the_pixels_outside_the_mask(sample):
+    """With ``photo_in_mask`` the photometric term sees only the pixels with mask > 0.5: repainting
+    the photos where the mask is 0.4 changes nothing; without it the same paint changes the colours."""
+    model, avatar, images, masks, cams, expr = sample
+    m = masks.float().reshape(len(images), 1, *images.shape[-2:])
+    m = m / 255.0 if masks.dtype == torch.uint8 else m
+    band = torch.zeros_like(m, dtype=torch.bool)
+    band[..., : images.shape[-2] // 2, :] = True
+    band &= m > 0.5  # the upper half of the head: mask 0.4 there, so it counts only without photo_in_mask
+    soft = torch.where(band, torch.full_like(m, 0.4), m)
+    imgs = images.float() / 255.0 if images.dtype == torch.uint8 else images.float()
+    painted = torch.where(band.expand_as(imgs), torch.tensor([1.0, 0.0, 1.0]).view(1, 3, 1, 1), imgs)
+    out = {}
+    for in_mask in (True, False):
+        # at the photos' own 256² (no resampling that would blend the band into its neighbours)
+        cfg = RefineConfig(steps=3, resolution=256, lr_opacity=0.0, lr_scale=0.0, w_silhouette=0.0, w_depth=0.0, photo_in_mask=in_mask)
+        out[in_mask] = [refine_avatar(model, avatar, x, cams, soft, config=cfg, expressions=expr).avatar.gaussians.colors for x in (imgs, painted)]
+    assert torch.allclose(out[True][0], out[True][1], atol=1e-6)
+    assert float((out[False][0] - out[False][1]).abs().max()) > 1e-3
+
+
+def test_refine_preset_for_picks_colours_only_for_avatars_on_a_tracked_head(sample):
+    """Avatars on a tracked head surface (real photos: per-view blending data) get the ``photos``
+    preset, avatars on the network's depth the ``default`` one; unknown names are refused."""
+    import numpy as np
+
+    from fastgha_core.model.surface import HeadSurface
+    from fastgha_core.refine import REFINE_PRESETS, refine_config_for, refine_preset_for
+
+    model, avatar, images, masks, cams, expr = sample
+    assert avatar.view_blend is None and refine_preset_for(avatar) == "default"
+    imgs, in_cams = model.prepare(list(images), [cams[i : i + 1] for i in range(len(cams.K))], list(masks))
+    tracked = model.reconstruct(imgs, in_cams, expressions=expr, surface=HeadSurface(np.zeros(100), expr.numpy()))
+    assert tracked.view_blend is not None and refine_preset_for(tracked) == "photos"
+    cfg = refine_config_for(tracked, 7)
+    assert cfg.steps == 7 and cfg.lr_opacity == 0 and cfg.photo_in_mask
+    assert refine_config_for(avatar, 7) == RefineConfig(**{**REFINE_PRESETS["default"].__dict__, "steps": 7})
+    assert refine_config_for(tracked, 3, "default", optimize_cameras=True).optimize_cameras
+    with pytest.raises(ValueError, match="unknown refinement preset 'nope'"):
+        refine_config_for(avatar, 3, "nope")

@@ -65,7 +65,7 @@ from ..constants import BACKGROUND_RGB
 from ..gaussians import Gaussians
 from ..model.avatar import CanonicalAvatar
 
-__all__ = ["RefineConfig", "RefineResult", "REFINE_PRESETS", "refine_avatar", "prepare_targets", "source_views", "masked_psnr", "lr_factor", "scaled_conics", "realign_to_pixels"]
+__all__ = ["RefineConfig", "RefineResult", "REFINE_PRESETS", "refine_preset_for", "refine_config_for", "refine_avatar", "prepare_targets", "source_views", "masked_psnr", "lr_factor", "scaled_conics", "realign_to_pixels"]
 
 
 @dataclass
@@ -100,7 +100,8 @@ class RefineConfig:
             (``realign_to_pixels``: three fixed-point steps; the expression prior's displacement is
             left alone, reconstruction undoes it), except Gaussians that would move further than
             this, which stay (the fixed point does not converge for them). 0 = off (the default).
-        prune_opacity: drop Gaussians whose refined opacity falls below this (0 = keep all).
+        prune_opacity: drop Gaussians whose refined opacity falls below this (0 = keep all; nothing
+            is dropped when ``lr_opacity`` is 0).
         phase_schedule: run the step-size schedule (constant, then a linear decay to 10% over the
             second half) separately in the coarse and in the fine phase, so the fine steps start
             at the full step size (False: one schedule over all steps, the fine steps then all
@@ -120,6 +121,10 @@ class RefineConfig:
             ``animate(..., camera=)`` draws a frame at its camera: the view-dependent blending and
             the off-head Gaussians pushed under (``FastGHA.blend_views``). False: the network's
             Gaussians alone, without the shading or the blending.
+        photo_in_mask: the photometric term counts only the pixels inside the photo's mask
+            (``mask > 0.5``), so the background at the head's outline does not pull the colours of the
+            Gaussians there (False: every pixel, the render over ``BACKGROUND_RGB`` against the matted
+            photo).
         keep_binding: the refined avatar keeps the feed-forward avatar's expression-prior binding
             and appended Gaussians (shell, mouth interior, lids), so it animates exactly as the
             refinement rendered it (False: the head is refitted to the refined Gaussians and the
@@ -169,6 +174,7 @@ class RefineConfig:
     # (docs/model-card.md, test-time refinement); 0.03 / 0.1: 29.21 / 29.40 dB on the inputs
     lr_scale: float = 0.05
     w_reg_scale: float = 1e-3
+    photo_in_mask: bool = False
     match_animation: bool = True  # was False: the shading was not applied and the shell not drawn
     # was a refit: the refit binding moved some neck Gaussians in view 1 of the sample, which showed as
     # coloured splats the refinement never saw (29.16 -> 29.21 dB kept)
@@ -208,7 +214,37 @@ REFINE_PRESETS: dict[str, RefineConfig] = {
     # the defaults of 2026-11-30 (night) before the scale corrections: colour and opacity only, the
     # network's Gaussians without the prior's shading, the head refitted to the result
     "colour": RefineConfig(steps=60, lr_scale=0.0, match_animation=False, keep_binding=False),
+    # real photos (tracked cameras): colours only, inside the photos' masks, held near the network's
+    # colours (w_reg_color 0.1; 0.03 moved identity as much but cost 0.1-0.25 dB on two sets); opacity
+    # and scale corrections opened holes on real photos (docs/model-card.md, "Colours-only refinement
+    # on real photos")
+    # on the leave-one-out sets 30 steps scored as 60 (the colours settle near the regulariser's pull)
+    "photos": RefineConfig(steps=30, lr_opacity=0.0, lr_scale=0.0, photo_in_mask=True, w_reg_color=0.1),
 }
+
+
+def refine_preset_for(avatar: CanonicalAvatar) -> str:
+    """The ``REFINE_PRESETS`` name measured best for ``avatar``'s kind: ``"photos"`` (colours only,
+    inside the masks) for avatars on a tracked head surface (``avatar.view_blend`` set: real photos,
+    tracked cameras), ``"default"`` for avatars on the network's depth (known cameras, the synthetic
+    protocol). The figures behind the choice: docs/model-card.md, "Colours-only refinement on real
+    photos" and "Scale corrections"."""
+    return "photos" if avatar.view_blend is not None else "default"
+
+
+def refine_config_for(avatar: CanonicalAvatar, steps: int, preset: str = "auto", **overrides) -> RefineConfig:
+    """``REFINE_PRESETS[preset]`` (``"auto"``: ``refine_preset_for(avatar)``) with ``steps`` and any
+    other ``RefineConfig`` field in ``overrides``.
+
+    Raises:
+        ValueError: on an unknown preset name (the message lists the names).
+    """
+    import dataclasses
+
+    name = refine_preset_for(avatar) if preset == "auto" else preset
+    if name not in REFINE_PRESETS:
+        raise ValueError(f"unknown refinement preset {preset!r}; expected auto or one of {', '.join(REFINE_PRESETS)}")
+    return dataclasses.replace(REFINE_PRESETS[name], steps=steps, **overrides)
 
 
 @dataclass
@@ -644,8 +680,8 @@ def _refine_avatar(
         K = lcams.K.float()
         dt, d_o, d_c = corrections()
         means = g0.means + dt[:, None] * ray + p_xyz
-        opac = torch.sigmoid(o_logit0 + d_o)
-        colors = torch.sigmoid(c_logit0 + d_c)
+        opac = torch.sigmoid(o_logit0 + d_o) if config.lr_opacity > 0 else g0.opacities
+        colors = torch.sigmoid(c_logit0 + d_c) if config.lr_color > 0 else g0.colors
         w2c = corrected_w2c(w2c0, rot, trans)
         log_scale = p_ls if config.lr_scale > 0 else None
         total = torch.zeros(())
@@ -671,7 +707,11 @@ def _refine_avatar(
                 z, uv = z[:n], uv[:n]
             else:
                 rgb, alpha, depth, z, uv = _render_view(g_i, means_i, col_i, opac_i, K[i], w2c[i], size, bg, log_scale)
-            l_photo = (rgb - targets[i]).abs().mean()
+            if config.photo_in_mask:
+                inside = (tmasks[i] > 0.5).float()  # [1, S, S]
+                l_photo = ((rgb - targets[i]).abs() * inside).sum() / (3.0 * inside.sum()).clamp_min(1.0)
+            else:
+                l_photo = (rgb - targets[i]).abs().mean()
             l_sil = ((alpha - tmasks[i]) ** 2).mean()
             loss = config.w_photo * l_photo + config.w_silhouette * l_sil
             if config.w_depth > 0 and len(own[i]):
@@ -699,6 +739,8 @@ def _refine_avatar(
             # the many Gaussians with tiny, noisy gradients would jitter. A per-group epsilon at
             # ``noise_floor`` x the median gradient magnitude lets only clear gradients move them.
             for gr in opt.param_groups[:3]:
+                if gr["params"][0].grad is None:  # a frozen group (step size 0)
+                    continue
                 gmag = gr["params"][0].grad.abs()
                 gmag = gmag[gmag > 0]
                 if gmag.numel():
@@ -712,13 +754,17 @@ def _refine_avatar(
     with torch.no_grad():
         dt, d_o, d_c = corrections()
         means = g0.means + dt[:, None] * ray + p_xyz
+        # a group with step size 0 keeps the network's values exactly (the logit round trip clamps them)
         g = g0.replace(
             means=means,
             scales=g0.scales * torch.exp(p_ls)[:, None],
-            opacities=torch.sigmoid(o_logit0 + d_o),
-            colors=torch.sigmoid(c_logit0 + d_c),
+            opacities=torch.sigmoid(o_logit0 + d_o) if config.lr_opacity > 0 else g0.opacities,
+            colors=torch.sigmoid(c_logit0 + d_c) if config.lr_color > 0 else g0.colors,
         )
-        kept = g.opacities >= config.prune_opacity if config.prune_opacity > 0 else torch.ones(n, dtype=torch.bool)
+        # pruning drops Gaussians the refinement made transparent; with opacities frozen it would only
+        # drop faint ones the feed-forward avatar draws too
+        prune = config.prune_opacity > 0 and config.lr_opacity > 0
+        kept = g.opacities >= config.prune_opacity if prune else torch.ones(n, dtype=torch.bool)
         g = g[kept]
         w2c_full = corrected_w2c(cams_in.w2c.float().cpu(), rot.detach(), trans.detach())
     dev = avatar.gaussians.device
