@@ -253,21 +253,41 @@ ExtraStage = tuple[str, Callable[[CreationState, Callable[[float], None]], None]
 
 def extra_stages_for(ctx) -> list[ExtraStage]:
     """Stages run after reconstruction and before saving: test-time refinement
-    (``fastgha_core.refine.refine_avatar``) when ``FASTGHA_REFINE_STEPS`` > 0, as ``("refining", fn)``;
-    ``fn`` replaces ``state.avatar`` and reports its steps as the stage's fraction in [0, 1]."""
-    steps = int(ctx.settings.refine_steps)
-    if steps <= 0:
+    (``fastgha_core.refine.refine_avatar``) as ``("refining", fn)`` unless ``FASTGHA_REFINE_STEPS`` is 0.
+    ``auto`` (the default) refines avatars on a tracked head with ``REFINE_PRESETS["photos"]`` (its own
+    steps) and leaves avatars on the network's depth as they are: the stage's function then carries
+    ``applies(request)``, and a job lists the stage only for requests it applies to; a number
+    N refines every avatar N steps with the preset ``refine_preset_for`` picks for it. ``fn`` replaces
+    ``state.avatar`` and reports its steps as the stage's fraction in [0, 1]."""
+    setting = ctx.settings.refine_steps
+    if setting == 0:
         return []
 
     def refine(state: CreationState, fraction: Callable[[float], None]) -> None:
-        from fastgha_core.refine import RefineConfig, refine_avatar
+        from fastgha_core.refine import REFINE_PRESETS, refine_avatar, refine_config_for, refine_preset_for
 
+        if setting == "auto":
+            if refine_preset_for(state.avatar) != "photos":
+                return  # a head fit that found no face: the network's depth after all
+            steps = REFINE_PRESETS["photos"].steps
+        else:
+            steps = int(setting)
         result = refine_avatar(
             state.model, state.avatar, state.images, state.cameras, state.masks,
-            config=RefineConfig(steps=steps), progress=lambda i, n: fraction(i / n), expressions=state.expressions,
+            config=refine_config_for(state.avatar, steps), progress=lambda i, n: fraction(i / n), expressions=state.expressions,
         )  # fmt: skip
         state.avatar = result.avatar
 
+    if setting == "auto":
+        s = ctx.settings
+
+        def on_a_tracked_head(request: CreationRequest) -> bool:
+            """Whether the avatar will be built on a head (tracked, sent, or fitted through the cameras)."""
+            if request.cameras is None or request.head is not None:
+                return bool(s.surface_depth)
+            return s.surface_depth_cameras != "off"
+
+        refine.applies = on_a_tracked_head  # the job lists the stage only for such requests
     return [("refining", refine)]
 
 
@@ -485,7 +505,7 @@ class JobQueue:
         nb = request.nbytes
         self._bytes += nb - ticket.nbytes  # the real size replaces the declared one
         stages = ["queued", "decoding"] + (["tracking"] if request.cameras is None else []) + ["reconstructing"]
-        stages += [name for name, _ in self.extra_stages] + ["saving"]
+        stages += [name for name, fn in self.extra_stages if getattr(fn, "applies", lambda r: True)(request)] + ["saving"]
         token = auth.new_token()
         job = Job(auth.new_avatar_id(), auth.hash_token(token), ticket.client, nb, request, stages)
         self.jobs[job.id] = job
@@ -699,6 +719,8 @@ class JobQueue:
             mm = [m.expand(3, -1, -1) for m in (mlist if isinstance(mlist, list) else list(mlist.unbind(0)))]
             state.masks = model.prepare(mm, cams)[0][:, :1]  # the same crop and resize as the images
         for name, fn in self.extra_stages:
+            if name not in job.stages:  # not for this request (the stage's ``applies``)
+                continue
             progress(name, 0.0)
             t = time.perf_counter()
             fn(state, lambda f, name=name: progress(name, f))

@@ -140,7 +140,13 @@ class Settings(BaseSettings):
     same_person_max_distance: float = Field(
         0.6, gt=0, le=2, description="largest face-descriptor distance that links two photos as the same person (dlib's threshold: 0.6)"
     )
-    refine_steps: int = Field(0, ge=0, le=1000, description="test-time refinement steps after each reconstruction (0 = off: on real photos it lowers leave-one-out quality today, docs/model-card.md)")
+    refine_steps: int | Literal["auto"] = Field(
+        "auto",
+        description="test-time refinement after each reconstruction (fastgha_core.refine). auto (default): avatars on a tracked head "
+        "(photos without cameras, or with fastgha track's head part) get REFINE_PRESETS['photos'] (colours only, 30 steps: identity "
+        "closer to the person on every real set, docs/model-card.md), avatars on the network's depth none; N (0-1000): N steps for every "
+        "avatar with the preset that fits it (refine_preset_for); 0 = off",
+    )
 
     # ------------------------------------------------------------ streaming
     max_output_size: int = Field(1024, ge=16, le=8192, description="cap on the output width and height of a frame")
@@ -186,6 +192,19 @@ class Settings(BaseSettings):
         if not v.strip():
             raise ValueError("model must not be empty")
         return v
+
+    @field_validator("refine_steps", mode="before")
+    @classmethod
+    def _refine_steps(cls, v):
+        if isinstance(v, str) and v.strip().lower() == "auto":
+            return "auto"
+        try:
+            n = int(v)
+        except (TypeError, ValueError):
+            raise ValueError(f"refine_steps must be auto or a number of steps 0-1000, got {v!r}") from None
+        if not 0 <= n <= 1000:
+            raise ValueError(f"refine_steps must be auto or a number of steps 0-1000, got {n}")
+        return n
 
     @field_validator("view_blend_tau_deg")
     @classmethod

@@ -169,6 +169,7 @@ def test_device_flags_are_checked_with_a_one_line_answer(capsys, tmp_path):
         (["eval", "--num-inputs", "0"], "--num-inputs must be >= 1, got 0"),
         (["eval", "--expressions", "-1"], "--expressions must be >= 1, got -1"),
         (["eval", "--refine-steps", "-5"], "--refine-steps must be >= 0, got -5"),
+        (["reconstruct", "--input", "missing", "--out", "o.safetensors", "--refine-steps", "5", "--refine-preset", "nope"], "--refine-preset must be auto or one of"),
         (["track", "--images", "missing.jpg", "--out", "o", "--fov", "0"], "--fov must be in [1, 150] degrees, got 0.0"),
         (["train", "--data", "synthetic", "--out", "run", "--lr", "-1"], "--lr must be > 0 and --lr-deform >= 0"),
         (["train", "--data", "synthetic", "--out", "run", "--workers", "-1"], "--workers must be >= 0, got -1"),

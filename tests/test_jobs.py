@@ -560,7 +560,7 @@ def test_an_extra_stage_sees_the_prepared_inputs_reports_progress_and_replaces_t
 
 def test_refine_steps_setting_plugs_test_time_refinement_into_the_job(model_dir, samples, tmp_path):
     """``FASTGHA_REFINE_STEPS`` > 0: the job runs ``fastgha_core.refine`` as its ``refining`` stage,
-    reporting its steps, and stores the refined avatar; 0 (the default) adds no stage."""
+    reporting its steps, and stores the refined avatar; 0 adds no stage."""
 
     from fastgha_core import load_model
     from fastgha_core.cameras import cameras_from_json
@@ -570,7 +570,7 @@ def test_refine_steps_setting_plugs_test_time_refinement_into_the_job(model_dir,
     from server.settings import Settings
     from server.store import AvatarStore
 
-    assert extra_stages_for(ServerContext(settings=Settings(data_dir=tmp_path, warmup=False))) == []
+    assert extra_stages_for(ServerContext(settings=Settings(data_dir=tmp_path, warmup=False, refine_steps=0))) == []
     imgs = sorted(samples.glob("[0-9][0-9].jpg"))
     cams = cameras_from_json(json.loads((samples / "cameras.json").read_text()))
     model = load_model(str(model_dir), device="cpu")
@@ -594,6 +594,60 @@ def test_refine_steps_setting_plugs_test_time_refinement_into_the_job(model_dir,
     fractions = [f for st, f in seen if st == "refining"]
     assert 0.5 in fractions and fractions == sorted(fractions)  # one update per step of the two
     assert len(g2) == len(g0) and not torch.allclose(g2.colors, g0.colors)  # the refined avatar is the one stored
+
+
+def test_refine_steps_auto_refines_the_colours_of_avatars_on_a_tracked_head_only(model_dir, samples, tmp_path, monkeypatch):
+    """``FASTGHA_REFINE_STEPS=auto`` (the default): photos the server tracks (an avatar on the tracked
+    head) are refined with ``REFINE_PRESETS["photos"]``: colours change, opacities and the Gaussian
+    count do not; photos with cameras (the network's depth) are stored as reconstructed, without a
+    ``refining`` stage."""
+    import numpy as np
+
+    from fastgha_core import load_model
+    from fastgha_core.cameras import Cameras, cameras_from_json
+    from fastgha_core.model.avatar import CanonicalAvatar
+    from fastgha_core.model.surface import HeadSurface
+    from server.context import ServerContext
+    from server.jobs import extra_stages_for
+    from server.settings import Settings
+    from server.store import AvatarStore
+
+    monkeypatch.delenv("FASTGHA_REFINE_STEPS", raising=False)
+    assert Settings(data_dir=tmp_path, warmup=False).refine_steps == "auto"
+    assert Settings(data_dir=tmp_path, warmup=False, refine_steps="7").refine_steps == 7
+    with pytest.raises(ValueError, match="refine_steps must be auto or a number of steps 0-1000"):
+        Settings(data_dir=tmp_path, warmup=False, refine_steps="many")
+    imgs = sorted(samples.glob("[0-9][0-9].jpg"))
+    cams = cameras_from_json(json.loads((samples / "cameras.json").read_text()))
+    expr = np.zeros((len(imgs), 53))
+    expr[:, 0] = 0.2
+
+    class Tracker:  # stands in for server.tracking.PhotoTracker: the sample's own cameras, a generic head
+        def track(self, images, masks, size, names=None):
+            crops = torch.stack([im for im in images])
+            ones = torch.ones(len(imgs), 1, *crops.shape[-2:])
+            return crops, Cameras.stack([cams[i] for i in range(len(imgs))]), ones, torch.from_numpy(expr).float(), HeadSurface(np.zeros(100), expr)
+
+    model = load_model(str(model_dir), device="cpu")
+    photos = [Photo(p.name, p.read_bytes()) for p in imgs]
+    masks = [Photo(f"{p.stem}_mask.png", (samples / f"{p.stem}_mask.png").read_bytes()) for p in imgs]
+    stored = {}
+    for refine in (0, "auto"):
+        for kind, req in (("tracked", CreationRequest(photos, None, None)), ("cameras", CreationRequest(photos, masks, cams))):
+            ctx = ServerContext(settings=Settings(data_dir=tmp_path / f"{kind}{refine}", warmup=False, refine_steps=refine))
+            ctx.model = model
+            ctx.store = AvatarStore(tmp_path / f"{kind}{refine}", 10**9, 0, load_fn=CanonicalAvatar.load)
+            job, _ = _run_job(ctx, req, extra_stages_for(ctx), tracker=Tracker())
+            assert job.status == "ready", job.error and job.error.message
+            assert ("refining" in job.stages) == (refine == "auto" and kind == "tracked"), (kind, refine, job.stages)
+            assert ("refining_ms" in job.result) == ("refining" in job.stages)
+            stored[kind, refine] = ctx.store.get(job.id).avatar
+    plain, refined = stored["tracked", 0], stored["tracked", "auto"]
+    assert plain.view_blend is not None and len(refined.gaussians) == len(plain.gaussians)
+    assert torch.equal(refined.gaussians.opacities, plain.gaussians.opacities)
+    assert float((refined.gaussians.colors - plain.gaussians.colors).abs().max()) > 1e-3
+    assert stored["cameras", 0].view_blend is None
+    assert torch.equal(stored["cameras", "auto"].gaussians.colors, stored["cameras", 0].gaussians.colors)
 
 
 @pytest.mark.parametrize("surface_depth", [True, False])

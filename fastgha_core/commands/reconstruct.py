@@ -17,8 +17,14 @@ def add_arguments(parser) -> None:
         default=0,
         help="test-time refinement steps against the input photos after the feed-forward pass (0 = off, the default; "
         "60 raise held-out synthetic novel views from 19.97 to 21.74 dB (and the sample's inputs from 19.87 to 29.33 dB) in ~8 s for 4 views on "
-        "2 idle cores, but lower novel-view quality on real photos today, see docs/model-card.md, test-time refinement). "
-        "Uses the inputs' expressions from info.json when present",
+        "2 idle cores; on real photos (a folder from `fastgha track`) colours only, see --refine-preset; docs/model-card.md, test-time refinement). "
+        "Uses the inputs' expressions from info.json or expressions.json when present",
+    )
+    parser.add_argument(
+        "--refine-preset",
+        default="auto",
+        help="with --refine-steps: a fastgha_core.refine.REFINE_PRESETS name, or auto (default): photos (colours only, inside the masks) for "
+        "avatars on a tracked head (head.json), default (colours, opacities, scales) for avatars on the network's depth",
     )
     parser.add_argument(
         "--no-surface",
@@ -155,6 +161,10 @@ def run(args) -> int:
         raise CLIError(f"--refine-steps must be >= 0, got {args.refine_steps}")
     if (args.refine_cameras or args.cameras_out) and args.refine_steps == 0:
         raise CLIError("--refine-cameras and --cameras-out need --refine-steps N > 0")
+    from ..refine import REFINE_PRESETS
+
+    if args.refine_preset != "auto" and args.refine_preset not in REFINE_PRESETS:
+        raise CLIError(f"--refine-preset must be auto or one of {', '.join(REFINE_PRESETS)}, got {args.refine_preset!r}")
     if args.cameras_out and not args.refine_cameras:
         raise CLIError("--cameras-out writes the corrected cameras: add --refine-cameras (without it the cameras are not refined)")
     if not str(args.out).lower().endswith(".safetensors"):
@@ -201,7 +211,7 @@ def run(args) -> int:
     dt = time.perf_counter() - t0
     refine_note = ""
     if args.refine_steps > 0:
-        avatar, refine_note = _refine(args, model, avatar, paths, images, cams, masks)
+        avatar, refine_note = _refine(args, model, avatar, paths, images, cams, masks, expressions)
     avatar.save(args.out)
     print(
         f"reconstructed {len(avatar)} Gaussians from {len(imgs)} view{'s' if len(imgs) != 1 else ''} at {model.config.input_size}^2 "
@@ -214,15 +224,18 @@ def run(args) -> int:
     return 0
 
 
-def _refine(args, model, avatar, paths, images, cams, masks):
-    """Run ``fastgha_core.refine.refine_avatar`` with a tqdm bar; returns the avatar and a note for the summary."""
+def _refine(args, model, avatar, paths, images, cams, masks, tracked=None):
+    """Run ``fastgha_core.refine.refine_avatar`` with a tqdm bar; returns the avatar and a note for the summary.
+
+    The inputs' expressions: ``info.json``'s (the synthetic samples), else ``tracked`` (``[V, E]``, the
+    folder's ``expressions.json`` written by ``fastgha track``), else none (neutral)."""
     import json
 
     import torch
     from tqdm.auto import tqdm
 
     from ..cameras import Cameras, cameras_to_json
-    from ..refine import RefineConfig, refine_avatar
+    from ..refine import refine_avatar, refine_config_for, refine_preset_for
 
     sizes = {tuple(im.shape[-2:]) for im in images}
     if len(sizes) != 1:
@@ -238,15 +251,19 @@ def _refine(args, model, avatar, paths, images, cams, masks):
                     f"{info}: expressions must be {len(paths)} x {model.config.expression_dim} for model {model.config.name!r}, "
                     f"got {list(expressions.shape)}"
                 )
+    if expressions is None and tracked is not None:
+        expressions = torch.as_tensor(tracked, dtype=torch.float32)
+    config = refine_config_for(avatar, args.refine_steps, args.refine_preset, **({"optimize_cameras": True} if args.refine_cameras else {}))
     cam_batch = Cameras.stack([c.flatten()[0] for c in cams])
     mask_t = torch.stack(masks) if masks[0] is not None else None
     with tqdm(total=args.refine_steps, desc="refining", unit="step") as bar:
         res = refine_avatar(
             model, avatar, torch.stack(images), cam_batch, mask_t,
-            config=RefineConfig(steps=args.refine_steps, optimize_cameras=args.refine_cameras), progress=lambda i, n: bar.update(1), expressions=expressions,
+            config=config, progress=lambda i, n: bar.update(1), expressions=expressions,
         )
     if args.cameras_out:
         from pathlib import Path
 
         Path(args.cameras_out).write_text(json.dumps(cameras_to_json(res.cameras), indent=1) + "\n")
-    return res.avatar, f", refined in {res.timings['total']:.1f} s ({args.refine_steps} steps)"
+    preset = refine_preset_for(avatar) if args.refine_preset == "auto" else args.refine_preset
+    return res.avatar, f", refined in {res.timings['total']:.1f} s ({args.refine_steps} steps, preset {preset!r})"
