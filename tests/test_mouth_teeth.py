@@ -30,10 +30,21 @@ def test_teeth_front_colour_is_the_measured_luma_with_a_warm_hue():
     # ivory, as real teeth photograph (r / b 1.37 on the real sets), not the old near-neutral grey (1.15)
     assert c[0] / c[2] > 1.3 and c[0] > c[1] > c[2]
     b = P.load_basis("ict53")
-    t = b.interior_colors[_teeth_rows(b)]
-    # every tooth Gaussian is the front colour darkened with depth (a common factor per point, <= 1)
-    f = t / c[None]
-    assert np.allclose(f, f[:, :1], atol=2e-3) and f.max() <= 1.0 + 1e-4 and f.min() > 0.3
+    rows = _teeth_rows(b)
+    low = rows & _lower_jaw(b)
+    # every lower tooth Gaussian is the front colour darkened with depth (a common factor per point, <= 1);
+    # the upper row the same hue at TEETH_UPPER_LUMA (2026-12-01 night: darker, see its comment)
+    cu = P.teeth_front_color(P.TEETH_UPPER_LUMA).astype(np.float64)
+    assert abs(float(cu @ LUMA) - P.TEETH_UPPER_LUMA) < 1e-4 and np.allclose(cu / c, cu[0] / c[0])
+    for sel, front in ((low, c), (rows & ~low, cu)):
+        f = b.interior_colors[sel] / front[None]
+        assert np.allclose(f, f[:, :1], atol=2e-3) and f.max() <= 1.0 + 1e-4 and f.min() >= 0.3 - 1e-4
+
+
+def _lower_jaw(basis):
+    """``[I]`` bool: interior points that jawOpen moves (the lower jaw's teeth, gums, ...)."""
+    jaw = int(np.argmax(basis.gates[0]))
+    return np.linalg.norm(basis.expression_basis[jaw][basis.interior_vertices], axis=1) > 0.01
 
 
 def _render_open_mouth(basis, colour_teeth=None):
@@ -79,6 +90,44 @@ def test_the_lower_teeth_show_as_a_row_not_dots():
     # per column across the front teeth, the brightest pixel over the rows they span
     row = (img[v0 : v1 + 1, x0 : x1 + 1] @ LUMA).max(0)
     assert (row > 0.25).mean() >= 0.8, row.round(2)  # measured: 1.0 (min 0.33); the old teeth: 0.55 (min 0.21)
+
+
+def _front_band(img, g, cam, sel):
+    """Per pixel column across the front teeth of ``sel`` (within 6 mm of the midline), the brightest
+    luma over the rows they span."""
+    pts = g.means[torch.from_numpy(np.flatnonzero(sel))].double()
+    w2c, K = cam.w2c.reshape(4, 4).double(), cam.K.reshape(3, 3).double()
+    pc = pts @ w2c[:3, :3].T + w2c[:3, 3]
+    uv = (pc @ K.T)[:, :2] / (pc @ K.T)[:, 2:]
+    front = (pts[:, 0].abs() < 0.006).numpy()
+    v0, v1 = (int(round(float(v))) for v in np.percentile(uv[front, 1].numpy(), [2, 98]))
+    x0, x1 = (int(round(float(u))) for u in np.percentile(uv[front, 0].numpy(), [5, 95]))
+    return (img[v0 : v1 + 1, x0 : x1 + 1] @ LUMA).max(0)
+
+
+def test_the_upper_teeth_draw_less_light_than_the_lower_row():
+    """Frontal, jaw open: the upper front teeth (every 2nd vertex, luma TEETH_UPPER_LUMA) draw at most
+    0.75x the lower row's light per column. At jawOpen the synthetic truth shows almost no upper teeth (its upper
+    lip covers them); with the upper row like the lower (every vertex, 0.65; 2026-12-01) the light band
+    it drew under the avatars' thin upper lip read draw B's held-out jawOpen response at 512² 0.66 < 0.70."""
+    basis = P.load_basis("ict53")
+    rows, low = _teeth_rows(basis), _lower_jaw(basis)
+    img, g, cam = _render_open_mouth(basis)
+    upper, lower = _front_band(img, g, cam, rows & ~low), _front_band(img, g, cam, rows & low)
+    assert lower.mean() > 0.4 and (lower > 0.25).mean() >= 0.8  # the lower row as before (measured 0.47, 1.0)
+    assert upper.mean() <= 0.75 * lower.mean(), (upper.mean(), lower.mean())  # measured 0.31 / 0.47; the old upper row 0.48
+
+
+def test_an_upper_row_like_the_lower_one_is_as_bright(monkeypatch):
+    """The same measure with the upper row sampled and coloured like the lower (2026-12-01): it fails."""
+    P._ict_basis.cache_clear()
+    monkeypatch.setattr(P, "TEETH_UPPER_STEP", 1)
+    monkeypatch.setattr(P, "TEETH_UPPER_LUMA", P.TEETH_FRONT_LUMA)
+    try:
+        with pytest.raises(AssertionError):
+            test_the_upper_teeth_draw_less_light_than_the_lower_row()
+    finally:
+        P._ict_basis.cache_clear()
 
 
 def test_the_old_sampling_leaves_the_lower_row_dotted(monkeypatch):

@@ -29,9 +29,10 @@ Pieces (all numpy/torch on CPU, no learning):
 - ``PriorRuntime.rotation(z)`` (config ``deform.prior_rotate``, off by default): each bound Gaussian's
   covariance turns with its triangle of the fitted head (the triangle's frame on the neutral and the
   displaced head), faded by its weight; from the binding alone, nothing more is saved.
-- ``mouth_interior(fit, basis)``: Gaussians on the teeth (every vertex, ``TEETH_STEP``), gums/tongue
+- ``mouth_interior(fit, basis)``: Gaussians on the teeth (the lower row every vertex, ``TEETH_STEP``;
+  the upper every 2nd, ``TEETH_UPPER_STEP``), gums/tongue
   and mouth-socket meshes of the fitted head, coloured as the synthetic renderer shows them
-  (``INTERIOR_SHADE``; the front teeth ``teeth_front_color``) and set back behind
+  (``INTERIOR_SHADE``; the front teeth ``teeth_front_color``, the upper row darker) and set back behind
   the avatar's own lips (``interior_inset``), bound to their own vertex (so they follow the jaw), with
   an opacity gate that is 0 while the lips are closed; and Gaussians on the upper eyelids, coloured
   like the avatar's skin, and on the upper lashes, dark (the avatar's darkest colours at the open
@@ -116,7 +117,7 @@ TEETH_SCALE = 0.0012  # metres, the teeth Gaussians' scale (gums and socket: 0.9
 # 1.5-1.9x too bright: a pale red opening whose edge against the lips dlib placed inside the opening,
 # reading the held-out jawOpen lip gap at 0.60-0.85 of the truth's (issue 16; docs/model-card.md).
 INTERIOR_SHADE = (0.65, 0.69, 0.53)
-# The teeth's colour where they meet the lips (their front; deeper teeth darken as before, ``1 - 0.7 *
+# The lower teeth's colour where they meet the lips (their front; deeper teeth darken as before, ``1 - 0.7 *
 # depth``): TEETH_FRONT_LUMA, the mean luma of the brightest 30% of the teeth's pixels that the
 # synthetic renderer shows when the lips part off the teeth (0.647, 10 training subjects, frontal;
 # ``bench/interior_colors.py``, ``visible_teeth``), with TEETH_CHROMA, the hue (RGB over luma) of the teeth in
@@ -126,10 +127,21 @@ INTERIOR_SHADE = (0.65, 0.69, 0.53)
 # a teal cast ("greenish teeth"; docs/model-card.md "Teeth on real avatars").
 TEETH_FRONT_LUMA = 0.65
 TEETH_CHROMA = (1.14, 0.96, 0.83)
-# Every TEETH_STEP-th teeth vertex of ICT-FaceKit carries a Gaussian (1: all 4412, about 1 mm apart):
-# at every 2nd (1.4 mm apart) most of a tooth row hid behind the gums' and socket's larger Gaussians
+# Every TEETH_STEP-th lower-row teeth vertex of ICT-FaceKit carries a Gaussian (1: all 2204, about 1 mm
+# apart): at every 2nd (1.4 mm apart) most of the row hid behind the gums' and socket's larger Gaussians
 # and the lower teeth showed as 3-5 grey dots instead of a row
 TEETH_STEP = 1
+# The upper row (the teeth jawOpen does not move): every TEETH_UPPER_STEP-th vertex (1104 of 2208), front
+# luma TEETH_UPPER_LUMA, the same hue. At jawOpen the synthetic truth shows almost no upper teeth (its
+# upper lip covers them: median 0, at most 19 pixels of them in frontal and 30° renders at 512² of 10
+# training subjects; the lower teeth 73 and 657), while ours drew a light band there, under the avatar's
+# thin upper lip, and dlib put the inner upper lip below it: with the upper row like the lower (every
+# vertex, luma 0.65; 2026-12-01) draw B's held-out jawOpen response at 512² fell 0.764 -> 0.660 (bar
+# 0.70). Sparser and darker: 0.738 (every 2nd vertex at 0.65: 0.709; every vertex at 0.35: 0.724). Not
+# the lower row: it alone at luma 0.54 read 0.663 (docs/model-card.md "Teeth on real avatars",
+# 2026-12-01 night). Real avatars' upper teeth stay hidden under their upper lip either way.
+TEETH_UPPER_STEP = 2
+TEETH_UPPER_LUMA = 0.45
 # The mouth interior moves back as deep as the avatar's lips sit behind the fitted lips (``interior_inset``),
 # at most INTERIOR_INSET_MAX, measured on at least INSET_MIN_POINTS lip Gaussians.
 INTERIOR_INSET_MAX = 0.006  # metres
@@ -316,12 +328,14 @@ def _ict_basis() -> HeadBasis:
     gums = np.flatnonzero(reg.gums > 0)
     sock = np.flatnonzero((reg.mouth_interior > 0) & (reg.gums <= 0))
     # Subsample to a few thousand points (every k-th vertex in the archive order keeps them spread).
-    teeth = teeth[::TEETH_STEP]
+    jaw_moves = np.linalg.norm(m.expression_basis[m.expression_names.index("jawOpen")], axis=1) > 0.01  # [Nv] the lower jaw
+    teeth = np.sort(np.concatenate([teeth[jaw_moves[teeth]][::TEETH_STEP], teeth[~jaw_moves[teeth]][::TEETH_UPPER_STEP]]))
     gums, sock = gums[::2], sock[::2]
     depth_in = np.clip((lm[48:68, 2].max() - v[:, 2]) / 0.045, 0, 1)
     # albedo-like colours darkened by INTERIOR_SHADE: the inside of a mouth is lit far less than the face
     _, sh_g, sh_s = INTERIOR_SHADE  # the teeth take teeth_front_color() instead of INTERIOR_SHADE[0]
-    teeth_c = teeth_front_color()[None] * (1.0 - 0.7 * depth_in[teeth])[:, None]
+    front_c = np.where(jaw_moves[teeth][:, None], teeth_front_color()[None], teeth_front_color(TEETH_UPPER_LUMA)[None])
+    teeth_c = front_c * (1.0 - 0.7 * depth_in[teeth])[:, None]
     gum_c = sh_g * np.array([0.62, 0.28, 0.28])[None] * (1.0 - 0.6 * depth_in[gums])[:, None]
     sock_c = sh_s * np.array([0.26, 0.09, 0.09])[None] * (1.0 - 0.6 * depth_in[sock])[:, None]
     ids = np.concatenate([teeth, gums, sock]).astype(np.int64)
@@ -332,8 +346,8 @@ def _ict_basis() -> HeadBasis:
     # Closed eyelids: the skin the blink blendshapes pull over the eye, as Gaussians that appear as
     # the lids close (a few-view reconstruction has no skin under the open lids to move down).
     groups = [np.zeros(len(ids), np.int64)]
-    # teeth splats about as wide as their sampling was (every 2nd vertex, 1.4 mm apart; every vertex
-    # since 2026-12-01, 1.0 mm, TEETH_STEP): at the gums' 2 mm they grew 2-3 mm
+    # teeth splats about as wide as their sampling was (every 2nd vertex, 1.4 mm apart; the lower row
+    # every vertex since 2026-12-01, 1.0 mm, TEETH_STEP): at the gums' 2 mm they grew 2-3 mm
     # past the teeth's edges, a white band under the upper lip and a rim over the lower one that dlib
     # took for the inner lips (jawOpen lip-gap change on the real sets +0.005 to +0.015, synthetic
     # response 0.65 -> 0.68)
@@ -414,11 +428,12 @@ def _ict_basis() -> HeadBasis:
     )
 
 
-def teeth_front_color() -> np.ndarray:
-    """``[3]`` sRGB of the teeth Gaussians nearest the lips: luma ``TEETH_FRONT_LUMA`` (Rec. 601) with
-    the hue ``TEETH_CHROMA`` (RGB over its luma; see their comment)."""
+def teeth_front_color(luma: float | None = None) -> np.ndarray:
+    """``[3]`` sRGB of the lower teeth Gaussians nearest the lips: luma ``TEETH_FRONT_LUMA`` (Rec. 601;
+    ``luma`` instead when given: the upper row's ``TEETH_UPPER_LUMA``) with the hue ``TEETH_CHROMA``
+    (RGB over its luma; see their comments)."""
     c = np.asarray(TEETH_CHROMA, np.float64)
-    return (TEETH_FRONT_LUMA * c / float(c @ _LUMA)).astype(np.float32)
+    return ((TEETH_FRONT_LUMA if luma is None else float(luma)) * c / float(c @ _LUMA)).astype(np.float32)
 
 
 def _lip_seam(m, faces: np.ndarray, reg) -> tuple[np.ndarray, np.ndarray]:
