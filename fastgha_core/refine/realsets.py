@@ -253,8 +253,9 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
     and mirror variant.
 
     ``surface``: reconstruct on the tracked head surface (``model/surface.py``), as the server does.
-    ``refine_preset``: refine with ``REFINE_PRESETS[refine_preset]`` (its own camera setting; ``steps``
-    from ``steps_list``) instead of the default settings with ``refine_cameras``.
+    ``refine_preset``: refine with ``REFINE_PRESETS[refine_preset]`` (``"auto"``: the one
+    ``refine_preset_for`` picks, as the server does; its own camera setting; ``steps`` from
+    ``steps_list``) instead of the default settings with ``refine_cameras``.
     ``photo_align``: register the photos' poses photometrically in tracking (``TrackConfig.photo_align``).
     ``mirror``: variants of the mirrored virtual views (``model/mirror.py``) to compare on the same
     tracking, each ``"off"``, ``"on"`` (the config's thresholds), a yaw threshold in degrees
@@ -267,16 +268,11 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
     ``align_left_out``: also the test-view pose alignment diagnostic (``aligned_columns``) in every
     row, and its render in ``renders`` under ``(key, "aligned")``."""
     from ..model.surface import HeadSurface
-    from ..refine import REFINE_PRESETS, RefineConfig, refine_avatar
+    from ..refine import RefineConfig, refine_avatar, refine_config_for
     from ..render import render
     from ..train.faces import to_uint8_hwc
     from ..tracking import track_photos
     from ..tracking.pipeline import TrackConfig
-
-    def refine_config(steps: int) -> RefineConfig:
-        if refine_preset is None:
-            return RefineConfig(steps=steps, optimize_cameras=refine_cameras)
-        return dataclasses.replace(REFINE_PRESETS[refine_preset], steps=steps)
 
     photos, names = _load_photos(folder)
     t0 = time.perf_counter()
@@ -322,7 +318,8 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
         for steps in steps_list:
             t1 = time.perf_counter()
             res = refine_avatar(
-                model, avatar0, matted[keep], cams[keep], masks[keep], config=refine_config(steps), expressions=expr[keep]
+                model, avatar0, matted[keep], cams[keep], masks[keep], expressions=expr[keep],
+                config=RefineConfig(steps=steps, optimize_cameras=refine_cameras) if refine_preset is None else refine_config_for(avatar0, steps, refine_preset),
             )
             dt = time.perf_counter() - t1
             g = model.animate(res.avatar, expr[k], camera=cams[k : k + 1])  # as the server draws it (view blending, model/viewblend.py)
@@ -523,8 +520,8 @@ def main(argv=None) -> int:
     ap.add_argument("--model", default="tiny")
     ap.add_argument("--refine-steps", default="0,60", help="comma-separated refinement step counts to compare (default 0,60)")
     ap.add_argument("--no-refine-cameras", action="store_true", help="refine without per-view camera corrections")
-    ap.add_argument("--refine-preset", default=None, help="refine with this REFINE_PRESETS entry (e.g. photos: colours only) and its own camera setting, "
-                    "instead of the default settings with camera corrections")
+    ap.add_argument("--refine-preset", default=None, help="refine with this REFINE_PRESETS entry (e.g. photos: colours only; auto: as the server picks it) "
+                    "and its own camera setting, instead of the default settings with camera corrections")
     ap.add_argument("--no-surface", action="store_true", help="use the network's depth instead of the tracked head surface")
     ap.add_argument("--photo-align", action="store_true", help="track with the photometric registration of the photos (TrackConfig.photo_align, off by default)")
     ap.add_argument("--no-cnn-faces", action="store_true", help="skip dlib's CNN face detector column (slower than HOG)")
@@ -559,8 +556,8 @@ def main(argv=None) -> int:
     steps_list = [int(s) for s in args.refine_steps.split(",")]
     from . import REFINE_PRESETS
 
-    if args.refine_preset is not None and args.refine_preset not in REFINE_PRESETS:
-        ap.error(f"--refine-preset must be one of {', '.join(REFINE_PRESETS)}, got {args.refine_preset!r}")
+    if args.refine_preset is not None and args.refine_preset != "auto" and args.refine_preset not in REFINE_PRESETS:
+        ap.error(f"--refine-preset must be auto or one of {', '.join(REFINE_PRESETS)}, got {args.refine_preset!r}")
     mirror = None
     if args.mirror:
         mirror = [x.strip() for x in args.mirror.split(",") if x.strip()]
