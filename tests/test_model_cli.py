@@ -167,7 +167,7 @@ def test_reconstruct_with_refinement_writes_avatar_and_corrected_cameras(tmp_pat
     assert "--refine-cameras" in capsys.readouterr().err and not cams_out.exists()
     assert main(args + ["--refine-cameras"]) == 0
     printed = capsys.readouterr().out
-    assert "refined in" in printed and "(2 steps)" in printed
+    assert "refined in" in printed and "(2 steps, preset 'default')" in printed  # the network's depth: the default preset
     assert len(CanonicalAvatar.load(out)) > 0
     cams = json.loads(cams_out.read_text())
     given = json.loads((req / "cameras.json").read_text())
