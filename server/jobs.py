@@ -282,7 +282,8 @@ def extra_stages_for(ctx) -> list[ExtraStage]:
         s = ctx.settings
 
         def on_a_tracked_head(request: CreationRequest) -> bool:
-            """Whether the avatar will be built on a head (tracked, sent, or fitted through the cameras)."""
+            """Whether the avatar will be built on a head (tracked, sent, or fitted through the cameras):
+            the same conditions ``JobQueue._run`` puts a surface under the reconstruction on."""
             if request.cameras is None or request.head is not None:
                 return bool(s.surface_depth)
             return s.surface_depth_cameras != "off"

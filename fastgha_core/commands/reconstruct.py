@@ -265,5 +265,4 @@ def _refine(args, model, avatar, paths, images, cams, masks, tracked=None):
         from pathlib import Path
 
         Path(args.cameras_out).write_text(json.dumps(cameras_to_json(res.cameras), indent=1) + "\n")
-    preset = refine_preset_for(avatar) if args.refine_preset == "auto" else args.refine_preset
-    return res.avatar, f", refined in {res.timings['total']:.1f} s ({args.refine_steps} steps, preset {preset!r})"
+    return res.avatar, f", refined in {res.timings['total']:.1f} s ({args.refine_steps} steps, preset {refine_preset_for(avatar, args.refine_preset)!r})"

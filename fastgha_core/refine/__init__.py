@@ -53,7 +53,7 @@ ordinary ``CanonicalAvatar``).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import torch
@@ -223,28 +223,28 @@ REFINE_PRESETS: dict[str, RefineConfig] = {
 }
 
 
-def refine_preset_for(avatar: CanonicalAvatar) -> str:
-    """The ``REFINE_PRESETS`` name measured best for ``avatar``'s kind: ``"photos"`` (colours only,
-    inside the masks) for avatars on a tracked head surface (``avatar.view_blend`` set: real photos,
-    tracked cameras), ``"default"`` for avatars on the network's depth (known cameras, the synthetic
+def refine_preset_for(avatar: CanonicalAvatar, preset: str = "auto") -> str:
+    """The ``REFINE_PRESETS`` name to refine ``avatar`` with: ``preset`` itself when it names one, and
+    for ``"auto"`` the one measured best for the avatar's kind: ``"photos"`` (colours only, inside the
+    masks) for avatars on a tracked head surface (``avatar.view_blend`` set: real photos, tracked
+    cameras), ``"default"`` for avatars on the network's depth (known cameras, the synthetic
     protocol). The figures behind the choice: docs/model-card.md, "Colours-only refinement on real
-    photos" and "Scale corrections"."""
-    return "photos" if avatar.view_blend is not None else "default"
-
-
-def refine_config_for(avatar: CanonicalAvatar, steps: int, preset: str = "auto", **overrides) -> RefineConfig:
-    """``REFINE_PRESETS[preset]`` (``"auto"``: ``refine_preset_for(avatar)``) with ``steps`` and any
-    other ``RefineConfig`` field in ``overrides``.
+    photos" and "Scale corrections".
 
     Raises:
         ValueError: on an unknown preset name (the message lists the names).
     """
-    import dataclasses
-
-    name = refine_preset_for(avatar) if preset == "auto" else preset
-    if name not in REFINE_PRESETS:
+    if preset == "auto":
+        return "photos" if avatar.view_blend is not None else "default"
+    if preset not in REFINE_PRESETS:
         raise ValueError(f"unknown refinement preset {preset!r}; expected auto or one of {', '.join(REFINE_PRESETS)}")
-    return dataclasses.replace(REFINE_PRESETS[name], steps=steps, **overrides)
+    return preset
+
+
+def refine_config_for(avatar: CanonicalAvatar, steps: int, preset: str = "auto", **overrides) -> RefineConfig:
+    """``REFINE_PRESETS[refine_preset_for(avatar, preset)]`` with ``steps`` and any other
+    ``RefineConfig`` field in ``overrides``. Raises ``ValueError`` on an unknown preset name."""
+    return replace(REFINE_PRESETS[refine_preset_for(avatar, preset)], steps=steps, **overrides)
 
 
 @dataclass
