@@ -377,6 +377,28 @@ def test_photos_preset_changes_colours_only_and_keeps_every_gaussian(sample):
     assert float(after.mean()) > float(before.mean()) + 0.2
 
 
+def test_noise_floor_keeps_weak_gradients_from_moving_by_the_full_step(sample):
+    """``noise_floor`` (on in REFINE_PRESETS['photos']): Adam's first step moves every colour logit
+    by about the step size whatever its gradient; with the floor at the median gradient magnitude,
+    the colours with weaker gradients move much less, so fewer colours move by half a step or more."""
+    import dataclasses
+
+    from fastgha_core.refine import REFINE_PRESETS
+
+    model, avatar, images, masks, cams, expr = sample
+    assert REFINE_PRESETS["photos"].noise_floor > 0
+    n = avatar.num_reconstructed
+    c0 = torch.logit(avatar.gaussians.colors[:n].float().clamp(1e-3, 1 - 1e-3))
+    moved = {}
+    for floor in (0.0, 1.0):
+        cfg = dataclasses.replace(REFINE_PRESETS["photos"], steps=1, resolution=64, noise_floor=floor, w_reg_color=0.0)
+        c1 = torch.logit(refine_avatar(model, avatar, images, cams, masks, config=cfg, expressions=expr).avatar.gaussians.colors[:n].float().clamp(1e-3, 1 - 1e-3))
+        d = (c1 - c0).abs().amax(-1)  # [N] largest logit change per Gaussian
+        moved[floor] = int((d > 0.5 * cfg.lr_color).sum())
+    assert moved[0.0] > 100  # without the floor the Gaussians with any gradient jump by ~ the step size
+    assert moved[1.0] < 0.75 * moved[0.0]
+
+
 def test_photo_in_mask_ignores_the_pixels_outside_the_mask(sample):
     """With ``photo_in_mask`` the photometric term sees only the pixels with mask > 0.5: repainting
     the photos where the mask is 0.4 changes nothing; without it the same paint changes the colours."""
