@@ -29,9 +29,10 @@ def demo_run(tmp_path_factory):
 
 def test_demo_writes_video_sheet_and_figures(demo_run):
     out, fig = demo_run
-    for key in ("reconstruction_s", "fps", "psnr"):
+    for key in ("reconstruction_s", "refine_s", "fps", "psnr"):
         assert isinstance(fig[key], float) and math.isfinite(fig[key]), key
     assert fig["reconstruction_s"] > 0 and fig["fps"] > 0 and fig["frames"] == 6
+    assert fig["refine_steps"] == 60 and fig["refine_s"] > 0  # refined by default
     assert (out / "demo.mp4").stat().st_size > 1000
     import imageio_ffmpeg
 
@@ -47,6 +48,25 @@ def test_demo_shipped_model_beats_an_untrained_one(demo_run):
     # reconstruct the held-out subject far better than that.
     _, fig = demo_run
     assert fig["psnr"] > 15.0, fig
+
+
+def test_demo_refinement_sharpens_the_orbit_and_can_be_skipped(demo_run, tmp_path):
+    """The default refinement against the sample's 4 photos (with their info.json expressions) is
+    what raises the orbit's PSNR over the feed-forward avatar's (18.0 -> 19.4 dB over all 48 frames);
+    ``--refine-steps 0`` skips it."""
+    from fastgha_core.data.samples import load_sample
+
+    assert tuple(load_sample(gt=False).request_expressions.shape) == (4, 53)  # the inputs' own codes
+    _, refined = demo_run
+    assert main(["demo", "--frames", "6", "--refine-steps", "0", "--out", str(tmp_path), "--json", str(tmp_path / "f.json")]) == 0
+    plain = json.loads((tmp_path / "f.json").read_text())
+    assert plain["refine_steps"] == 0 and plain["refine_s"] == 0.0
+    assert refined["psnr"] > plain["psnr"] + 0.5, (refined["psnr"], plain["psnr"])
+
+
+def test_demo_rejects_negative_refine_steps(capsys):
+    assert main(["demo", "--refine-steps", "-1"]) == 2
+    assert "--refine-steps must be >= 0" in capsys.readouterr().err
 
 
 def test_demo_rejects_unknown_sample(capsys):

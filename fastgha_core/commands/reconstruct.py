@@ -235,22 +235,16 @@ def _refine(args, model, avatar, paths, images, cams, masks, tracked=None):
     from tqdm.auto import tqdm
 
     from ..cameras import Cameras, cameras_to_json
+    from ..data.samples import info_expressions
     from ..refine import refine_avatar, refine_config_for, refine_preset_for
 
     sizes = {tuple(im.shape[-2:]) for im in images}
     if len(sizes) != 1:
         raise ValueError(f"--refine-steps needs input photos of one size, got sizes {sorted(sizes)}")
-    expressions = None
-    info = paths[0].parent / "info.json"
-    if info.exists():
-        data = json.loads(info.read_text())
-        if "expressions" in data:
-            expressions = torch.tensor(data["expressions"], dtype=torch.float32)
-            if tuple(expressions.shape) != (len(paths), model.config.expression_dim):
-                raise ValueError(
-                    f"{info}: expressions must be {len(paths)} x {model.config.expression_dim} for model {model.config.name!r}, "
-                    f"got {list(expressions.shape)}"
-                )
+    try:
+        expressions = info_expressions(paths[0].parent, len(paths), model.config.expression_dim)
+    except ValueError as e:
+        raise ValueError(f"{e} (model {model.config.name!r})") from None
     if expressions is None and tracked is not None:
         expressions = torch.as_tensor(tracked, dtype=torch.float32)
     config = refine_config_for(avatar, args.refine_steps, args.refine_preset, **({"optimize_cameras": True} if args.refine_cameras else {}))

@@ -25,7 +25,7 @@ from torch import Tensor
 from ..cameras import Cameras, cameras_from_json, load_request_folder
 from .layout import load_image, load_mask
 
-__all__ = ["SAMPLES_DIR", "Sample", "list_samples", "load_sample"]
+__all__ = ["SAMPLES_DIR", "Sample", "info_expressions", "list_samples", "load_sample"]
 
 SAMPLES_DIR = Path(__file__).resolve().parent.parent / "assets" / "samples"
 
@@ -45,6 +45,24 @@ class Sample:
     orbit_cameras: Cameras  # [T]
     gt_frames: Tensor | None  # [T, 3, H, W] float32 (None when loaded with gt=False)
     meta: dict
+    request_expressions: Tensor | None = None  # [V, E] float32 the input photos' codes (request/info.json), or None
+
+
+def info_expressions(folder: str | Path, views: int, dim: int) -> Tensor | None:
+    """``[views, dim]`` float32 expression codes of a request folder's photos from its ``info.json``
+    (``"expressions"``, written by ``make_samples`` for the synthetic samples: each input photo's
+    code, in the photos' sorted order), or None when the file or the key is absent.
+    Raises ``ValueError`` when they do not have that shape."""
+    info = Path(folder) / "info.json"
+    if not info.exists():
+        return None
+    data = json.loads(info.read_text())
+    if "expressions" not in data:
+        return None
+    codes = torch.tensor(data["expressions"], dtype=torch.float32)
+    if tuple(codes.shape) != (views, dim):
+        raise ValueError(f"{info}: expressions must be {views} x {dim}, got {list(codes.shape)}")
+    return codes
 
 
 def list_samples(root: str | Path | None = None) -> list[str]:
@@ -94,4 +112,5 @@ def load_sample(name: str | None = None, gt: bool = True, root: str | Path | Non
         orbit_cameras=orbit,
         gt_frames=frames,
         meta=meta,
+        request_expressions=info_expressions(folder / "request", len(paths), expressions.shape[1]),
     )
