@@ -129,16 +129,17 @@ def run(args) -> int:
     gt = sample.gt_frames
     bg = torch.tensor(BACKGROUND_RGB)
     frames, times, scores = [], [], []
-    # one warm-up frame so that compilation does not count in the FPS
-    render(model.animate(avatar, expr[0], camera=orbit[0:1]), orbit[0:1], background=bg, backend=args.backend)
-    for t in tqdm(range(n), desc="animate", unit="frame"):
-        t1 = time.perf_counter()
-        g = model.animate(avatar, expr[t], camera=orbit[t : t + 1])  # camera: view blending, as the server draws
-        rgb = render(g, orbit[t : t + 1], background=bg, backend=args.backend).rgb[0]  # [3, H, W]
-        times.append(time.perf_counter() - t1)
-        frames.append(rgb)
-        if gt is not None and t < len(gt):
-            scores.append(float(psnr(rgb[None], gt[t][None])))
+    with torch.inference_mode():  # frames as the server draws them: no autograd bookkeeping in the FPS
+        # one warm-up frame so that compilation does not count in the FPS
+        render(model.animate(avatar, expr[0], camera=orbit[0:1]), orbit[0:1], background=bg, backend=args.backend)
+        for t in tqdm(range(n), desc="animate", unit="frame"):
+            t1 = time.perf_counter()
+            g = model.animate(avatar, expr[t], camera=orbit[t : t + 1])  # camera: view blending, as the server draws
+            rgb = render(g, orbit[t : t + 1], background=bg, backend=args.backend).rgb[0]  # [3, H, W]
+            times.append(time.perf_counter() - t1)
+            frames.append(rgb)
+            if gt is not None and t < len(gt):
+                scores.append(float(psnr(rgb[None], gt[t][None])))
     fps = 1.0 / statistics.median(times)
     mean_psnr = float(np.mean(scores)) if scores else None
 
