@@ -16,13 +16,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--json", default=None, metavar="PATH", help="also write the figures as JSON (keys reconstruction_s, refine_s, fps, psnr)")
     parser.add_argument("--backend", default="auto", help="render backend (default: auto)")
     parser.add_argument(
-        "--refine-steps", type=int, default=DEMO_REFINE_STEPS,
-        help=f"test-time refinement steps against the sample's 4 photos after the feed-forward pass (default {DEMO_REFINE_STEPS}: "
-        "the sharper eyes and brows of docs/images/demo.png, about 8 s on 2 idle cores; 0 = the feed-forward avatar alone)",
+        "--refine-steps", type=int, default=None,
+        help="test-time refinement steps against the sample's 4 photos after the feed-forward pass (default: the count of the "
+        "preset refine_config_for picks, 60 for the samples: the sharper eyes and brows of docs/images/demo.png, about 8 s on "
+        "2 idle cores; 0 = the feed-forward avatar alone)",
     )  # fmt: skip
-
-
-DEMO_REFINE_STEPS = 60  # the "default" preset's count: held-out synthetic novel views 19.97 -> 21.74 dB (docs/model-card.md)
 
 
 MIN_VIDEO_SECONDS = 6.5  # long enough to watch the expressions change
@@ -78,7 +76,7 @@ def run(args) -> int:
 
     if args.frames is not None and args.frames < 1:
         raise ValueError(f"--frames must be >= 1, got {args.frames} (leave it out for all frames)")
-    if args.refine_steps < 0:
+    if args.refine_steps is not None and args.refine_steps < 0:
         raise ValueError(f"--refine-steps must be >= 0, got {args.refine_steps} (0 = no refinement)")
     names = list_samples()
     if args.list:
@@ -108,18 +106,19 @@ def run(args) -> int:
     avatar = model.reconstruct(images, cams)
     recon_s = time.perf_counter() - t0
     print(f"reconstructed {name} from {len(images)} photos in {recon_s:.3f} s: {len(avatar):,} Gaussians")
-    refine_s = 0.0
-    if args.refine_steps > 0:
-        from ..refine import refine_avatar, refine_config_for, refine_preset_for
+    from ..refine import REFINE_PRESETS, refine_avatar, refine_config_for, refine_preset_for
 
-        preset = refine_preset_for(avatar)
-        with tqdm(total=args.refine_steps, desc="refining", unit="step") as bar:
+    preset = refine_preset_for(avatar)
+    steps = REFINE_PRESETS[preset].steps if args.refine_steps is None else args.refine_steps
+    refine_s = 0.0
+    if steps > 0:
+        with tqdm(total=steps, desc="refining", unit="step") as bar:
             res = refine_avatar(
                 model, avatar, sample.request_images, sample.request_cameras, sample.request_masks,
-                config=refine_config_for(avatar, args.refine_steps), progress=lambda i, k: bar.update(1), expressions=sample.request_expressions,
+                config=refine_config_for(avatar, steps, preset), progress=lambda i, k: bar.update(1), expressions=sample.request_expressions,
             )  # fmt: skip
         avatar, refine_s = res.avatar, res.timings["total"]
-        print(f"refined against the {len(images)} photos in {refine_s:.1f} s ({args.refine_steps} steps, preset {preset!r}): {len(avatar):,} Gaussians")
+        print(f"refined against the {len(images)} photos in {refine_s:.1f} s ({steps} steps, preset {preset!r}): {len(avatar):,} Gaussians")
 
     expr = sample.expressions
     orbit = sample.orbit_cameras
@@ -186,7 +185,7 @@ def run(args) -> int:
         "model": model.config.name,
         "num_gaussians": len(avatar),
         "reconstruction_s": recon_s,
-        "refine_steps": args.refine_steps,
+        "refine_steps": steps,
         "refine_s": refine_s,
         "fps": fps,
         "psnr": mean_psnr,
