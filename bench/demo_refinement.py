@@ -11,7 +11,13 @@ two avatars' frames (``animate`` + ``render`` in inference mode, as the server d
 timed interleaved, ``--rounds`` passes over the orbit, alternating which goes first: median ms and
 the ratio refined / feed-forward.
 
+``--expressions`` picks the photos' expressions the refinement animates the avatar to: ``info``
+(the sample's own, as ``fastgha demo`` refines), ``fitted`` (fitted through the photos' cameras by
+``server.tracking.PhotoTracker.fit_known_cameras``, as the server refines photos posted with
+cameras; needs the ``faces`` extra) or ``none``.
+
     python bench/demo_refinement.py --json out/demo_refinement.json
+    python bench/demo_refinement.py --expressions fitted     # the server's path for photos with cameras
 """
 
 from __future__ import annotations
@@ -31,6 +37,8 @@ def main(argv=None) -> int:
     ap.add_argument("--model", default="tiny")
     ap.add_argument("--steps", type=int, default=60, help="refinement steps (the demo's default)")
     ap.add_argument("--rounds", type=int, default=3, help="timed passes over the first sample's orbit")
+    ap.add_argument("--expressions", choices=("info", "fitted", "none"), default="info",
+                    help="the photos' expressions the refinement uses: the sample's own (the demo's), fitted through the cameras (the server's), none")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
 
@@ -58,9 +66,10 @@ def main(argv=None) -> int:
         s = load_sample(name)
         images, cams = model.prepare(s.request_images, s.request_cameras, s.request_masks)
         plain = model.reconstruct(images, cams)
+        expressions, fit_error = photo_expressions(s, args.expressions)
         refined = refine_avatar(model, plain, s.request_images, s.request_cameras, s.request_masks,
-                                config=refine_config_for(plain, args.steps), expressions=s.request_expressions).avatar  # fmt: skip
-        row = {"sample": name}
+                                config=refine_config_for(plain, args.steps), expressions=expressions).avatar  # fmt: skip
+        row = {"sample": name, "expressions": args.expressions, "fitted_expression_mae": fit_error}
         with torch.inference_mode():
             for key, av in (("feed_forward", plain), ("refined", refined)):
                 ps, cs, ak = [], [], []
@@ -88,14 +97,39 @@ def main(argv=None) -> int:
         rows.append(row)
         f, r_ = row["feed_forward"], row["refined"]
         fmt = lambda x, spec: "n/a" if x is None else format(x, spec)  # noqa: E731
+        fit = "" if fit_error is None else f"   (fitted expressions: mean |error| {fit_error:.3f})"
         print(f"{name}: PSNR {f['psnr']:.2f} -> {r_['psnr']:.2f} dB   CSIM {fmt(f['csim'], '.3f')} -> {fmt(r_['csim'], '.3f')}   "
-              f"AKD {fmt(f['akd_px'], '.2f')} -> {fmt(r_['akd_px'], '.2f')} px ({r_['face_frames']} frames with a face)", flush=True)  # fmt: skip
+              f"AKD {fmt(f['akd_px'], '.2f')} -> {fmt(r_['akd_px'], '.2f')} px ({r_['face_frames']} frames with a face){fit}", flush=True)  # fmt: skip
     if timing is not None:
         m = timing["median_ms"]
         print(f"frame time ({timing['sample']}, {timing['frames_each']} interleaved frames each): feed-forward {m['feed_forward']:.1f} ms, "
               f"refined {m['refined']:.1f} ms, ratio {timing['ratio_refined']:.3f}")  # fmt: skip
-    write_json(args.json, {"steps": args.steps, "samples": rows, "timing": timing})
+    write_json(args.json, {"steps": args.steps, "expressions": args.expressions, "samples": rows, "timing": timing})
     return 0
+
+
+def photo_expressions(s, how: str):
+    """``(expressions [V, E] or None, mean absolute error of fitted ones against the sample's own or None)``
+    for ``--expressions`` ``how`` on sample ``s`` (``data.samples.Sample``).
+
+    Raises:
+        SystemExit: ``fitted`` without the ``faces`` extra, or when no photo shows a face.
+    """
+    if how == "info":
+        return s.request_expressions, None
+    if how == "none":
+        return None, None
+    from server.tracking import PhotoTracker
+
+    images = list(s.request_images.unbind(0))
+    surface = PhotoTracker().fit_known_cameras(images, [s.request_cameras[i : i + 1] for i in range(len(images))],
+                                               masks=list(s.request_masks.unbind(0)))  # fmt: skip
+    if surface is None:
+        raise SystemExit("--expressions fitted: no head fitted through the cameras (is the faces extra installed?)")
+    import torch
+
+    fitted = torch.from_numpy(surface.expressions).float()
+    return fitted, float((fitted - s.request_expressions.float()).abs().mean())
 
 
 if __name__ == "__main__":

@@ -107,6 +107,7 @@ class Avatar:
     expression_space: str
     round_trip_ms: float = 0.0  # client-side time of the create call (upload, queue, reconstruction)
     tracking_ms: float | None = None  # server-side photo tracking, when the photos came without cameras
+    refining_ms: float | None = None  # server-side test-time refinement (FASTGHA_REFINE_STEPS), when it ran
     # what the server reports about the avatar's frames and photos (docs/protocol.md, GET /v1/avatars/{id}):
     # "view_blend", "expression_prior", "same_person" (empty from a server that predates them), and "num_images" (photos sent)
     info: dict = field(default_factory=dict, hash=False)
@@ -499,10 +500,11 @@ class FastGHAClient:
                     raise self._error_of(r)
                 d = r.json()
         rt = 1e3 * (time.perf_counter() - t0)
-        tracking = d.get("tracking_ms")
+        tracking, refining = d.get("tracking_ms"), d.get("refining_ms")
         return Avatar(
             d["avatar_id"], d["token"], int(d["num_gaussians"]), float(d["reconstruction_ms"]), d["expression_space"], rt,
             float(tracking) if tracking is not None else None,
+            float(refining) if refining is not None else None,
             {"num_images": len(images), **{k: d[k] for k in ("view_blend", "expression_prior", "same_person", "num_images") if k in d}},
         )
 

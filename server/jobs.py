@@ -243,6 +243,9 @@ class CreationState:
     cameras: Any = None
     masks: Tensor | None = None
     expressions: Tensor | None = None  # [V, E] the photos' tracked expressions, or None
+    # photos with cameras and no head: fits the photos' expressions through their cameras when a stage
+    # needs them (``PhotoTracker.fit_known_cameras``; None without the faces extra or a face)
+    fit_expressions: Callable[[], Tensor | None] | None = None
     avatar: Any = None
     timings_ms: dict[str, float] = field(default_factory=dict)
 
@@ -254,11 +257,15 @@ ExtraStage = tuple[str, Callable[[CreationState, Callable[[float], None]], None]
 def extra_stages_for(ctx) -> list[ExtraStage]:
     """Stages run after reconstruction and before saving: test-time refinement
     (``fastgha_core.refine.refine_avatar``) as ``("refining", fn)`` unless ``FASTGHA_REFINE_STEPS`` is 0.
-    ``auto`` (the default) refines avatars on a tracked head with ``REFINE_PRESETS["photos"]`` (its own
-    steps) and leaves avatars on the network's depth as they are: the stage's function then carries
-    ``applies(request)``, and a job lists the stage only for requests it applies to; a number
-    N refines every avatar N steps with the preset ``refine_preset_for`` picks for it. ``fn`` replaces
-    ``state.avatar`` and reports its steps as the stage's fraction in [0, 1]."""
+    ``auto`` (the default) refines every avatar with the preset ``refine_preset_for`` picks for it,
+    with that preset's own steps: avatars on a tracked head with ``REFINE_PRESETS["photos"]`` (colours
+    only, 30 steps), avatars on the network's depth (photos posted with cameras) with
+    ``REFINE_PRESETS["default"]`` (60 steps). A number N refines every avatar N steps with that preset.
+    The refinement compares each photo with the avatar animated to the photo's own expression: the
+    tracked ones, or for photos with cameras the ones ``state.fit_expressions`` fits through the
+    cameras (none without the ``faces`` extra). ``fn`` replaces ``state.avatar`` and reports its steps
+    as the stage's fraction in [0, 1]. The figures behind ``auto``: docs/model-card.md, "Colours-only
+    refinement on real photos" and "Photos with cameras: refined by the server too"."""
     setting = ctx.settings.refine_steps
     if setting == 0:
         return []
@@ -266,30 +273,33 @@ def extra_stages_for(ctx) -> list[ExtraStage]:
     def refine(state: CreationState, fraction: Callable[[float], None]) -> None:
         from fastgha_core.refine import REFINE_PRESETS, refine_avatar, refine_config_for, refine_preset_for
 
-        if setting == "auto":
-            if refine_preset_for(state.avatar) != "photos":
-                return  # a head fit that found no face: the network's depth after all
-            steps = REFINE_PRESETS["photos"].steps
-        else:
-            steps = int(setting)
+        preset = refine_preset_for(state.avatar)
+        steps = REFINE_PRESETS[preset].steps if setting == "auto" else int(setting)
+        expressions = state.expressions
+        if expressions is None and state.fit_expressions is not None:
+            expressions = state.fit_expressions()
+            if expressions is not None and tuple(expressions.shape) != (len(state.images), state.model.config.expression_dim):
+                expressions = None  # fitted in another expression space than the model's
         result = refine_avatar(
             state.model, state.avatar, state.images, state.cameras, state.masks,
-            config=refine_config_for(state.avatar, steps), progress=lambda i, n: fraction(i / n), expressions=state.expressions,
+            config=refine_config_for(state.avatar, steps), progress=lambda i, n: fraction(i / n), expressions=expressions,
         )  # fmt: skip
         state.avatar = result.avatar
 
-    if setting == "auto":
-        s = ctx.settings
-
-        def on_a_tracked_head(request: CreationRequest) -> bool:
-            """Whether the avatar will be built on a head (tracked, sent, or fitted through the cameras):
-            the same conditions ``JobQueue._run`` puts a surface under the reconstruction on."""
-            if request.cameras is None or request.head is not None:
-                return bool(s.surface_depth)
-            return s.surface_depth_cameras != "off"
-
-        refine.applies = on_a_tracked_head  # the job lists the stage only for such requests
     return [("refining", refine)]
+
+
+def _expression_fitter(tracker, photos: list[Tensor], cameras: list, names: list[str], masks) -> Callable[[], Tensor | None]:
+    """``CreationState.fit_expressions`` for photos posted with cameras: the photos' ``ict53``
+    expressions ``[V, 53]`` of the head fitted through the given cameras (``PhotoTracker.fit_known_cameras``;
+    None without the ``faces`` extra or when no photo shows a face). ``photos``: V x ``[3, H_i, W_i]``,
+    ``cameras``: V single ``Cameras`` of those sizes, ``masks``: per photo ``[1, H_i, W_i]``/None, or None."""
+
+    def fit() -> Tensor | None:
+        surface = tracker.fit_known_cameras(photos, cameras, names=names, masks=masks)
+        return None if surface is None else torch.from_numpy(surface.expressions).float()
+
+    return fit
 
 
 class JobCancelled(Exception):
@@ -704,6 +714,9 @@ class JobQueue:
             x, c = model.prepare(images, cams, mlist)
         except ValueError as e:
             raise ApiError(400, "invalid_input", str(e)) from None
+        fit_expressions = None
+        if expressions is None and req.cameras is not None and s.surface_depth_cameras == "off" and self.tracker is not None:
+            fit_expressions = _expression_fitter(self.tracker, images, cams, names, given)
         del images
         if expressions is not None and tuple(expressions.shape) != (x.shape[0], model.config.expression_dim):
             expressions = None  # tracked in another expression space than the model's: nothing to undo
@@ -715,7 +728,8 @@ class JobQueue:
             avatar = model.reconstruct(x.to(ctx.device), c.to(ctx.device), expressions=expressions, surface=surface, surface_mode=mode)
         recon_ms = 1e3 * (time.perf_counter() - t2)
         progress("reconstructing", 1.0)
-        state = CreationState(model=model, device=ctx.device, names=names, images=x, cameras=c, avatar=avatar, expressions=expressions)
+        state = CreationState(model=model, device=ctx.device, names=names, images=x, cameras=c, avatar=avatar, expressions=expressions,
+                              fit_expressions=fit_expressions)  # fmt: skip
         if self.extra_stages and mlist is not None:
             mm = [m.expand(3, -1, -1) for m in (mlist if isinstance(mlist, list) else list(mlist.unbind(0)))]
             state.masks = model.prepare(mm, cams)[0][:, :1]  # the same crop and resize as the images

@@ -122,6 +122,7 @@ def test_demo_streams_and_reacts_to_slider_and_camera(page, tmp_path):
     page.wait_for_function("window.fastghaDemo.frames >= 1", timeout=60_000)
     _wait_settled(page, 0)
     assert "reconstruction" in page.inner_text("#recon")
+    assert "refinement" in page.inner_text("#recon")  # the shipped sample (photos with cameras) is refined by default
     # what the server reports about the avatar (docs/protocol.md): the sample comes with cameras, so no per-view data
     assert "view blending off (no per-view data" in page.inner_text("#recon") and "same person:" in page.inner_text("#recon")
     assert page.inner_text("#st-status") == "streaming"

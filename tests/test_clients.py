@@ -160,6 +160,7 @@ def test_client_creates_streams_and_deletes(client, request_dir):
     images, cams, masks = load_request_dir(request_dir)
     avatar = client.create_avatar(images, cams, masks)
     assert avatar.num_gaussians > 0 and avatar.expression_space == "ict53"
+    assert avatar.tracking_ms is None and avatar.refining_ms > 0  # photos with cameras: refined by default, not tracked
     sizes = [(48, 40), (48, 40), (64, 64), (64, 64)]
     expr = [{"jawOpen": 0.0}, {"jawOpen": 1.0, "eyeBlink_L": 1.0}, [0.0] * 53, list(np.linspace(0, 1, 53))]
     reqs = [{"expression": e, "camera": orbit_camera(10.0 * i, 0.0, 1.0, width=w, height=h)} for i, ((w, h), e) in enumerate(zip(sizes, expr))]

@@ -596,14 +596,17 @@ def test_refine_steps_setting_plugs_test_time_refinement_into_the_job(model_dir,
     assert len(g2) == len(g0) and not torch.allclose(g2.colors, g0.colors)  # the refined avatar is the one stored
 
 
-def test_refine_steps_auto_refines_the_colours_of_avatars_on_a_tracked_head_only(model_dir, samples, tmp_path, monkeypatch):
+def test_refine_steps_auto_refines_every_avatar_with_the_preset_that_fits_it(model_dir, samples, tmp_path, monkeypatch):
     """``FASTGHA_REFINE_STEPS=auto`` (the default): photos the server tracks (an avatar on the tracked
-    head) are refined with ``REFINE_PRESETS["photos"]``: colours change, opacities and the Gaussian
-    count do not; photos with cameras (the network's depth) are stored as reconstructed, without a
-    ``refining`` stage."""
+    head) are refined with ``REFINE_PRESETS["photos"]`` and their tracked expressions: colours change,
+    opacities and the Gaussian count do not. Photos with cameras (the network's depth) are refined
+    with ``REFINE_PRESETS["default"]`` and the expressions fitted through their cameras, fitted only
+    then (once) and only for them."""
     import numpy as np
 
+    import fastgha_core.refine as refine_module
     from fastgha_core import load_model
+    from fastgha_core.refine import REFINE_PRESETS
     from fastgha_core.cameras import Cameras, cameras_from_json
     from fastgha_core.model.avatar import CanonicalAvatar
     from fastgha_core.model.surface import HeadSurface
@@ -621,6 +624,9 @@ def test_refine_steps_auto_refines_the_colours_of_avatars_on_a_tracked_head_only
     cams = cameras_from_json(json.loads((samples / "cameras.json").read_text()))
     expr = np.zeros((len(imgs), 53))
     expr[:, 0] = 0.2
+    fitted = np.zeros((len(imgs), 53))
+    fitted[:, 1] = 0.3
+    fits = []
 
     class Tracker:  # stands in for server.tracking.PhotoTracker: the sample's own cameras, a generic head
         def track(self, images, masks, size, names=None):
@@ -628,6 +634,18 @@ def test_refine_steps_auto_refines_the_colours_of_avatars_on_a_tracked_head_only
             ones = torch.ones(len(imgs), 1, *crops.shape[-2:])
             return crops, Cameras.stack([cams[i] for i in range(len(imgs))]), ones, torch.from_numpy(expr).float(), HeadSurface(np.zeros(100), expr)
 
+        def fit_known_cameras(self, images, cameras, names=None, masks=None):
+            fits.append((len(images), len(cameras), names))
+            return HeadSurface(np.zeros(100), fitted)
+
+    calls = []  # (preset steps, lr_opacity, expressions) of every refinement
+    real_refine = refine_module.refine_avatar
+
+    def spy(model, avatar, images, cameras, masks=None, *, config, expressions=None, **kw):
+        calls.append((config.steps, config.lr_opacity, None if expressions is None else expressions.numpy().copy()))
+        return real_refine(model, avatar, images, cameras, masks, config=config, expressions=expressions, **kw)
+
+    monkeypatch.setattr(refine_module, "refine_avatar", spy)
     model = load_model(str(model_dir), device="cpu")
     photos = [Photo(p.name, p.read_bytes()) for p in imgs]
     masks = [Photo(f"{p.stem}_mask.png", (samples / f"{p.stem}_mask.png").read_bytes()) for p in imgs]
@@ -637,17 +655,27 @@ def test_refine_steps_auto_refines_the_colours_of_avatars_on_a_tracked_head_only
             ctx = ServerContext(settings=Settings(data_dir=tmp_path / f"{kind}{refine}", warmup=False, refine_steps=refine))
             ctx.model = model
             ctx.store = AvatarStore(tmp_path / f"{kind}{refine}", 10**9, 0, load_fn=CanonicalAvatar.load)
+            fits.clear()
+            calls.clear()
             job, _ = _run_job(ctx, req, extra_stages_for(ctx), tracker=Tracker())
             assert job.status == "ready", job.error and job.error.message
-            assert ("refining" in job.stages) == (refine == "auto" and kind == "tracked"), (kind, refine, job.stages)
+            assert ("refining" in job.stages) == (refine == "auto"), (kind, refine, job.stages)
             assert ("refining_ms" in job.result) == ("refining" in job.stages)
+            assert len(fits) == int(refine == "auto" and kind == "cameras"), (kind, refine, fits)
+            if refine == "auto":
+                (steps, lr_opacity, used), = calls
+                preset = REFINE_PRESETS["photos" if kind == "tracked" else "default"]
+                assert (steps, lr_opacity) == (preset.steps, preset.lr_opacity)
+                np.testing.assert_allclose(used, expr if kind == "tracked" else fitted, atol=1e-6)
             stored[kind, refine] = ctx.store.get(job.id).avatar
+    assert fits == [] or fits[0][:2] == (len(imgs), len(imgs))
     plain, refined = stored["tracked", 0], stored["tracked", "auto"]
     assert plain.view_blend is not None and len(refined.gaussians) == len(plain.gaussians)
     assert torch.equal(refined.gaussians.opacities, plain.gaussians.opacities)
     assert float((refined.gaussians.colors - plain.gaussians.colors).abs().max()) > 1e-3
     assert stored["cameras", 0].view_blend is None
-    assert torch.equal(stored["cameras", "auto"].gaussians.colors, stored["cameras", 0].gaussians.colors)
+    a, b = stored["cameras", "auto"].gaussians, stored["cameras", 0].gaussians
+    assert len(a) != len(b) or float((a.colors - b.colors).abs().max()) > 1e-3  # the refined avatar is the one stored
 
 
 @pytest.mark.parametrize("surface_depth", [True, False])
@@ -912,6 +940,7 @@ def test_fastgha_client_sends_the_head_of_a_folder_fastgha_track_wrote(server, t
                  "--api-key", KEYS[2], "--keep"]) == 0  # fmt: skip
     printed = capsys.readouterr().out
     assert "sending the tracked head" in printed and out.is_file()
+    assert ", refinement " in printed.split("avatar ", 1)[1].split("\n", 1)[0]  # the server's refinement time, on the avatar's line
     aid = printed.split("avatar ", 1)[1].split(":", 1)[0]
     stored = CanonicalAvatar.load(server.data / "avatars" / f"{aid}.safetensors")
     k = stored.prior.identity.shape[0]

@@ -193,9 +193,11 @@ def test_health_model_docs(server):
 def test_create_and_read_metadata_and_ply(server, avatar, data_dir):
     from plyfile import PlyData
 
-    # the original fields, and what the frames are made with (server/avatar_info.py); nothing else
+    # the original fields, what the frames are made with (server/avatar_info.py) and the refinement's time
+    # (photos with cameras are refined by default: FASTGHA_REFINE_STEPS=auto); nothing else
     assert set(avatar) == {"avatar_id", "token", "num_gaussians", "reconstruction_ms", "expression_space",
-                           "same_person", "view_blend", "expression_prior"}  # fmt: skip
+                           "same_person", "view_blend", "expression_prior", "refining_ms"}  # fmt: skip
+    assert avatar["refining_ms"] > 0
     assert avatar["num_gaussians"] > 0 and avatar["expression_space"] == "ict53"
     h = {"Authorization": f"Bearer {avatar['token']}"}
     meta = httpx.get(f"{server.base}/v1/avatars/{avatar['avatar_id']}", headers=h).json()
@@ -206,7 +208,12 @@ def test_create_and_read_metadata_and_ply(server, avatar, data_dir):
     ply = PlyData.read(io.BytesIO(r.content))
     names = [p.name for p in ply["vertex"].properties]
     assert names[:3] == ["x", "y", "z"] and {"f_dc_0", "opacity", "scale_0", "rot_0"} <= set(names)
-    assert ply["vertex"].count == avatar["num_gaussians"]
+    from fastgha_core.io import drop_outliers
+    from fastgha_core.model.avatar import CanonicalAvatar
+
+    stored = CanonicalAvatar.load(data_dir / "avatars" / f"{avatar['avatar_id']}.safetensors").gaussians
+    assert len(stored) == avatar["num_gaussians"]
+    assert ply["vertex"].count == avatar["num_gaussians"] - drop_outliers(stored)[1]  # stray Gaussians dropped (docs/protocol.md)
     # nothing but committed files in the data folder, and the token is not stored in clear
     files = sorted(p.name for p in (data_dir / "avatars").iterdir())
     assert f"{avatar['avatar_id']}.json" in files and f"{avatar['avatar_id']}.safetensors" in files

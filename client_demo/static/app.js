@@ -395,6 +395,7 @@
       const rt = performance.now() - t0;
       S.avatar = av;
       $("recon").textContent = `reconstruction ${av.reconstruction_ms.toFixed(0)} ms` + (av.tracking_ms != null ? `, tracking ${av.tracking_ms.toFixed(0)} ms` : "") +
+        (av.refining_ms != null ? `, refinement ${av.refining_ms.toFixed(0)} ms` : "") +
         ` (round trip ${rt.toFixed(0)} ms) · ${av.num_gaussians.toLocaleString()} Gaussians` + describeAvatar(av);
       say(`avatar ${av.avatar_id} created`, "ok");
       $("download-ply").disabled = false;

@@ -358,7 +358,8 @@ def run(args) -> int:
         avatar = client.create_avatar(images, cams, masks, head=head, progress=_ProgressPrinter(), busy_wait_s=120.0)
     except RuntimeError as e:  # an HTTP error answer (e.g. a wrong API key), as one line
         raise CLIError(key_hint(str(e))) from None
-    print(f"avatar {avatar.avatar_id}: {avatar.num_gaussians} Gaussians, reconstruction {avatar.reconstruction_ms:.0f} ms "
+    refined = f", refinement {avatar.refining_ms:.0f} ms" if avatar.refining_ms is not None else ""
+    print(f"avatar {avatar.avatar_id}: {avatar.num_gaussians} Gaussians, reconstruction {avatar.reconstruction_ms:.0f} ms{refined} "
           f"(round trip {avatar.round_trip_ms:.0f} ms)")  # fmt: skip
     if avatar.describe():
         print(avatar.describe())  # view blending, expression prior, same-person check (docs/protocol.md)
