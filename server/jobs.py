@@ -516,7 +516,7 @@ class JobQueue:
         nb = request.nbytes
         self._bytes += nb - ticket.nbytes  # the real size replaces the declared one
         stages = ["queued", "decoding"] + (["tracking"] if request.cameras is None else []) + ["reconstructing"]
-        stages += [name for name, fn in self.extra_stages if getattr(fn, "applies", lambda r: True)(request)] + ["saving"]
+        stages += [name for name, _ in self.extra_stages] + ["saving"]
         token = auth.new_token()
         job = Job(auth.new_avatar_id(), auth.hash_token(token), ticket.client, nb, request, stages)
         self.jobs[job.id] = job
@@ -734,8 +734,6 @@ class JobQueue:
             mm = [m.expand(3, -1, -1) for m in (mlist if isinstance(mlist, list) else list(mlist.unbind(0)))]
             state.masks = model.prepare(mm, cams)[0][:, :1]  # the same crop and resize as the images
         for name, fn in self.extra_stages:
-            if name not in job.stages:  # not for this request (the stage's ``applies``)
-                continue
             progress(name, 0.0)
             t = time.perf_counter()
             fn(state, lambda f, name=name: progress(name, f))
