@@ -66,10 +66,12 @@ def main(argv=None) -> int:
         s = load_sample(name)
         images, cams = model.prepare(s.request_images, s.request_cameras, s.request_masks)
         plain = model.reconstruct(images, cams)
+        t_fit = time.perf_counter()
         expressions, fit_error = photo_expressions(s, args.expressions)
+        fit_s = time.perf_counter() - t_fit if fit_error is not None else None
         refined = refine_avatar(model, plain, s.request_images, s.request_cameras, s.request_masks,
                                 config=refine_config_for(plain, args.steps), expressions=expressions).avatar  # fmt: skip
-        row = {"sample": name, "expressions": args.expressions, "fitted_expression_mae": fit_error}
+        row = {"sample": name, "expressions": args.expressions, "fitted_expression_mae": fit_error, "fit_s": fit_s}
         with torch.inference_mode():
             for key, av in (("feed_forward", plain), ("refined", refined)):
                 ps, cs, ak = [], [], []
@@ -97,7 +99,7 @@ def main(argv=None) -> int:
         rows.append(row)
         f, r_ = row["feed_forward"], row["refined"]
         fmt = lambda x, spec: "n/a" if x is None else format(x, spec)  # noqa: E731
-        fit = "" if fit_error is None else f"   (fitted expressions: mean |error| {fit_error:.3f})"
+        fit = "" if fit_error is None else f"   (fitted expressions in {fit_s:.1f} s: mean |error| {fit_error:.3f})"
         print(f"{name}: PSNR {f['psnr']:.2f} -> {r_['psnr']:.2f} dB   CSIM {fmt(f['csim'], '.3f')} -> {fmt(r_['csim'], '.3f')}   "
               f"AKD {fmt(f['akd_px'], '.2f')} -> {fmt(r_['akd_px'], '.2f')} px ({r_['face_frames']} frames with a face){fit}", flush=True)  # fmt: skip
     if timing is not None:

@@ -277,16 +277,22 @@ def extra_stages_for(ctx) -> list[ExtraStage]:
         steps = REFINE_PRESETS[preset].steps if setting == "auto" else int(setting)
         expressions = state.expressions
         if expressions is None and state.fit_expressions is not None:
-            expressions = state.fit_expressions()
-            if expressions is not None and tuple(expressions.shape) != (len(state.images), state.model.config.expression_dim):
-                expressions = None  # fitted in another expression space than the model's
+            expressions = _in_model_space(state.fit_expressions(), len(state.images), state.model)
         result = refine_avatar(
             state.model, state.avatar, state.images, state.cameras, state.masks,
-            config=refine_config_for(state.avatar, steps), progress=lambda i, n: fraction(i / n), expressions=expressions,
+            config=refine_config_for(state.avatar, steps, preset), progress=lambda i, n: fraction(i / n), expressions=expressions,
         )  # fmt: skip
         state.avatar = result.avatar
 
     return [("refining", refine)]
+
+
+def _in_model_space(expressions: Tensor | None, views: int, model) -> Tensor | None:
+    """``expressions`` when they are ``[views, model.config.expression_dim]``, else None (tracked or
+    fitted in another expression space than the model's: nothing to undo or to refine with)."""
+    if expressions is None or tuple(expressions.shape) != (views, model.config.expression_dim):
+        return None
+    return expressions
 
 
 def _expression_fitter(tracker, photos: list[Tensor], cameras: list, names: list[str], masks) -> Callable[[], Tensor | None]:
@@ -718,8 +724,7 @@ class JobQueue:
         if expressions is None and req.cameras is not None and s.surface_depth_cameras == "off" and self.tracker is not None:
             fit_expressions = _expression_fitter(self.tracker, images, cams, names, given)
         del images
-        if expressions is not None and tuple(expressions.shape) != (x.shape[0], model.config.expression_dim):
-            expressions = None  # tracked in another expression space than the model's: nothing to undo
+        expressions = _in_model_space(expressions, x.shape[0], model)
         if not s.surface_depth and not known_surface:
             surface = None
         mode = s.surface_depth_cameras if known_surface else "replace"
