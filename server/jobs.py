@@ -295,11 +295,29 @@ def _in_model_space(expressions: Tensor | None, views: int, model) -> Tensor | N
     return expressions
 
 
+FIT_MAX_SIDE = 512  # photos kept for the expression fit are shrunk to this longer side (memory while the job runs)
+
+
 def _expression_fitter(tracker, photos: list[Tensor], cameras: list, names: list[str], masks) -> Callable[[], Tensor | None]:
     """``CreationState.fit_expressions`` for photos posted with cameras: the photos' ``ict53``
     expressions ``[V, 53]`` of the head fitted through the given cameras (``PhotoTracker.fit_known_cameras``;
     None without the ``faces`` extra or when no photo shows a face). ``photos``: V x ``[3, H_i, W_i]``,
-    ``cameras``: V single ``Cameras`` of those sizes, ``masks``: per photo ``[1, H_i, W_i]``/None, or None."""
+    ``cameras``: V single ``Cameras`` of those sizes, ``masks``: per photo ``[1, H_i, W_i]``/None, or None.
+    The photos, masks and cameras are kept shrunk to ``FIT_MAX_SIDE`` until the fit runs."""
+
+    def shrink(x: Tensor | None, size: tuple[int, int]) -> Tensor | None:
+        if x is None or tuple(x.shape[-2:]) == size:
+            return x
+        return torch.nn.functional.interpolate(x[None], size=size, mode="area")[0]
+
+    sizes = []
+    for im in photos:
+        h, w = im.shape[-2:]
+        s = min(1.0, FIT_MAX_SIDE / max(h, w))
+        sizes.append((max(1, round(h * s)), max(1, round(w * s))))
+    photos = [shrink(im, hw) for im, hw in zip(photos, sizes)]
+    cameras = [cam if (cam.height, cam.width) == hw else cam.resize(hw[1], hw[0]) for cam, hw in zip(cameras, sizes)]
+    masks = None if masks is None else [shrink(m, hw) for m, hw in zip(masks, sizes)]
 
     def fit() -> Tensor | None:
         surface = tracker.fit_known_cameras(photos, cameras, names=names, masks=masks)
