@@ -19,7 +19,8 @@ Usage (numbers go to docs/benchmarks.md)::
 
     python bench/creation_load.py memory
     python bench/creation_load.py fps --rounds 4 --seconds 8 --size 256
-    python bench/creation_load.py fps --nice 0        # creation threads at normal priority, for comparison
+    python bench/creation_load.py fps --sched-idle off            # creation threads at nice 10 only
+    python bench/creation_load.py fps --sched-idle off --nice 0   # at normal priority, for comparison
 """
 
 from __future__ import annotations
@@ -183,9 +184,10 @@ def _stream_fps(base: str, av: dict, seconds: float, size: int) -> tuple[float, 
 
 def fps(args) -> dict:
     files, cams = _sample_request()
-    out: dict = {"size": args.size, "seconds": args.seconds, "nice": args.nice}
+    out: dict = {"size": args.size, "seconds": args.seconds, "sched_idle": args.sched_idle, "nice": args.nice}
     with tempfile.TemporaryDirectory() as d:
         srv = Server(Path(args.repo), Path(d), Path(args.log), FASTGHA_CREATION_NICE=str(args.nice), FASTGHA_MAX_QUEUED_JOBS="64",
+                     FASTGHA_CREATION_SCHED_IDLE=str(args.sched_idle == "on").lower(),
                      FASTGHA_MAX_JOBS_PER_CLIENT="64")  # fmt: skip
         try:
             r = httpx.post(srv.base + "/v1/avatars", files=files, data={"cameras": cams}, headers={"X-API-Key": KEY}, timeout=600)
@@ -230,7 +232,8 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=8.0, help="fps: length of each idle and each busy phase")
     ap.add_argument("--rounds", type=int, default=4, help="fps: idle/busy phase pairs (medians reported)")
     ap.add_argument("--size", type=int, default=256)
-    ap.add_argument("--nice", type=int, default=10, help="FASTGHA_CREATION_NICE of the server")
+    ap.add_argument("--sched-idle", choices=("on", "off"), default="on", help="FASTGHA_CREATION_SCHED_IDLE of the server (a server from before it ignores it)")
+    ap.add_argument("--nice", type=int, default=10, help="FASTGHA_CREATION_NICE of the server (used with --sched-idle off)")
     ap.add_argument("--log", default=os.path.join(tempfile.gettempdir(), "fastgha-creation-load.log"))
     ap.add_argument("--json", default=None, help="also write the result here")
     args = ap.parse_args()

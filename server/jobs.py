@@ -14,9 +14,11 @@ the next photo). Admission is decided before the request body is read: a client 
 ``FASTGHA_MAX_JOBS_PER_CLIENT`` gets 429, a full queue (``FASTGHA_MAX_QUEUED_JOBS`` waiting, or
 ``FASTGHA_MAX_QUEUED_UPLOAD_BYTES`` of uploads held) gets 503, both with ``Retry-After``.
 
-Threads: the job threads run at a raised nice value (``FASTGHA_CREATION_NICE``; on Linux a
-thread's nice value is its own, and the threads it starts, such as torch's OpenMP team, inherit
-it), so the render threads of open streams keep the CPU while an avatar is being created.
+Threads: the job threads run under Linux's ``SCHED_IDLE`` policy (``FASTGHA_CREATION_SCHED_IDLE``;
+else at the nice value ``FASTGHA_CREATION_NICE``; on Linux both are the thread's own, and the
+threads it starts, such as torch's OpenMP team, inherit them), so the render threads of open
+streams keep the CPU while an avatar is being created (``_lower_priority``). The price: while
+streams keep every core busy, creations advance only in the gaps between frames.
 
 Durability: a job reports ``ready`` only after ``AvatarStore.put`` has fsynced the avatar and
 its metadata; a job that has not reported ``ready`` when the process dies is lost (the client
@@ -432,9 +434,27 @@ class Ticket:
             self.queue._release(self.client, self.nbytes, waiting=True)
 
 
-def _lower_priority(nice: int) -> None:
-    """Thread initializer: raise this thread's nice value (Linux: per thread, inherited by the
-    threads it starts). Raising is always permitted; a platform without it keeps the default."""
+def _lower_priority(nice: int, sched_idle: bool = True) -> None:
+    """Thread initializer: put this thread below the render threads for the CPU.
+
+    With ``sched_idle`` it takes Linux's ``SCHED_IDLE`` policy (sched(7): "for running very low
+    priority background jobs"; a thread of the normal policy that wakes preempts it at once);
+    without it, or where that fails, it raises its nice value to ``nice``. Both are per thread on
+    Linux and inherited by the threads it starts (torch's and numba's OpenMP teams, the tracker's).
+    Lowering one's own priority is always permitted; a platform without either keeps the default.
+
+    Why SCHED_IDLE by default (``bench/creation_load.py fps``, docs/benchmarks.md "Creation under
+    load"): with nice 10 a 256² stream kept 0.62-0.65 of its idle frame rate during creations,
+    with SCHED_IDLE 0.86-0.91; nice only shrinks a thread's share of the CPU, while a render's
+    many short waits (OpenMP barriers, the event loop) each gave the core away to a creation
+    thread until its time slice ended.
+    """
+    if sched_idle:
+        try:
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))  # pid 0: the calling thread
+            return
+        except (AttributeError, OSError) as e:  # not Linux
+            log.debug("SCHED_IDLE unavailable for the creation thread (%s); using nice %d", e, nice)
     try:
         tid = threading.get_native_id()
         cur = os.getpriority(os.PRIO_PROCESS, tid)
@@ -486,7 +506,8 @@ class JobQueue:
         self._queue = asyncio.Queue()
         nice = self.ctx.settings.creation_nice
         self._pool = ThreadPoolExecutor(
-            max_workers=self.max_running, thread_name_prefix="fastgha-create", initializer=_lower_priority, initargs=(nice,)
+            max_workers=self.max_running, thread_name_prefix="fastgha-create", initializer=_lower_priority,
+            initargs=(nice, self.ctx.settings.creation_sched_idle),
         )
         self._workers = [asyncio.create_task(self._worker(), name=f"fastgha-create-{i}") for i in range(self.max_running)]
 

@@ -178,7 +178,10 @@ class Settings(BaseSettings):
     max_request_pixels: int = Field(134_217_728, ge=64, description="largest sum of width*height over the images and masks of one request (read from headers, before decoding)")
     decode_max_side: int = Field(1024, ge=64, description="photos are downscaled while decoding so that their longer side is at most this (never below the model's input size)")
     job_ttl_seconds: float = Field(600.0, gt=0, description="finished creation jobs answer their status resource for this long")
-    creation_nice: int = Field(10, ge=0, le=19, description="nice value of the creation threads, so that rendering streams keep their frame rate")
+    creation_sched_idle: bool = Field(
+        True, description="creation threads run under Linux's SCHED_IDLE policy (a render thread that wakes takes their core at once); false = only the nice value below"
+    )
+    creation_nice: int = Field(10, ge=0, le=19, description="nice value of the creation threads where SCHED_IDLE is off or unavailable")
 
     # ------------------------------------------------------------ misc
     static_dir: Path | None = Field(

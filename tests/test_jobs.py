@@ -10,6 +10,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import io
 import json
+import os
 import socket
 import threading
 import time
@@ -556,6 +557,44 @@ def test_an_extra_stage_sees_the_prepared_inputs_reports_progress_and_replaces_t
     assert meta["num_gaussians"] == seen["n"] == job.result["num_gaussians"] and "refining_ms" in meta
     stored = ctx.store.get(job.id).avatar.gaussians
     assert torch.all(stored.colors == 0.25)  # the stage's avatar is what was saved
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="SCHED_IDLE and per-thread nice values are Linux's")
+@pytest.mark.parametrize("sched_idle", [True, False])
+def test_creation_threads_give_the_cpu_to_render_threads(model_dir, samples, tmp_path, sched_idle):
+    """A job's work runs under SCHED_IDLE (default) or at ``creation_nice``; the threads it starts
+    (torch's OpenMP team) inherit it, and the server's other threads keep the normal policy."""
+    from fastgha_core import load_model
+    from fastgha_core.cameras import cameras_from_json
+    from fastgha_core.model.avatar import CanonicalAvatar
+    from server.context import ServerContext
+    from server.settings import Settings
+    from server.store import AvatarStore
+
+    ctx = ServerContext(settings=Settings(data_dir=tmp_path, warmup=False, creation_sched_idle=sched_idle, creation_nice=7))
+    ctx.model = load_model(str(model_dir), device="cpu")
+    ctx.store = AvatarStore(tmp_path, 10**9, 0, load_fn=CanonicalAvatar.load)
+    seen: dict = {}
+
+    def policy(tid: int) -> tuple[int, int]:
+        return os.sched_getscheduler(tid), os.getpriority(os.PRIO_PROCESS, tid)
+
+    def stage(state, fraction) -> None:
+        torch.randn(512, 512) @ torch.randn(512, 512)  # a parallel region: this thread's OpenMP team exists
+        seen["job"] = policy(0)
+        seen["all"] = [policy(int(t)) for t in os.listdir("/proc/self/task")]
+
+    imgs = sorted(samples.glob("[0-9][0-9].jpg"))
+    photos = [Photo(p.name, p.read_bytes()) for p in imgs]
+    masks = [Photo(f"{p.stem}_mask.png", (samples / f"{p.stem}_mask.png").read_bytes()) for p in imgs]
+    cams = cameras_from_json(json.loads((samples / "cameras.json").read_text()))
+    job, _ = _run_job(ctx, CreationRequest(photos, masks, cams), [("refining", stage)])
+    assert job.status == "ready", job.error and job.error.message
+    want = (os.SCHED_IDLE, 0) if sched_idle else (os.SCHED_OTHER, 7)
+    assert seen["job"] == want
+    if torch.get_num_threads() > 1:  # the job thread's OpenMP workers, started by it, inherit its policy
+        assert seen["all"].count(want) >= torch.get_num_threads(), seen["all"]
+    assert policy(0) == (os.SCHED_OTHER, 0)  # this thread, like the server's render threads, untouched
 
 
 def test_refine_steps_setting_plugs_test_time_refinement_into_the_job(model_dir, samples, tmp_path):
