@@ -14,6 +14,8 @@ checkout; point it at an older checkout to compare) and measures:
   sample, ``--rounds`` times alternately; reported: delivered frames per second of each phase,
   their ratio per round and the median ratio (issue 17's target: within 20 %), and how many
   creations finished meanwhile.
+* ``saturated``: the time of one creation on the idle server and of one made 45 s into a
+  ``fastgha loadtest`` of 4 open-loop streams (more frames than the cores render).
 
 Usage (numbers go to docs/benchmarks.md)::
 
@@ -21,6 +23,7 @@ Usage (numbers go to docs/benchmarks.md)::
     python bench/creation_load.py fps --rounds 4 --seconds 8 --size 256
     python bench/creation_load.py fps --sched-idle off            # creation threads at nice 10 only
     python bench/creation_load.py fps --sched-idle off --nice 0   # at normal priority, for comparison
+    python bench/creation_load.py saturated [--sched-idle off]    # creation time while streams saturate the cores
 """
 
 from __future__ import annotations
@@ -225,9 +228,40 @@ def fps(args) -> dict:
     return out
 
 
+# ---------------------------------------------------------------- creation time on a saturated server
+def saturated(args) -> dict:
+    """One creation on the idle server, then ``fastgha loadtest`` (4 open-loop streams at 30 Hz on one
+    avatar, more than 2 cores render) and, 45 s into it, another creation: both creation times."""
+    files, cams = _sample_request()
+    out: dict = {"sched_idle": args.sched_idle, "nice": args.nice}
+    with tempfile.TemporaryDirectory() as d:
+        srv = Server(Path(args.repo), Path(d), Path(args.log), FASTGHA_CREATION_NICE=str(args.nice),
+                     FASTGHA_CREATION_SCHED_IDLE=str(args.sched_idle == "on").lower())  # fmt: skip
+        try:
+            t = time.perf_counter()
+            _post(srv.base, files, cams)
+            out["creation_idle_s"] = round(time.perf_counter() - t, 1)
+            report = Path(d) / "loadtest.json"
+            load = subprocess.Popen(
+                [sys.executable, "-m", "fastgha_core.cli", "loadtest", "--url", srv.base, "--clients", "4", "--duration", "100",
+                 "--shared-avatar", "--api-key", KEY, "--json", str(report)],
+                cwd=HERE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            )  # fmt: skip
+            time.sleep(45)
+            t = time.perf_counter()
+            out["status_under_load"] = _post(srv.base, files, cams)
+            out["creation_under_load_s"] = round(time.perf_counter() - t, 1)
+            load.wait(300)
+            out["loadtest_delivered_fps"] = json.loads(report.read_text())["aggregate"]["delivered_fps"]
+            print(out, flush=True)
+        finally:
+            srv.stop()
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("what", choices=("memory", "fps"))
+    ap.add_argument("what", choices=("memory", "fps", "saturated"))
     ap.add_argument("--repo", default=str(HERE), help="checkout whose server/ to run (default: this one)")
     ap.add_argument("--seconds", type=float, default=8.0, help="fps: length of each idle and each busy phase")
     ap.add_argument("--rounds", type=int, default=4, help="fps: idle/busy phase pairs (medians reported)")
@@ -237,7 +271,7 @@ def main() -> None:
     ap.add_argument("--log", default=os.path.join(tempfile.gettempdir(), "fastgha-creation-load.log"))
     ap.add_argument("--json", default=None, help="also write the result here")
     args = ap.parse_args()
-    res = memory(args) if args.what == "memory" else fps(args)
+    res = {"memory": memory, "fps": fps, "saturated": saturated}[args.what](args)
     if args.json:
         Path(args.json).write_text(json.dumps(res, indent=1))
 

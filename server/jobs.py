@@ -434,17 +434,18 @@ class Ticket:
             self.queue._release(self.client, self.nbytes, waiting=True)
 
 
-def _lower_priority(nice: int, sched_idle: bool = True) -> None:
+def _lower_priority(nice: int, sched_idle: bool) -> None:
     """Thread initializer: put this thread below the render threads for the CPU.
 
     With ``sched_idle`` it takes Linux's ``SCHED_IDLE`` policy (sched(7): "for running very low
     priority background jobs"; a thread of the normal policy that wakes preempts it at once);
     without it, or where that fails, it raises its nice value to ``nice``. Both are per thread on
-    Linux and inherited by the threads it starts (torch's and numba's OpenMP teams, the tracker's).
+    Linux and inherited by the threads it starts (torch's OpenMP team: tested in
+    ``tests/test_jobs.py``; any other thread created from it alike, by Linux's clone rules).
     Lowering one's own priority is always permitted; a platform without either keeps the default.
 
     Why SCHED_IDLE by default (``bench/creation_load.py fps``, docs/benchmarks.md "Creation under
-    load"): with nice 10 a 256² stream kept 0.62-0.65 of its idle frame rate during creations,
+    load"): with nice 10 a 256² stream kept 0.62-0.68 of its idle frame rate during creations,
     with SCHED_IDLE 0.86-0.91; nice only shrinks a thread's share of the CPU, while a render's
     many short waits (OpenMP barriers, the event loop) each gave the core away to a creation
     thread until its time slice ended.
