@@ -2,9 +2,14 @@
 
     python bench/raster_kernel_ab.py 0a3a0ea        # the commit before the fixed-width row loops
 
+    python bench/raster_kernel_ab.py 70c35b7 --pass backward   # the scalar gradient kernel
+
 Both kernels composite the same packed splats of the shipped model's avatar of the first shipped
-sample (one frame from the default camera at 256² and 512²); the script checks the outputs are
-bit-identical and prints the median ms of each over interleaved repeats.
+sample (one frame from the default camera at 256² and 512²); the script prints the median ms of
+each over interleaved repeats. Forward: it checks the outputs are bit-identical. Backward (incoming
+gradients drawn from a fixed seed, as a loss on every pixel would give): it prints the largest
+difference of the per-splat gradients between the two, relative to each gradient's largest value
+(the kernels sum in different orders, so they agree to float32 rounding, not bit for bit).
 """
 
 from __future__ import annotations
@@ -63,10 +68,39 @@ def packed_frame(res: int):
     return rec, offsets, ids, tw
 
 
+def backward_ab(kernels, rev, rec, offsets, ids, tw, res, nch, repeats):
+    """Times ``raster_backward_fast`` of both modules on one frame and compares their gradients."""
+    from fastgha_core.render import cpu_kernels as K
+
+    acc, T = np.zeros((res, res, 4), np.float32), np.zeros((res, res), np.float32)
+    K.raster_forward_fast(rec, offsets, ids, res, res, tw, nch, acc, T)
+    rng = np.random.default_rng(0)
+    g_acc = rng.standard_normal((res, res, 4)).astype(np.float32)
+    g_alpha = rng.standard_normal((res, res)).astype(np.float32)
+    grads, times = {}, {k: [] for k in kernels}
+    for name, mod in kernels.items():  # also compiles
+        out = np.empty((len(ids), mod.N_GRAD32), np.float32)
+        mod.raster_backward_fast(rec, offsets, ids, res, res, tw, nch, acc, T, g_acc, g_alpha, out)
+        grads[name] = K.reduce_rows(ids, out, rec.shape[0])
+    for _ in range(repeats):
+        for name, mod in kernels.items():
+            out = np.empty((len(ids), mod.N_GRAD32), np.float32)
+            t = time.perf_counter()
+            mod.raster_backward_fast(rec, offsets, ids, res, res, tw, nch, acc, T, g_acc, g_alpha, out)
+            times[name].append(1e3 * (time.perf_counter() - t))
+    a, b = grads.values()
+    rel = float((np.abs(a - b).max(0) / np.maximum(np.abs(a).max(0), 1e-30)).max())
+    med = {k: statistics.median(v) for k, v in times.items()}
+    old_ms, new_ms = med[rev], med["working tree"]
+    print(f"{res}² backward: {len(ids)} intersections; {rev} {old_ms:.2f} ms, working tree {new_ms:.2f} ms, "
+          f"{old_ms / new_ms:.2f}x; largest gradient difference {rel:.1e} of each gradient's largest value")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("rev", help="git revision holding the other kernel")
     p.add_argument("--repeats", type=int, default=15)
+    p.add_argument("--pass", dest="which", choices=("forward", "backward"), default="forward")
     args = p.parse_args(argv)
     from fastgha_core.render import cpu_kernels as new
 
@@ -75,6 +109,9 @@ def main(argv: list[str] | None = None) -> int:
     nch = numba.get_num_threads()
     for res in (256, 512):
         rec, offsets, ids, tw = packed_frame(res)
+        if args.which == "backward":
+            backward_ab(kernels, args.rev, rec, offsets, ids, tw, res, nch, args.repeats)
+            continue
         outs, times = {}, {k: [] for k in kernels}
         for name, K in kernels.items():  # also compiles
             acc, T = np.zeros((res, res, 4), np.float32), np.zeros((res, res), np.float32)

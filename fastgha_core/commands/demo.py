@@ -112,6 +112,12 @@ def run(args) -> int:
     steps = REFINE_PRESETS[preset].steps if args.refine_steps is None else args.refine_steps
     refine_s = 0.0
     if steps > 0:
+        # warm-up: one step compiles the gradient kernels (numba, on first use in a fresh checkout),
+        # which is not refinement time
+        refine_avatar(
+            model, avatar, sample.request_images, sample.request_cameras, sample.request_masks,
+            config=refine_config_for(avatar, 1, preset), expressions=sample.request_expressions,
+        )  # fmt: skip
         with tqdm(total=steps, desc="refining", unit="step") as bar:
             res = refine_avatar(
                 model, avatar, sample.request_images, sample.request_cameras, sample.request_masks,

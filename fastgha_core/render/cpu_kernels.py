@@ -811,7 +811,61 @@ def raster_forward_fast(rec, offsets, ids, width, height, tw, n_chunks, out_acc,
 # ---------------------------------------------------------------------------------------------
 
 N_GRAD32 = 10  # per-intersection gradient row: v0..v3, opacity, conic a, b, c, mx, my
-_NB = 15  # backward tile state rows: T, live, running acc x4, final acc x4, g_acc x4, g_alpha * T_final
+_NB = 7  # backward tile-row state: T, live, g_acc x4, R (see raster_backward_fast)
+_NL = 8  # per-column gradient lanes of one splat: w g0..g3, dal G, dsig, dsig dy, dsig dy^2
+
+
+@njit(cache=True, fastmath=False, inline="always")
+def _grad_px(S, L, jj, dx, dy, dy2, hA, cy, by, o, v0, v1, v2, v3):
+    """Gradient of one splat at column ``jj`` of a tile row ``S [_NB, 16]``, into lanes ``L [_NL, 16]``.
+
+    The compositing decisions are ``_composite_px``'s, in the same float32 operations; returns 1
+    when the splat stops the pixel."""
+    sig = hA * dx * dx + cy + by * dx
+    G = _exp_neg32(max(sig, _ZERO))
+    raw = o * G
+    al = min(_AMAX, raw)
+    Tp = S[0, jj]
+    nT = Tp * (_ONE - al)
+    ok = (sig >= _ZERO) & (al >= _AMIN) & (S[1, jj] > _ZERO)
+    stop = ok & (nT <= _TMIN)
+    comp = ok & (nT > _TMIN)
+    w = al * Tp if comp else _ZERO
+    g0 = S[2, jj]
+    g1 = S[3, jj]
+    g2 = S[4, jj]
+    g3 = S[5, jj]
+    gv = g0 * v0 + g1 * v1 + g2 * v2 + g3 * v3
+    R = S[6, jj] + w * gv
+    S[6, jj] = R
+    S[0, jj] = nT if comp else Tp
+    S[1, jj] = _ZERO if stop else S[1, jj]
+    L[0, jj] += w * g0
+    L[1, jj] += w * g1
+    L[2, jj] += w * g2
+    L[3, jj] += w * g3
+    dal = (R / (_ONE - al) + Tp * gv) if (comp & (raw < _AMAX)) else _ZERO
+    dsig = -dal * raw
+    L[4, jj] += dal * G
+    L[5, jj] += dsig
+    L[6, jj] += dsig * dy
+    L[7, jj] += dsig * dy2
+    return np.int32(stop)
+
+
+@njit(cache=True, fastmath=False, inline="always")
+def _grad_row16(S, L, xb, mx, dy, dy2, hA, cy, by, o, v0, v1, v2, v3):
+    """``_grad_px`` over all 16 columns; the stopped columns' bit mask (as ``_composite_row16``).
+
+    Always the whole row, also for a splat whose box fits in 8 columns (where the forward takes
+    ``_composite_row8``): ``S`` and ``L`` are two arrays, so LLVM vectorises the loop only behind a
+    run-time overlap check, and it does not do that for loops of fewer than 16 iterations; the
+    8-column loop stayed scalar and took 2.7x the time of the whole backward with 16 columns
+    (``bench/raster_kernel_ab.py --pass backward``)."""
+    stopped = np.int32(0)
+    for q in range(16):
+        stopped |= _grad_px(S, L, q, mx - (xb + _F32(q)), dy, dy2, hA, cy, by, o, v0, v1, v2, v3) << q
+    return stopped
 
 
 @njit(parallel=True, cache=True, fastmath=False)
@@ -825,10 +879,15 @@ def raster_backward_fast(rec, offsets, ids, width, height, tw, n_chunks, acc_fin
         out_g ``[M, N_GRAD32]`` float32, one row per intersection (``ids`` order): d/d(v0..v3,
         opacity, conic a, b, c, mx, my); rows of splats never composited are zero.
 
-    The per-pixel float32 arithmetic that decides alpha, compositing and stopping is written
-    exactly as in ``_composite_px`` (same operations in the same order, no fused multiply-add), so
-    the same splats are composited at the same pixels. Pixels outside the splat's row span
-    (``_row_span``, conservative) are skipped: there alpha < ALPHA_MIN, the forward skips them too.
+    The tile is walked front to back again, row by row as the forward does (a row none of whose
+    live pixels lies in the splat's box columns is skipped), always over whole 16-column rows
+    (``_grad_row16``; outside its box a splat's alpha is below ALPHA_MIN, so the columns the
+    forward's 8-column window leaves out change nothing), and the per-pixel float32 arithmetic that decides alpha,
+    compositing and stopping is the forward's (same operations in the same order, no fused
+    multiply-add), so the same splats are composited at the same pixels. The colour behind a
+    splat enters only through ``sum_d g_d S_after_d``; each pixel carries
+    ``R = g_alpha T_final - sum_d g_d (acc_final_d - acc_d)`` and adds ``w sum_d g_d v_d`` per
+    composited splat, so ``d loss / d alpha = R / (1 - alpha) + T sum_d g_d v_d``.
     """
     n_tiles = offsets.shape[0] - 1
     per = (n_tiles + n_chunks - 1) // n_chunks
@@ -848,20 +907,27 @@ def raster_backward_fast(rec, offsets, ids, width, height, tw, n_chunks, acc_fin
         y0 = ty * _TS
         x1 = min(x0 + _TS, width)
         y1 = min(y0 + _TS, height)
-        # pixel state: T, live, running acc x4, final acc x4, g_acc x4, g_alpha * T_final
-        P = np.zeros((_NPIX, _NB), np.float32)
-        rowlive = np.zeros(_TS, np.int32)
+        S = np.zeros((_TS, _NB, _TS), np.float32)
+        L = np.zeros((_NL, _TS), np.float32)
+        rowmask = np.zeros(_TS, np.int32)
         n_live = 0
         for i in range(y0, y1):
+            for jj in range(_TS):
+                S[i - y0, 0, jj] = _ONE
             for j in range(x0, x1):
-                p = (i - y0) * _TS + (j - x0)
-                P[p, 0] = _ONE
-                P[p, 1] = _ONE
-                for d in range(4):
-                    P[p, 6 + d] = acc_final[i, j, d]
-                    P[p, 10 + d] = g_acc[i, j, d]
-                P[p, 14] = g_alpha[i, j] * T_final[i, j]
-            rowlive[i - y0] = x1 - x0
+                jj = j - x0
+                S[i - y0, 1, jj] = _ONE
+                g0 = g_acc[i, j, 0]
+                g1 = g_acc[i, j, 1]
+                g2 = g_acc[i, j, 2]
+                g3 = g_acc[i, j, 3]
+                S[i - y0, 2, jj] = g0
+                S[i - y0, 3, jj] = g1
+                S[i - y0, 4, jj] = g2
+                S[i - y0, 5, jj] = g3
+                gf = g0 * acc_final[i, j, 0] + g1 * acc_final[i, j, 1] + g2 * acc_final[i, j, 2] + g3 * acc_final[i, j, 3]
+                S[i - y0, 6, jj] = g_alpha[i, j] * T_final[i, j] - gf
+            rowmask[i - y0] = (1 << (x1 - x0)) - 1
             n_live += x1 - x0
         for kk in range(s, e):
             r = ids[kk]
@@ -883,86 +949,54 @@ def raster_backward_fast(rec, offsets, ids, width, height, tw, n_chunks, acc_fin
             v1 = rec[r, 7]
             v2 = rec[r, 8]
             v3 = rec[r, 9]
-            jx0 = max(bx0, x0)
-            jx1 = min(bx1, x1)
-            sig_max = math.log(max(float(o), 1e-30)) + _LOG_INV_AMIN + 1e-3
-            sig_max32 = _F32(sig_max)
+            c0 = max(bx0 - x0, 0)
+            c1 = min(bx1 - x0, _TS)
+            xb = _F32(x0) + _HALF
+            boxmask = ((1 << c1) - 1) ^ ((1 << c0) - 1)
+            for i in range(iy0, iy1):
+                if (rowmask[i - y0] & boxmask) == 0:
+                    continue
+                dy = my - (_F32(i) + _HALF)
+                dy2 = dy * dy
+                st = _grad_row16(S[i - y0], L, xb, mx, dy, dy2, hA, hC * dy * dy, B * dy, o, v0, v1, v2, v3)
+                if st:
+                    n_live -= _popcount16(st)
+                    rowmask[i - y0] &= ~st
+            # lane sums; dx is one value per column, so the dx-weighted sums are taken here
             gv0 = _ZERO
             gv1 = _ZERO
             gv2 = _ZERO
             gv3 = _ZERO
             go = _ZERO
-            ga = _ZERO
-            gb = _ZERO
-            gc = _ZERO
-            gmx = _ZERO
-            gmy = _ZERO
-            for i in range(iy0, iy1):
-                if rowlive[i - y0] == 0:
-                    continue
-                dy = my - (_F32(i) + _HALF)
-                cy = hC * dy * dy
-                by = B * dy
-                j0, j1 = _row_span(float(A), float(B), float(Cc), sig_max, float(mx), float(dy), jx0, jx1)
-                for j in range(j0, j1):
-                    p = (i - y0) * _TS + (j - x0)
-                    if P[p, 1] == _ZERO:
-                        continue
-                    dx = mx - (_F32(j) + _HALF)
-                    sig = hA * dx * dx + cy + by * dx
-                    if not (sig >= _ZERO) or sig > sig_max32:  # sig > sig_max: alpha < ALPHA_MIN surely
-                        continue
-                    G = _exp_neg32(sig)
-                    raw = o * G
-                    al = min(_AMAX, raw)
-                    if not (al >= _AMIN):
-                        continue
-                    Tp = P[p, 0]
-                    nT = Tp * (_ONE - al)
-                    if nT <= _TMIN:
-                        P[p, 1] = _ZERO
-                        rowlive[i - y0] -= 1
-                        n_live -= 1
-                        continue
-                    w = al * Tp
-                    a0 = P[p, 2] + w * v0
-                    a1 = P[p, 3] + w * v1
-                    a2 = P[p, 4] + w * v2
-                    a3 = P[p, 5] + w * v3
-                    P[p, 2] = a0
-                    P[p, 3] = a1
-                    P[p, 4] = a2
-                    P[p, 5] = a3
-                    P[p, 0] = nT
-                    g0 = P[p, 10]
-                    g1 = P[p, 11]
-                    g2 = P[p, 12]
-                    g3 = P[p, 13]
-                    gv0 += w * g0
-                    gv1 += w * g1
-                    gv2 += w * g2
-                    gv3 += w * g3
-                    if raw < _AMAX:
-                        ra = _ONE / (_ONE - al)
-                        dal = P[p, 14] * ra + g0 * (v0 * Tp - (P[p, 6] - a0) * ra) + g1 * (v1 * Tp - (P[p, 7] - a1) * ra)
-                        dal = dal + g2 * (v2 * Tp - (P[p, 8] - a2) * ra) + g3 * (v3 * Tp - (P[p, 9] - a3) * ra)
-                        dsig = -dal * raw
-                        go += dal * G
-                        ga += _HALF * dx * dx * dsig
-                        gb += dx * dy * dsig
-                        gc += _HALF * dy * dy * dsig
-                        gmx += (A * dx + B * dy) * dsig
-                        gmy += (Cc * dy + B * dx) * dsig
+            sx = _ZERO
+            sxx = _ZERO
+            sy = _ZERO
+            sxy = _ZERO
+            syy = _ZERO
+            for jj in range(_TS):
+                dx = mx - (xb + _F32(jj))
+                gv0 += L[0, jj]
+                gv1 += L[1, jj]
+                gv2 += L[2, jj]
+                gv3 += L[3, jj]
+                go += L[4, jj]
+                sx += dx * L[5, jj]
+                sxx += dx * dx * L[5, jj]
+                sy += L[6, jj]
+                sxy += dx * L[6, jj]
+                syy += L[7, jj]
+                for q in range(_NL):
+                    L[q, jj] = _ZERO
             out_g[kk, 0] = gv0
             out_g[kk, 1] = gv1
             out_g[kk, 2] = gv2
             out_g[kk, 3] = gv3
             out_g[kk, 4] = go
-            out_g[kk, 5] = ga
-            out_g[kk, 6] = gb
-            out_g[kk, 7] = gc
-            out_g[kk, 8] = gmx
-            out_g[kk, 9] = gmy
+            out_g[kk, 5] = _HALF * sxx
+            out_g[kk, 6] = sxy
+            out_g[kk, 7] = _HALF * syy
+            out_g[kk, 8] = A * sx + B * sy
+            out_g[kk, 9] = Cc * sy + B * sx
             if n_live == 0:
                 break
 
