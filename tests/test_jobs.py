@@ -205,11 +205,13 @@ def model_dir(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def server(model_dir, tmp_path_factory):
-    """One creation at a time, one more waiting, one per API key."""
+    """One creation at a time, one more waiting, one per API key; no refinement stage (these tests
+    are about the queue; the stage has its own tests below, and the slow job stays slow: it tracks
+    eight photos)."""
     data = tmp_path_factory.mktemp("data")
     srv = ServerProcess(model_dir, data, None, tmp_path_factory.mktemp("logs") / "server.log",
                         FASTGHA_API_KEYS=",".join(KEYS), FASTGHA_MAX_CONCURRENT_RECONSTRUCTIONS="1",
-                        FASTGHA_MAX_QUEUED_JOBS="1", FASTGHA_MAX_JOBS_PER_CLIENT="1")  # fmt: skip
+                        FASTGHA_MAX_QUEUED_JOBS="1", FASTGHA_MAX_JOBS_PER_CLIENT="1", FASTGHA_REFINE_STEPS="0")  # fmt: skip
     srv.data = data
     yield srv
     srv.stop()
