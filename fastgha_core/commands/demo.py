@@ -18,7 +18,7 @@ def add_arguments(parser) -> None:
     parser.add_argument(
         "--refine-steps", type=int, default=None,
         help="test-time refinement steps against the sample's 4 photos after the feed-forward pass (default: the count of the "
-        "preset refine_config_for picks, 60 for the samples: the sharper eyes and brows of docs/images/demo.png, about 8 s on "
+        "preset refine_config_for picks, 60 for the samples: the sharper eyes and brows of docs/images/demo.png, about 4-5 s on "
         "2 idle cores; 0 = the feed-forward avatar alone)",
     )  # fmt: skip
 
