@@ -658,16 +658,29 @@ def bin_sorted(trect, n_tiles, tw, n_chunks):
 
 
 @njit(cache=True, fastmath=False, inline="always")
-def _composite_px(S, jj, dx, hA, cy, by, o, v0, v1, v2, v3):
-    """One splat at column ``jj`` of a tile row ``S [6, 16]`` (T, live, acc x4); 1 when it stops the pixel."""
+def _splat_px(S, jj, dx, hA, cy, by, o):
+    """The compositing decision of one splat at column ``jj`` of a tile row ``S`` (``S[0]`` = T,
+    ``S[1]`` = live), shared by the forward and the backward so both take it in the same float32
+    operations. Returns ``(G, raw, al, Tp, nT, stop, comp, w)``: ``G = exp(-sigma)``, ``raw = o G``,
+    ``al = min(ALPHA_MAX, raw)``, the transmittance before and after, whether the splat stops the
+    pixel (without compositing) or is composited, and its weight ``al Tp`` (0 unless composited)."""
     sig = hA * dx * dx + cy + by * dx
-    al = min(_AMAX, o * _exp_neg32(max(sig, _ZERO)))
+    G = _exp_neg32(max(sig, _ZERO))
+    raw = o * G
+    al = min(_AMAX, raw)
     Tp = S[0, jj]
     nT = Tp * (_ONE - al)
     ok = (sig >= _ZERO) & (al >= _AMIN) & (S[1, jj] > _ZERO)
     stop = ok & (nT <= _TMIN)
     comp = ok & (nT > _TMIN)
     w = al * Tp if comp else _ZERO
+    return G, raw, al, Tp, nT, stop, comp, w
+
+
+@njit(cache=True, fastmath=False, inline="always")
+def _composite_px(S, jj, dx, hA, cy, by, o, v0, v1, v2, v3):
+    """One splat at column ``jj`` of a tile row ``S [6, 16]`` (T, live, acc x4); 1 when it stops the pixel."""
+    _, _, _, Tp, nT, stop, comp, w = _splat_px(S, jj, dx, hA, cy, by, o)
     S[2, jj] += w * v0
     S[3, jj] += w * v1
     S[4, jj] += w * v2
@@ -819,18 +832,9 @@ _NL = 8  # per-column gradient lanes of one splat: w g0..g3, dal G, dsig, dsig d
 def _grad_px(S, L, jj, dx, dy, dy2, hA, cy, by, o, v0, v1, v2, v3):
     """Gradient of one splat at column ``jj`` of a tile row ``S [_NB, 16]``, into lanes ``L [_NL, 16]``.
 
-    The compositing decisions are ``_composite_px``'s, in the same float32 operations; returns 1
+    The compositing decisions are ``_composite_px``'s (both take them from ``_splat_px``); returns 1
     when the splat stops the pixel."""
-    sig = hA * dx * dx + cy + by * dx
-    G = _exp_neg32(max(sig, _ZERO))
-    raw = o * G
-    al = min(_AMAX, raw)
-    Tp = S[0, jj]
-    nT = Tp * (_ONE - al)
-    ok = (sig >= _ZERO) & (al >= _AMIN) & (S[1, jj] > _ZERO)
-    stop = ok & (nT <= _TMIN)
-    comp = ok & (nT > _TMIN)
-    w = al * Tp if comp else _ZERO
+    G, raw, al, Tp, nT, stop, comp, w = _splat_px(S, jj, dx, hA, cy, by, o)
     g0 = S[2, jj]
     g1 = S[3, jj]
     g2 = S[4, jj]
