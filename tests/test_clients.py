@@ -208,6 +208,7 @@ def test_client_command_writes_frames_and_mp4(server, request_dir, tmp_path, cap
     assert out.stat().st_size > 0 and out.read_bytes()[4:8] == b"ftyp"
     assert "6 frames of 6 requested" in text and "fps" in text and "p95" in text
     assert "creating the avatar: decoding" in text or "creating the avatar: queued" in text  # the job's progress
+    assert ", refinement " in text.split("avatar ", 1)[1].split("\n", 1)[0]  # the server's refinement time, on the avatar's line
     assert "view blending off" in text and "expression prior on" in text and "same person:" in text  # what the avatar runs with
 
 
