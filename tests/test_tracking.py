@@ -80,6 +80,29 @@ def _rot_y(a: float) -> np.ndarray:
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 
 
+def test_block_sparse_gram_equals_the_dense_product():
+    """``fit._gram`` (the Levenberg-Marquardt normal matrix, multiplied chunk by chunk over the
+    columns each chunk of rows touches) against ``J.T @ J``: view-like blocks that share the identity
+    columns, a chunk straddling two views, a diagonal prior, rows touching every column (the dense
+    branch) and an all-zero chunk."""
+    from fastgha_core.tracking.fit import _gram
+
+    rng = np.random.default_rng(4)
+    nid, nv, V = 10, 12, 4
+    n = nid + V * nv
+    J = np.zeros((V * 300 + n + 40 + 256, n))
+    for v in range(V):
+        rows = slice(v * 300, (v + 1) * 300)
+        J[rows, :nid] = rng.standard_normal((300, nid))
+        J[rows, nid + v * nv : nid + (v + 1) * nv] = rng.standard_normal((300, nv))
+    r0 = V * 300
+    J[r0 : r0 + n] = np.diag(rng.random(n) + 0.5)
+    J[r0 + n : r0 + n + 40] = rng.standard_normal((40, n))  # rows 1400.. stay zero: an empty chunk
+    H = _gram(J, chunk=256)
+    np.testing.assert_allclose(H, J.T @ J, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(_gram(J, chunk=7), J.T @ J, rtol=1e-12, atol=1e-9)
+
+
 def test_fit_rejects_bad_shapes():
     with pytest.raises(ValueError, match=r"\[V, 468, 2\] \(layout mediapipe\), got \[2, 60, 2\]"):
         fit_landmarks(np.zeros((2, 60, 2)), np.eye(3))

@@ -463,6 +463,26 @@ class _Problem:
         return np.array([[self.nid + v * self.nv + 6 + k for k in range(53)] for v in range(self.V)])
 
 
+def _gram(J: np.ndarray, chunk: int = 256) -> np.ndarray:
+    """``J.T @ J`` for ``J [M, n]`` whose rows each touch few columns (a view's landmarks touch the
+    identity and that view's pose and expression, a prior its own unknowns): per chunk of ``chunk``
+    rows, only the columns the chunk touches are multiplied. Equal to the dense product up to float
+    rounding (the sums run in another order)."""
+    n = J.shape[1]
+    H = np.zeros((n, n))
+    for r0 in range(0, J.shape[0], chunk):
+        Jc = J[r0 : r0 + chunk]
+        cols = np.flatnonzero(np.any(Jc != 0.0, axis=0))
+        if len(cols) == 0:
+            continue
+        if len(cols) > 0.7 * n:
+            H += Jc.T @ Jc
+        else:
+            Js = Jc[:, cols]
+            H[np.ix_(cols, cols)] += Js.T @ Js
+    return H
+
+
 def _lm(prob: _Problem, beta, E, Rs, ts, iterations: int, tol: float, reduce=None):
     """Levenberg-Marquardt on ``prob``. ``reduce = (T [n_full, n_red], ecols [V, 53])``: the unknowns
     are ``x_red`` with ``x_full = T x_red`` (the known-camera fit's one shared head pose), ``ecols``
@@ -476,10 +496,9 @@ def _lm(prob: _Problem, beta, E, Rs, ts, iterations: int, tol: float, reduce=Non
         T, ecols = reduce
     for _ in range(iterations):
         J = prob.jacobian(beta, E, Rs, ts)
-        if T is not None:
-            J = J @ T
-        g = J.T @ r
-        H = J.T @ J
+        g, H = J.T @ r, _gram(J)
+        if T is not None:  # the reduced unknowns: J T
+            g, H = T.T @ g, T.T @ H @ T
         free = np.ones(H.shape[0], dtype=bool)
         if ecols is not None:  # active set of the [0, 1] box
             gi = g[ecols]
