@@ -307,7 +307,7 @@ def test_fast_path_skips_rows_only_where_no_pixel_of_the_splat_is_live():
         torch.testing.assert_close(getattr(fast, name), getattr(ref, name), rtol=1e-4, atol=2e-5, msg=name)
 
 
-def test_fast_gradients_match_reference_where_pixels_stop():
+def test_fast_gradients_match_reference_where_pixels_stop(monkeypatch):
     """The float32 backward (whole 16-column rows, the colour behind each splat carried as one
     running sum per pixel) against the dense reference on the wall scene: pixels that stop behind
     near-opaque splats, small splats behind the wall and straddling its edge, and splats clamped at
@@ -318,11 +318,8 @@ def test_fast_gradients_match_reference_where_pixels_stop():
     assert g.means.dtype == cams.K.dtype == torch.float32
     calls = []
     real = cpu_kernels.raster_backward_fast
-    cpu_kernels.raster_backward_fast = lambda *a: calls.append(1) or real(*a)
-    try:
-        out_f, grad_f = run(g, cams, "cpu", (0.3, 0.6, 0.9))
-    finally:
-        cpu_kernels.raster_backward_fast = real
+    monkeypatch.setattr(cpu_kernels, "raster_backward_fast", lambda *a: calls.append(1) or real(*a))
+    out_f, grad_f = run(g, cams, "cpu", (0.3, 0.6, 0.9))
     out_r, grad_r = run(g, cams, "reference", (0.3, 0.6, 0.9))
     assert calls == [1]
     assert (out_r.alpha[0, 0, 12:36, 14:32] > 0.995).all()  # the wall stops those pixels

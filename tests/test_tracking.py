@@ -97,7 +97,7 @@ def test_block_sparse_gram_equals_the_dense_product():
         J[rows, nid + v * nv : nid + (v + 1) * nv] = rng.standard_normal((300, nv))
     r0 = V * 300
     J[r0 : r0 + n] = np.diag(rng.random(n) + 0.5)
-    J[r0 + n : r0 + n + 40] = rng.standard_normal((40, n))  # rows 1400.. stay zero: an empty chunk
+    J[r0 + n : r0 + n + 40] = rng.standard_normal((40, n))  # rows 1298.. stay zero: the last chunk is empty
     H = _gram(J, chunk=256)
     np.testing.assert_allclose(H, J.T @ J, rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(_gram(J, chunk=7), J.T @ J, rtol=1e-12, atol=1e-9)

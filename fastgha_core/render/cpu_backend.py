@@ -8,7 +8,8 @@ float64 kernels to float32 rounding (tested against the dense reference).
 
 With gradients and in float32 (training, test-time refinement) it runs the same float32 forward
 and ``cpu_kernels.raster_backward_fast``, which walks each tile front to back again and takes
-the colour behind a splat from the final sums (no per-pixel state beyond the forward's outputs).
+the colour behind a splat from the final sums (one running sum per pixel, no transmittance
+recovered by division).
 Float64 inputs, and ``FASTGHA_RASTER_FAST=0``, keep the float64 kernels (``raster_forward`` /
 ``raster_backward``, the exact path the gradcheck test uses).
 

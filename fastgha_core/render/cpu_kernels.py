@@ -812,8 +812,9 @@ def raster_forward_fast(rec, offsets, ids, width, height, tw, n_chunks, out_acc,
 # gradients). The forward is ``raster_forward_fast`` above, unchanged. The backward walks every
 # tile FRONT to back again, repeating the forward's exact float32 arithmetic (so the same splats
 # are composited and the same pixels stop), and gets the colour behind splat i from the final
-# sums: ``S_after = acc_final - acc_through_i``. No per-pixel state beyond the forward's outputs is
-# kept, and no transmittance is recovered by division (which loses accuracy behind opaque splats).
+# sums: ``S_after = acc_final - acc_through_i``, carried per pixel as one running sum ``R`` of the
+# incoming gradient times it (``raster_backward_fast``). No transmittance is recovered by division
+# (which loses accuracy behind opaque splats).
 #
 # Gradient of one composited splat at one pixel (w = alpha T, a = alpha, Tf = final T):
 #   d acc_d / d a = v_d T - S_after_d / (1 - a),  d (1 - Tf) / d a = Tf / (1 - a),
