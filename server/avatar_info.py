@@ -52,6 +52,7 @@ def server_options(model: Any) -> dict:
             "mouth_interior": bool(d.prior and d.mouth_interior),
             "back_shell": bool(d.prior and d.back_shell),
             "chin_shell": bool(d.prior and d.chin_shell),
+            "cheek_shell": bool(d.prior and d.cheek_shell),
             "fade_m": [float(x) for x in d.prior_fade],
         },
     }

@@ -1235,6 +1235,57 @@ def chin_shell(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gauss
     return g, PriorBinding(b.vertex_ids, b.bary, torch.ones(len(b)), b.transform, b.identity, b.space, b.group)
 
 
+# Cheek shell: the same kind of opaque skin under the cheeks beside the mouth. Seen from a side, the
+# line of sight through a cheek ends on the mouth interior (teeth, gums, socket; drawn whenever the lips
+# part). Where refinement has thinned the reconstructed cheek (alpha 0.998 -> 0.93, 35 % of its pixels
+# under 0.9 in the demo's turned frames), the socket's red showed through as dots on the cheek.
+CHEEK_SHELL_TOP = 0.01  # metres above the nose's base (landmark 33): the shell's top, above the upper gums
+CHEEK_SHELL_LIP = 0.01  # metres: no shell this near a lip landmark (48-67), so the opening stays open
+CHEEK_SHELL_INNER = 0.005  # metres: the shell's inner edge, this far inside the mouth corners (landmarks 48, 54)
+
+
+@functools.lru_cache(maxsize=2)
+def _cheek_shell_cached(key: int, basis: HeadBasis) -> np.ndarray:
+    from ..data.headmodel import HEAD_VERTEX_RANGE, HeadModel
+
+    v = basis.neutral
+    lm = v[HeadModel.load().landmarks68]
+    idx = np.arange(HEAD_VERTEX_RANGE[0], HEAD_VERTEX_RANGE[1])
+    p = v[idx]
+    chin = np.zeros(len(v), bool)
+    chin[_chin_shell_cached(key, basis)] = True
+    # in front of the back shell, from the chin shell's top up to above the upper gums
+    sel = (p[:, 2] >= lm[0, 2] - CHIN_SHELL_FRONT) & (p[:, 1] >= lm[8, 1] + CHIN_SHELL_TOP) & (p[:, 1] <= lm[33, 1] + CHEEK_SHELL_TOP)
+    lips = lm[48:68]
+    sel &= np.linalg.norm(p[:, None, :] - lips[None], axis=-1).min(1) > CHEEK_SHELL_LIP
+    # beside the mouth only: in front of the teeth (philtrum, chin) the face is opaque from every view
+    sel &= np.abs(p[:, 0]) >= np.abs(lm[[48, 54], 0]).min() - CHEEK_SHELL_INNER
+    side = np.c_[np.abs(p[:, 0]), p[:, 1:]]  # both ears on the +x side, as the back shell
+    sel &= np.linalg.norm(side - BACK_SHELL_EAR_CENTRE, axis=1) > BACK_SHELL_EAR
+    return _spaced(v, idx[sel & ~chin[idx]])
+
+
+def cheek_shell_vertices(basis: HeadBasis) -> np.ndarray:
+    """``[S]`` int64 vertex ids of the cheek shell: ICT-FaceKit head skin in front of the back shell
+    (``CHIN_SHELL_FRONT`` behind landmark 0), from the chin shell's top (``CHIN_SHELL_TOP`` above
+    landmark 8) up to ``CHEEK_SHELL_TOP`` above the nose's base (landmark 33), farther than
+    ``CHEEK_SHELL_LIP`` from every lip landmark (48-67) and than ``BACK_SHELL_EAR`` from the ears,
+    not in the chin shell, no two closer than ``BACK_SHELL_SPACING`` on the neutral head. Empty for
+    other head models."""
+    if basis.space != "ict53":
+        return np.zeros(0, np.int64)
+    return _cheek_shell_cached(id(basis), basis)
+
+
+def cheek_shell(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gaussians | None" = None) -> tuple["Gaussians", PriorBinding]:  # noqa: F821
+    """Ungated Gaussians under the skin of the cheeks and around the mouth (``cheek_shell_vertices``),
+    made and bound as ``chin_shell``'s (weight 1: they follow the cheeks' expression displacement), so
+    that a thinned cheek shows skin, not the mouth interior behind it. Returns ``(gaussians [S],
+    binding [S])``."""
+    g, b = back_shell(fit, basis, num_features, avatar=avatar, ids=cheek_shell_vertices(basis))
+    return g, PriorBinding(b.vertex_ids, b.bary, torch.ones(len(b)), b.transform, b.identity, b.space, b.group)
+
+
 def mouth_gate_vector(basis: HeadBasis) -> Tensor:
     """``[E]`` weights whose dot product with an expression measures how far the lips are open."""
     return torch.from_numpy(basis.gate)
