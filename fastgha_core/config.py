@@ -168,9 +168,10 @@ class DeformConfig:
     # to follow the expression prior (``chin_shell``): a pitched-up view sees the jaw's underside that no
     # input does (docs/model-card.md "Under the chin")
     chin_shell: bool = True
-    # with the prior (ict53): the same kind of shell under the cheeks beside the mouth (``cheek_shell``):
-    # seen from a side, a cheek thinned by refinement shows the mouth interior's red through it. Off by
-    # default: it removes those dots, but dlib reads the smiles of avatars without refinement as
+    # with the prior (ict53): the same kind of shell under the cheeks beside the mouth (``cheek_shell``)
+    # in every avatar. Off: a cheek thinned by refinement showed the mouth interior's red through it
+    # from a side, so refinement that changes opacities adds the shell to the avatars it refines
+    # (``RefineConfig.cheek_shell``); in every avatar dlib reads never-refined avatars' smiles as
     # narrower (held-out mouthSmile response 0.76 -> 0.68, under issue 16's 0.7; docs/model-card.md
     # "Red dots on the cheek")
     cheek_shell: bool = False

@@ -466,3 +466,45 @@ def test_refine_preset_for_picks_colours_only_for_avatars_on_a_tracked_head(samp
     assert refine_config_for(tracked, 3, "default", optimize_cameras=True).optimize_cameras
     with pytest.raises(ValueError, match="unknown refinement preset 'nope'"):
         refine_config_for(avatar, 3, "nope")
+
+
+def test_refinement_that_thins_backs_the_cheeks_with_the_cheek_shell(sample):
+    """Opacity and scale corrections thin the cheeks, and from a side the mouth interior then shows
+    through them: the refined avatar gets the cheek shell (``model/prior.py`` ``cheek_shell``) after its
+    other shells, on the head its binding was fitted to, so the same points ``reconstruct`` lays with
+    ``DeformConfig.cheek_shell``; colours-only refinement and ``cheek_shell=False`` leave it out."""
+    import dataclasses
+
+    from fastgha_core.model.prior import cheek_shell_vertices
+    from fastgha_core.refine import REFINE_PRESETS
+
+    model, avatar, images, masks, cams, expr = sample
+    assert not model.config.deform.cheek_shell  # the model does not put it in every avatar
+    ids = torch.from_numpy(cheek_shell_vertices(model.head_basis()))
+    k, n0, extras = len(ids), avatar.num_reconstructed, len(avatar) - avatar.num_reconstructed
+    base = dataclasses.replace(REFINE_PRESETS["default"], steps=1, resolution=64)
+    out = refine_avatar(model, avatar, images, cams, masks, config=base, expressions=expr).avatar
+    n, at = out.num_reconstructed, out.num_reconstructed + model._shell_count()
+    assert len(out) == n + extras + k and out.num_interior == avatar.num_interior + k
+    run = slice(at, at + k)
+    assert torch.equal(out.prior.vertex_ids[run, 0], ids)
+    assert torch.all(out.prior.groups()[run] == -1) and torch.all(out.prior.weight[run] == 1)
+    # what came before and after it is the avatar's own: the shells before it, the gated interior after
+    torch.testing.assert_close(out.gaussians.means[n:at], avatar.gaussians.means[n0 : n0 + model._shell_count()])
+    torch.testing.assert_close(out.gaussians.means[at + k :], avatar.gaussians.means[n0 + model._shell_count() :])
+    assert torch.equal(out.prior.groups()[at + k :], avatar.prior.groups()[n0 + model._shell_count() :])
+    # the same points reconstruct lays when the model puts the shell in every avatar
+    imgs, in_cams = model.prepare(list(images), [cams[i : i + 1] for i in range(len(cams.K))], list(masks))
+    model.config.deform.cheek_shell = True
+    try:
+        every = model.reconstruct(imgs, in_cams)
+        at_e = every.num_reconstructed + model._shell_count() - k
+        torch.testing.assert_close(out.gaussians.means[run], every.gaussians.means[at_e : at_e + k], atol=1e-6, rtol=0)
+    finally:
+        model.config.deform.cheek_shell = False
+    # the refined avatar animates with it (the shell follows the binding like the chin shell)
+    frame = model.animate(out, expr[0])
+    assert len(frame) >= at + k
+    for cfg in (dataclasses.replace(REFINE_PRESETS["photos"], steps=1, resolution=64), dataclasses.replace(base, cheek_shell=False)):
+        other = refine_avatar(model, avatar, images, cams, masks, config=cfg, expressions=expr).avatar
+        assert len(other) == other.num_reconstructed + extras and other.num_interior == avatar.num_interior

@@ -129,6 +129,11 @@ class RefineConfig:
             and appended Gaussians (shell, mouth interior, lids), so it animates exactly as the
             refinement rendered it (False: the head is refitted to the refined Gaussians and the
             appended Gaussians are rebuilt, ``FastGHA.attach_prior``).
+        cheek_shell: when the refinement changes opacities or scales (``lr_opacity`` or ``lr_scale``
+            > 0) and keeps the binding, back the refined avatar's cheeks with the expression prior's
+            cheek shell (``model/prior.py`` ``cheek_shell``; not when the model already puts it in
+            every avatar, ``DeformConfig.cheek_shell``): those corrections thin the cheeks, and seen
+            from a side the mouth interior then shows through them as red dots.
     """
 
     steps: int = 60  # the measured setting (docs/model-card.md, test-time refinement)
@@ -182,6 +187,9 @@ class RefineConfig:
     # was a refit: the refit binding moved some neck Gaussians in view 1 of the sample, which showed as
     # coloured splats the refinement never saw (29.16 -> 29.21 dB kept)
     keep_binding: bool = True
+    # after opacity / scale corrections (docs/model-card.md, "Red dots on the cheek"): the demo's red dots
+    # gone; in every avatar it cost the smile response of avatars that are never refined
+    cheek_shell: bool = True
 
     def __post_init__(self) -> None:
         if self.steps < 0:
@@ -226,6 +234,37 @@ REFINE_PRESETS: dict[str, RefineConfig] = {
     # below the median by the full step size (studio-4 at 2 steps: identity 0.619 -> 0.579)
     "photos": RefineConfig(steps=30, lr_opacity=0.0, lr_scale=0.0, photo_in_mask=True, w_reg_color=0.1, noise_floor=1.0),
 }
+
+
+def _with_cheek_shell(model, avatar: CanonicalAvatar, n: int) -> CanonicalAvatar:
+    """``avatar`` (``n`` reconstructed Gaussians, then the model's shells, then the gated interior) with
+    the cheek shell (``model/prior.py`` ``cheek_shell``) inserted after its shells, laid on the head
+    its binding was fitted to and coloured from its ``n`` reconstructed Gaussians. Returned unchanged
+    when the model has no expression prior, already puts the shell in every avatar
+    (``DeformConfig.cheek_shell``) or its head model has no cheek shell."""
+    import numpy as np
+
+    from ..model.prior import HeadFit, PriorBinding, cheek_shell, cheek_shell_vertices
+
+    d = model.config.deform
+    b = avatar.prior
+    if not d.prior or d.cheek_shell or b is None:
+        return avatar
+    basis = model.head_basis()
+    if b.space != basis.space or not len(cheek_shell_vertices(basis)):
+        return avatar
+    T = b.transform.detach().cpu().double().numpy()
+    ident = b.identity.detach().cpu().float().numpy()
+    verts = basis.neutral.astype(np.float64) + np.tensordot(ident, basis.identity_basis, axes=1)
+    fit = HeadFit(identity=ident, transform=T.astype(np.float32), vertices=(verts @ T[:3, :3].T + T[:3, 3]).astype(np.float32), rms=0.0)
+    g = avatar.gaussians
+    gs, bs = cheek_shell(fit, basis, g.features.shape[1], avatar=g[:n].detach())
+    at = n + model._shell_count()  # after the back and chin shells, before the gated interior
+    dev = b.vertex_ids.device
+    head, tail = torch.arange(at, device=dev), torch.arange(at, len(b), device=dev)
+    binding = PriorBinding.concat(PriorBinding.concat(b.index(head), bs.to(dev)), b.index(tail))
+    g_all = Gaussians.concat([g[:at], gs.to(g.means.device, g.means.dtype), g[at:]])
+    return CanonicalAvatar(g_all, avatar.model_name, avatar.expression_space, binding, avatar.num_interior + len(gs), avatar.view_blend)
 
 
 def refine_preset_for(avatar: CanonicalAvatar, preset: str = "auto") -> str:
@@ -782,6 +821,8 @@ def _refine_avatar(
         vb = avatar.view_blend  # per-view data of the kept reconstructed Gaussians (model/viewblend.py)
         vb = vb.subset(kept.to(vb.source_view.device)) if vb is not None and len(vb) == n else None
         out = CanonicalAvatar(g_all, avatar.model_name, avatar.expression_space, binding, avatar.num_interior, vb)
+        if config.cheek_shell and (config.lr_opacity > 0 or config.lr_scale > 0):
+            out = _with_cheek_shell(model, out, int(kept.sum()))
     else:
         out = CanonicalAvatar(g.to(dev), avatar.model_name, avatar.expression_space)
         if avatar.prior is not None:
