@@ -4,15 +4,14 @@ shows skin from the side instead of the mouth interior behind it."""
 
 from __future__ import annotations
 
-import copy
-
 import numpy as np
 import pytest
 import torch
+from face_avatars import SKIN, face_avatars
 from prior_frames import fast_and_plain
 
-from fastgha_core.data.headmodel import HeadModel, vertex_normals
-from fastgha_core.model.prior import CHEEK_SHELL_INNER, CHEEK_SHELL_LIP, CHIN_SHELL_DOWN, back_shell_vertices, cheek_shell_vertices, chin_shell_vertices, load_basis
+from fastgha_core.data.headmodel import HeadModel
+from fastgha_core.model.prior import CHEEK_SHELL_INNER, CHEEK_SHELL_LIP, back_shell_vertices, cheek_shell_vertices, chin_shell_vertices, load_basis
 
 
 @pytest.fixture(scope="module")
@@ -43,52 +42,14 @@ def test_cheek_shell_vertices_lie_beside_the_mouth_apart_from_the_other_shells(b
     assert float(d[:, 1].min()) >= 0.0065 - 1e-6
 
 
-SKIN = np.array([0.78, 0.58, 0.48], np.float32)
-
-
-def _face_avatars(opacity: float):
-    """Avatars of what frontal photos see (ICT skin in front of the ears, above the chin and not facing
-    down), every Gaussian at ``opacity``, built with and without the cheek shell."""
-    from fastgha_core.config import get_preset
-    from fastgha_core.gaussians import Gaussians
-    from fastgha_core.model.avatar import CanonicalAvatar
-    from fastgha_core.model.fastgha import FastGHA
-
-    basis = load_basis("ict53")
-    hm = HeadModel.load()
-    v = hm.neutral
-    lm = v[hm.landmarks68]
-    ny = vertex_normals(v, basis.bind_faces)[:, 1]
-    face = np.arange(0, 11248, 2)
-    face = face[(v[face, 2] > lm[0, 2] - 0.01) & (v[face, 1] > lm[8, 1] - 0.005) & (ny[face] > CHIN_SHELL_DOWN)]
-    n = len(face)
-    g = Gaussians(
-        torch.from_numpy(v[face].copy()), torch.tensor([1.0, 0, 0, 0]).expand(n, 4).clone(), torch.full((n, 3), 0.0025),
-        torch.full((n,), opacity), torch.from_numpy(np.tile(SKIN, (n, 1))), torch.zeros(n, 32),
-    )
-    torch.manual_seed(0)
-    on = FastGHA(get_preset("tiny")).eval()
-    with torch.no_grad():
-        on.deform.out.weight.zero_()
-        on.deform.out.bias.zero_()
-    on.config.deform.cheek_shell = True
-    off = copy.deepcopy(on)
-    off.config.deform.cheek_shell = False
-    out = {}
-    for name, m in (("on", on), ("off", off)):
-        g2, b, n_int = m.build_prior(g)
-        out[name] = (m, CanonicalAvatar(g2, "tiny", "ict53", b, n_int))
-    return out, n, lm
-
-
 @pytest.fixture(scope="module")
 def opaque():
-    return _face_avatars(0.95)
+    return face_avatars("cheek_shell", 0.95)
 
 
 @pytest.fixture(scope="module")
 def thin():
-    return _face_avatars(0.5)
+    return face_avatars("cheek_shell", 0.5)
 
 
 def test_cheek_shell_off_is_the_avatar_without_it(opaque):

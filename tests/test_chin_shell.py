@@ -3,11 +3,10 @@ jaw and on the front of the neck, for the pitched-up views that see what no inpu
 
 from __future__ import annotations
 
-import copy
-
 import numpy as np
 import pytest
 import torch
+from face_avatars import SKIN, face_avatars
 from prior_frames import fast_and_plain
 
 from fastgha_core.data.headmodel import HeadModel, vertex_normals
@@ -41,45 +40,10 @@ def test_chin_shell_vertices_lie_under_the_jaw_apart_from_the_back_shell(basis):
     assert float(d[:, 1].min()) >= 0.0065 - 1e-6
 
 
-def _face_avatars():
-    """An avatar of what frontal photos see (ICT skin in front of the ears, above the chin and not
-    facing down), built with and without the chin shell."""
-    from fastgha_core.config import get_preset
-    from fastgha_core.gaussians import Gaussians
-    from fastgha_core.model.avatar import CanonicalAvatar
-    from fastgha_core.model.fastgha import FastGHA
-
-    basis = load_basis("ict53")
-    hm = HeadModel.load()
-    v = hm.neutral
-    lm = v[hm.landmarks68]
-    ny = vertex_normals(v, basis.bind_faces)[:, 1]
-    face = np.arange(0, 11248, 2)
-    face = face[(v[face, 2] > lm[0, 2] - 0.01) & (v[face, 1] > lm[8, 1] - 0.005) & (ny[face] > CHIN_SHELL_DOWN)]
-    n = len(face)
-    skin = np.array([0.78, 0.58, 0.48], np.float32)
-    g = Gaussians(
-        torch.from_numpy(v[face].copy()), torch.tensor([1.0, 0, 0, 0]).expand(n, 4).clone(), torch.full((n, 3), 0.0025),
-        torch.full((n,), 0.95), torch.from_numpy(np.tile(skin, (n, 1))), torch.zeros(n, 32),
-    )
-    torch.manual_seed(0)
-    on = FastGHA(get_preset("tiny")).eval()
-    with torch.no_grad():
-        on.deform.out.weight.zero_()
-        on.deform.out.bias.zero_()
-    on.config.deform.chin_shell = True
-    off = copy.deepcopy(on)
-    off.config.deform.chin_shell = False
-    out = {}
-    for name, m in (("on", on), ("off", off)):
-        g2, b, n_int = m.build_prior(g)
-        out[name] = (m, CanonicalAvatar(g2, "tiny", "ict53", b, n_int))
-    return out, n, lm, skin
-
-
 @pytest.fixture(scope="module")
 def avatars():
-    return _face_avatars()
+    out, n, lm = face_avatars("chin_shell")
+    return out, n, lm, SKIN
 
 
 def test_chin_shell_off_is_the_avatar_without_it(avatars):

@@ -1103,21 +1103,31 @@ def _spaced(v: np.ndarray, ids: np.ndarray) -> np.ndarray:
     return ids[np.array(keep, np.int64)].astype(np.int64)
 
 
-@functools.lru_cache(maxsize=2)
-def _back_shell_cached(key: int, basis: HeadBasis) -> np.ndarray:
+def _head_skin(basis: HeadBasis) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(v [Nv, 3], lm [68, 3], idx [S], p [S, 3])``: the neutral ICT-FaceKit vertices, its 68
+    landmarks, the head skin's vertex ids (``HEAD_VERTEX_RANGE``) and their positions (metres)."""
     from ..data.headmodel import HEAD_VERTEX_RANGE, HeadModel
 
     v = basis.neutral
-    lm = v[HeadModel.load().landmarks68]
     idx = np.arange(HEAD_VERTEX_RANGE[0], HEAD_VERTEX_RANGE[1])
-    p = v[idx]
+    return v, v[HeadModel.load().landmarks68], idx, v[idx]
+
+
+def _away_from_ears(p: np.ndarray) -> np.ndarray:
+    """``[S]`` bool: the points ``p [S, 3]`` (neutral head, metres) farther than ``BACK_SHELL_EAR`` from both ears."""
+    side = np.c_[np.abs(p[:, 0]), p[:, 1:]]  # both ears on the +x side
+    return np.linalg.norm(side - BACK_SHELL_EAR_CENTRE, axis=1) > BACK_SHELL_EAR
+
+
+@functools.lru_cache(maxsize=2)
+def _back_shell_cached(key: int, basis: HeadBasis) -> np.ndarray:
+    v, lm, idx, p = _head_skin(basis)
     brow = lm[17:27, 1].max()
     # behind the ears (down to the chin's height: the back of the neck too) or above the hairline
     sel = ((p[:, 2] < lm[0, 2] - 0.02) & (p[:, 1] > lm[8, 1] - 0.02)) | (p[:, 1] > brow + 0.045)
     # not the skin within BACK_SHELL_EAR of the ears: seen from the side, a shell there showed through
     # the reconstructed ear as a dark rim (held-out PSNR 20.56 -> 20.49 dB on synth_1000001)
-    side = np.c_[np.abs(p[:, 0]), p[:, 1:]]  # both ears on the +x side
-    sel &= np.linalg.norm(side - BACK_SHELL_EAR_CENTRE, axis=1) > BACK_SHELL_EAR
+    sel &= _away_from_ears(p)
     return _spaced(v, idx[sel])
 
 
@@ -1203,12 +1213,9 @@ CHIN_SHELL_TOP = 0.012  # metres above the chin's lowest point (landmark 8): the
 
 @functools.lru_cache(maxsize=2)
 def _chin_shell_cached(key: int, basis: HeadBasis) -> np.ndarray:
-    from ..data.headmodel import HEAD_VERTEX_RANGE, HeadModel, vertex_normals
+    from ..data.headmodel import vertex_normals
 
-    v = basis.neutral
-    lm = v[HeadModel.load().landmarks68]
-    idx = np.arange(HEAD_VERTEX_RANGE[0], HEAD_VERTEX_RANGE[1])
-    p = v[idx]
+    v, lm, idx, p = _head_skin(basis)
     ny = vertex_normals(v, basis.bind_faces)[idx, 1]
     # in front of the back shell, below the lower lip: the jaw's underside, or the neck under the chin
     sel = (p[:, 2] >= lm[0, 2] - CHIN_SHELL_FRONT) & (p[:, 1] < min(lm[57, 1], lm[8, 1] + CHIN_SHELL_TOP)) & ((ny < CHIN_SHELL_DOWN) | (p[:, 1] < lm[8, 1]))
@@ -1246,12 +1253,7 @@ CHEEK_SHELL_INNER = 0.005  # metres: the shell's inner edge, this far inside the
 
 @functools.lru_cache(maxsize=2)
 def _cheek_shell_cached(key: int, basis: HeadBasis) -> np.ndarray:
-    from ..data.headmodel import HEAD_VERTEX_RANGE, HeadModel
-
-    v = basis.neutral
-    lm = v[HeadModel.load().landmarks68]
-    idx = np.arange(HEAD_VERTEX_RANGE[0], HEAD_VERTEX_RANGE[1])
-    p = v[idx]
+    v, lm, idx, p = _head_skin(basis)
     chin = np.zeros(len(v), bool)
     chin[_chin_shell_cached(key, basis)] = True
     # in front of the back shell, from the chin shell's top up to above the upper gums
@@ -1260,8 +1262,7 @@ def _cheek_shell_cached(key: int, basis: HeadBasis) -> np.ndarray:
     sel &= np.linalg.norm(p[:, None, :] - lips[None], axis=-1).min(1) > CHEEK_SHELL_LIP
     # beside the mouth only: in front of the teeth (philtrum, chin) the face is opaque from every view
     sel &= np.abs(p[:, 0]) >= np.abs(lm[[48, 54], 0]).min() - CHEEK_SHELL_INNER
-    side = np.c_[np.abs(p[:, 0]), p[:, 1:]]  # both ears on the +x side, as the back shell
-    sel &= np.linalg.norm(side - BACK_SHELL_EAR_CENTRE, axis=1) > BACK_SHELL_EAR
+    sel &= _away_from_ears(p)
     return _spaced(v, idx[sel & ~chin[idx]])
 
 
