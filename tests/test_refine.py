@@ -46,10 +46,13 @@ def test_refinement_fits_the_input_views_better(sample, smooth_grid):
     assert float(after.mean()) > float(before.mean()) + 0.3
     # the refined avatar is an ordinary avatar: features kept, animated like any other
     assert res.avatar.gaussians.features.shape[1] == avatar.gaussians.features.shape[1]
-    assert res.avatar.num_interior == avatar.num_interior  # one mouth interior, not a second one appended
+    from fastgha_core.model.prior import cheek_shell_vertices
+
+    k = len(cheek_shell_vertices(model.head_basis()))  # the cheek shell backing what the corrections thinned
+    assert res.avatar.num_interior == avatar.num_interior + k  # one mouth interior, not a second one appended
     assert res.avatar.num_reconstructed <= avatar.num_reconstructed  # refinement may prune, never adds
     shown = [len(model.animate(a, expr[0])) - a.num_reconstructed for a in (avatar, res.avatar)]
-    assert shown[0] == shown[1]  # the same mouth / lid Gaussians shown at this expression
+    assert shown[0] + k == shown[1]  # the same mouth / lid Gaussians shown at this expression, and the shell
     assert res.cameras.w2c.shape == cams.w2c.shape and (res.cameras.width, res.cameras.height) == (cams.width, cams.height)
 
 
