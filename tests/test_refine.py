@@ -505,6 +505,9 @@ def test_refinement_that_thins_backs_the_cheeks_with_the_cheek_shell(sample):
         torch.testing.assert_close(out.gaussians.means[run], every.gaussians.means[at_e : at_e + k], atol=1e-6, rtol=0)
     finally:
         model.config.deform.cheek_shell = False
+    # refining the refined avatar again does not add a second shell
+    again = refine_avatar(model, out, images, cams, masks, config=base, expressions=expr).avatar
+    assert again.num_interior == out.num_interior and len(again) == again.num_reconstructed + extras + k
     # the refined avatar animates with it (the shell follows the binding like the chin shell)
     frame = model.animate(out, expr[0])
     assert len(frame) >= at + k

@@ -258,9 +258,12 @@ def _with_cheek_shell(model, avatar: CanonicalAvatar, n: int) -> CanonicalAvatar
     verts = basis.neutral.astype(np.float64) + np.tensordot(ident, basis.identity_basis, axes=1)
     fit = HeadFit(identity=ident, transform=T.astype(np.float32), vertices=(verts @ T[:3, :3].T + T[:3, 3]).astype(np.float32), rms=0.0)
     g = avatar.gaussians
-    gs, bs = cheek_shell(fit, basis, g.features.shape[1], avatar=g[:n].detach())
     at = n + model._shell_count()  # after the back and chin shells, before the gated interior
     dev = b.vertex_ids.device
+    ids = torch.from_numpy(cheek_shell_vertices(basis)).to(dev)
+    if len(b) >= at + len(ids) and torch.equal(b.vertex_ids[at : at + len(ids), 0], ids):
+        return avatar  # refined before: it has the shell already
+    gs, bs = cheek_shell(fit, basis, g.features.shape[1], avatar=g[:n].detach())
     head, tail = torch.arange(at, device=dev), torch.arange(at, len(b), device=dev)
     binding = PriorBinding.concat(PriorBinding.concat(b.index(head), bs.to(dev)), b.index(tail))
     g_all = Gaussians.concat([g[:at], gs.to(g.means.device, g.means.dtype), g[at:]])
