@@ -1,5 +1,5 @@
 """The command-line plumbing the bench scripts share: their parsers' common options, ``--json``
-output and ``--threads``.
+output, ``--threads`` and ``--isa``.
 
 A script imports it after putting its own folder on ``sys.path`` (``python bench/x.py`` has it
 there already; tests load the scripts by file path, which does not)::
@@ -14,7 +14,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import sys
 from pathlib import Path
+
+ISA_ENV = "FASTGHA_BENCH_ISA"  # set in the re-run process by run_as_isa
+# 64-bit x86 with AVX2 and FMA, no AVX-512 (LLVM's name for x86-64 microarchitecture level 3)
+AVX2_CPU = "x86-64-v3"
 
 
 def parser(doc: str) -> argparse.ArgumentParser:
@@ -67,3 +73,41 @@ def write_json(path: str | Path | None, report, indent: int = 2) -> None:
     if path:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         Path(path).write_text(json.dumps(report, indent=indent))
+
+
+def add_isa(ap: argparse.ArgumentParser) -> None:
+    """``--isa host|avx2`` (default host): see ``run_as_isa``."""
+    ap.add_argument("--isa", choices=("host", "avx2"), default="host",
+                    help="avx2: compile and dispatch as an AVX2-only machine would (no AVX-512), on this one")  # fmt: skip
+
+
+def run_as_isa(isa: str, script: str | Path, argv: list[str] | None) -> None:
+    """Re-run ``script`` with ``argv`` (``None``: this process's arguments) in a fresh process whose
+    vector code is limited to ``isa``, and exit with its status; return at once for ``host`` or when
+    this process already is that re-run.
+
+    ``avx2``: numba compiles the rasterizer's kernels for ``x86-64-v3`` with every AVX-512 feature
+    off (``NUMBA_CPU_NAME`` / ``NUMBA_CPU_FEATURES``; numba caches them apart from the host's), and
+    torch, MKL and oneDNN dispatch their AVX2 kernels (``ATEN_CPU_CAPABILITY``,
+    ``MKL_ENABLE_INSTRUCTIONS``, ``ONEDNN_MAX_CPU_ISA``). It measures what the code does with AVX2's
+    sixteen 256-bit registers on this core, not an AVX2 machine's clock or caches.
+
+    Raises:
+        SystemExit: this CPU has no AVX2.
+    """
+    if isa == "host" or os.environ.get(ISA_ENV) == isa:
+        return
+    import subprocess
+
+    import llvmlite.binding as ll
+
+    feats = ll.get_host_cpu_features()
+    if not feats.get("avx2"):
+        raise SystemExit("--isa avx2: this CPU has no AVX2")
+    off = ("avx512", "avx10", "amx", "evex512")
+    flags = ",".join(("-" if k.startswith(off) or not v else "+") + k for k, v in sorted(feats.items()))
+    env = dict(os.environ, NUMBA_CPU_NAME=AVX2_CPU, NUMBA_CPU_FEATURES=flags, ATEN_CPU_CAPABILITY="avx2",
+               MKL_ENABLE_INSTRUCTIONS="AVX2", ONEDNN_MAX_CPU_ISA="AVX2")  # fmt: skip
+    env[ISA_ENV] = isa
+    args = sys.argv[1:] if argv is None else list(argv)
+    raise SystemExit(subprocess.call([sys.executable, str(script), *args], env=env))

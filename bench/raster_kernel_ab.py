@@ -4,6 +4,8 @@
 
     python bench/raster_kernel_ab.py 70c35b7 --pass backward   # the scalar gradient kernel
 
+    python bench/raster_kernel_ab.py 1a81e15 --pass backward --isa avx2   # both compiled for AVX2 only
+
 Both kernels composite the same packed splats of the shipped model's avatar of the first shipped
 sample (one frame from the default camera at 256² and 512²); the script prints the median ms of
 each over interleaved repeats. Forward: it checks the outputs are bit-identical. Backward (incoming
@@ -29,6 +31,8 @@ import numpy as np
 import torch
 
 REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _bench_cli import add_isa, run_as_isa  # noqa: E402
 KERNELS = "fastgha_core/render/cpu_kernels.py"
 
 
@@ -101,7 +105,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("rev", help="git revision holding the other kernel")
     p.add_argument("--repeats", type=int, default=15)
     p.add_argument("--pass", dest="which", choices=("forward", "backward"), default="forward")
+    add_isa(p)
     args = p.parse_args(argv)
+    run_as_isa(args.isa, __file__, argv)
     from fastgha_core.render import cpu_kernels as new
 
     kernels = {args.rev: kernels_at(args.rev), "working tree": new}

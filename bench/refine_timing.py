@@ -1,7 +1,7 @@
 """Test-time refinement cost, side by side in one process (timings on a shared machine are noisy:
 compare the ratios, and prefer the CPU-time columns).
 
-    python bench/refine_timing.py [--repeats 5] [--steps 40] [--skip-raster] [--previous] [--against PRESET]
+    python bench/refine_timing.py [--repeats 5] [--steps 40] [--skip-raster] [--previous] [--against PRESET] [--isa avx2]
 
 1. Rasterizer forward+backward of ``fastgha bench render``'s 65,536-Gaussian head scene at 256²
    (loss on rgb, alpha and depth): the float64 kernels (``FASTGHA_RASTER_FAST=0``, the path before
@@ -11,6 +11,8 @@ compare the ratios, and prefer the CPU-time columns).
    defaults before 2026-11-30 (night), interleaved with the current ones, and prints the ratio;
    ``--against PRESET`` does the same for ``REFINE_PRESETS[PRESET]`` (e.g. ``colour``: the defaults
    before the scale corrections).
+
+``--isa avx2`` runs it all as an AVX2-only machine would compile and dispatch it (``_bench_cli.run_as_isa``).
 """
 
 from __future__ import annotations
@@ -18,7 +20,9 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
+import sys
 import time
+from pathlib import Path
 
 import fastgha_core  # noqa: F401  (sets the OpenMP defaults before torch is imported)
 import torch
@@ -30,14 +34,19 @@ def _time(fn):
     return time.perf_counter() - t, time.process_time() - c
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--skip-raster", action="store_true")
     ap.add_argument("--previous", action="store_true", help="also time the defaults before 2026-11-30 night (REFINE_PRESETS['smooth']), interleaved")
     ap.add_argument("--against", default=None, help="also time REFINE_PRESETS[PRESET], interleaved, and print the ratio")
-    args = ap.parse_args()
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from _bench_cli import add_isa, run_as_isa
+
+    add_isa(ap)
+    args = ap.parse_args(argv)
+    run_as_isa(args.isa, __file__, argv)
     if args.previous and not args.against:
         args.against = "smooth"
     from fastgha_core.bench.render import bench_camera, head_scene

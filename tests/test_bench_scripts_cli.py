@@ -43,3 +43,42 @@ def test_write_json_makes_the_folder_and_skips_without_a_path(tmp_path, monkeypa
     assert json.loads(out.read_text()) == {"a": [1, 2]} and out.read_text().startswith('{\n "a"')
     write_json(None, {"a": 1})  # no --json: nothing written, no error
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["dir", "new", "r.json"]
+
+
+def _has_avx2() -> bool:
+    import llvmlite.binding as ll
+
+    return bool(ll.get_host_cpu_features().get("avx2"))
+
+
+@pytest.mark.skipif(not _has_avx2(), reason="needs an x86 CPU with AVX2")
+def test_isa_avx2_reruns_the_script_with_avx512_off(tmp_path, monkeypatch):
+    """``--isa avx2`` re-runs the script with its arguments in a process whose numba target has every
+    AVX-512 feature off and AVX2 on, and torch / MKL / oneDNN told to dispatch AVX2; the re-run
+    itself does not re-run again, and its exit status comes back."""
+    monkeypatch.syspath_prepend(str(ROOT / "bench"))
+    sys.modules.pop("_bench_cli", None)
+    import _bench_cli
+
+    script = tmp_path / "probe.py"
+    script.write_text(
+        "import json, os, sys\n"
+        "sys.path.insert(0, %r)\n"
+        "from _bench_cli import run_as_isa\n"
+        "run_as_isa('avx2', __file__, sys.argv[1:])  # already the re-run: returns\n"
+        "keys = ('NUMBA_CPU_NAME', 'NUMBA_CPU_FEATURES', 'ATEN_CPU_CAPABILITY', 'ONEDNN_MAX_CPU_ISA', 'FASTGHA_BENCH_ISA')\n"
+        "json.dump({'argv': sys.argv[1:], **{k: os.environ.get(k) for k in keys}}, open(sys.argv[1], 'w'))\n"
+        "sys.exit(3)\n" % str(ROOT / "bench")
+    )
+    out = tmp_path / "env.json"
+    with pytest.raises(SystemExit) as done:
+        _bench_cli.run_as_isa("avx2", script, [str(out), "--flag"])
+    assert done.value.code == 3
+    env = json.loads(out.read_text())
+    assert env["argv"] == [str(out), "--flag"]
+    feats = dict((f[1:], f[0]) for f in env["NUMBA_CPU_FEATURES"].split(","))
+    assert feats["avx2"] == "+" and feats["fma"] == "+"
+    assert feats.get("avx512f", "-") == "-" and all(v == "-" for k, v in feats.items() if k.startswith("avx512"))
+    assert env["NUMBA_CPU_NAME"] == "x86-64-v3" and env["ATEN_CPU_CAPABILITY"] == "avx2" and env["ONEDNN_MAX_CPU_ISA"] == "AVX2"
+    assert env["FASTGHA_BENCH_ISA"] == "avx2"
+    assert _bench_cli.run_as_isa("host", script, []) is None  # host: nothing re-run

@@ -692,33 +692,42 @@ def _composite_px(S, jj, dx, hA, cy, by, o, v0, v1, v2, v3):
 
 # Two window widths with trip counts fixed at compile time: LLVM then vectorises the row without
 # runtime trip-count and remainder code, which for 8-16 iterations cost more than the work. The
-# pixel centre is ``xb + q`` (exact in float32), the same value as ``float32(x) + 0.5``.
+# pixel centre is ``xb + q`` (exact in float32), the same value as ``float32(x) + 0.5``. Nothing in
+# the row loops is 64 bits wide: the column offsets ``q`` are loaded as float32 from ``_COL`` (not
+# converted from the int64 loop index) and the loops count the pixels they stop instead of setting
+# bits at ``1 << q`` (as int32, cast back each step: numba types integer sums as int64). With a 64-bit lane in the loop LLVM sizes the vectors by it, and on AVX2 (no
+# vector int64 -> float conversion, 256-bit registers) it took 4 float lanes instead of 8 and left
+# the gradient row loop mostly scalar: 2.5x slower than with AVX-512 on the same core
+# (``bench/raster_kernel_ab.py --pass backward`` under ``NUMBA_CPU_NAME``/``NUMBA_CPU_FEATURES``).
+_COL = np.arange(_TS, dtype=np.float32)
 @njit(cache=True, fastmath=False, inline="always")
 def _composite_row8(S, lo, xb, mx, hA, cy, by, o, v0, v1, v2, v3):
-    """Columns ``[lo, lo + 8)`` of a tile row; ``xb`` = centre of column ``lo``. Returns the bit mask
-    of the columns it stopped (bit ``lo + q`` for column ``lo + q``)."""
+    """Columns ``[lo, lo + 8)`` of a tile row; ``xb`` = centre of column ``lo``. Returns how many
+    pixels it stopped."""
     stopped = np.int32(0)
     for q in range(8):
-        stopped |= _composite_px(S, lo + q, mx - (xb + _F32(q)), hA, cy, by, o, v0, v1, v2, v3) << q
-    return stopped << lo
-
-
-@njit(cache=True, fastmath=False, inline="always")
-def _composite_row16(S, xb, mx, hA, cy, by, o, v0, v1, v2, v3):
-    """All 16 columns of a tile row; ``xb`` = centre of column 0. Returns the bit mask of the columns it stopped."""
-    stopped = np.int32(0)
-    for q in range(16):
-        stopped |= _composite_px(S, q, mx - (xb + _F32(q)), hA, cy, by, o, v0, v1, v2, v3) << q
+        stopped = np.int32(stopped + _composite_px(S, lo + q, mx - (xb + _COL[q]), hA, cy, by, o, v0, v1, v2, v3))
     return stopped
 
 
 @njit(cache=True, fastmath=False, inline="always")
-def _popcount16(m):
-    """Set bits of a 16-bit mask."""
-    m = m - ((m >> 1) & 0x5555)
-    m = (m & 0x3333) + ((m >> 2) & 0x3333)
-    m = (m + (m >> 4)) & 0x0F0F
-    return (m + (m >> 8)) & 0x1F
+def _composite_row16(S, xb, mx, hA, cy, by, o, v0, v1, v2, v3):
+    """All 16 columns of a tile row; ``xb`` = centre of column 0. Returns how many pixels it stopped."""
+    stopped = np.int32(0)
+    for q in range(16):
+        stopped = np.int32(stopped + _composite_px(S, q, mx - (xb + _COL[q]), hA, cy, by, o, v0, v1, v2, v3))
+    return stopped
+
+
+@njit(cache=True, fastmath=False)
+def _live_mask(S):
+    """Bit mask of the live columns of a tile row ``S`` (``S[1]`` > 0), rebuilt after a splat stopped
+    pixels in it (at most once per pixel, so rarely)."""
+    m = np.int32(0)
+    for q in range(_TS):
+        if S[1, q] > _ZERO:
+            m |= np.int32(1) << q
+    return m
 
 
 @njit(parallel=True, cache=True, fastmath=False)
@@ -791,8 +800,8 @@ def raster_forward_fast(rec, offsets, ids, width, height, tw, n_chunks, out_acc,
                 else:
                     st = _composite_row16(S[i - y0], xb, mx, hA, hC * dy * dy, B * dy, o, v0, v1, v2, v3)
                 if st:
-                    n_live -= _popcount16(st)
-                    rowmask[i - y0] &= ~st
+                    n_live -= st
+                    rowmask[i - y0] = _live_mask(S[i - y0])
             if n_live == 0:
                 break
         if touch != touch:  # never (the loads above only warm the cache); keeps them from being dropped
@@ -860,7 +869,7 @@ def _grad_px(S, L, jj, dx, dy, dy2, hA, cy, by, o, v0, v1, v2, v3):
 
 @njit(cache=True, fastmath=False, inline="always")
 def _grad_row16(S, L, xb, mx, dy, dy2, hA, cy, by, o, v0, v1, v2, v3):
-    """``_grad_px`` over all 16 columns; the stopped columns' bit mask (as ``_composite_row16``).
+    """``_grad_px`` over all 16 columns; how many pixels it stopped (as ``_composite_row16``).
 
     Always the whole row, also for a splat whose box fits in 8 columns (where the forward takes
     ``_composite_row8``): ``S`` and ``L`` are two arrays, so LLVM vectorises the loop only behind a
@@ -869,7 +878,7 @@ def _grad_row16(S, L, xb, mx, dy, dy2, hA, cy, by, o, v0, v1, v2, v3):
     (``bench/raster_kernel_ab.py --pass backward``)."""
     stopped = np.int32(0)
     for q in range(16):
-        stopped |= _grad_px(S, L, q, mx - (xb + _F32(q)), dy, dy2, hA, cy, by, o, v0, v1, v2, v3) << q
+        stopped = np.int32(stopped + _grad_px(S, L, q, mx - (xb + _COL[q]), dy, dy2, hA, cy, by, o, v0, v1, v2, v3))
     return stopped
 
 
@@ -965,8 +974,8 @@ def raster_backward_fast(rec, offsets, ids, width, height, tw, n_chunks, acc_fin
                 dy2 = dy * dy
                 st = _grad_row16(S[i - y0], L, xb, mx, dy, dy2, hA, hC * dy * dy, B * dy, o, v0, v1, v2, v3)
                 if st:
-                    n_live -= _popcount16(st)
-                    rowmask[i - y0] &= ~st
+                    n_live -= st
+                    rowmask[i - y0] = _live_mask(S[i - y0])
             # lane sums; dx is one value per column, so the dx-weighted sums are taken here
             gv0 = _ZERO
             gv1 = _ZERO
