@@ -692,14 +692,18 @@ def _composite_px(S, jj, dx, hA, cy, by, o, v0, v1, v2, v3):
 
 # Two window widths with trip counts fixed at compile time: LLVM then vectorises the row without
 # runtime trip-count and remainder code, which for 8-16 iterations cost more than the work. The
-# pixel centre is ``xb + q`` (exact in float32), the same value as ``float32(x) + 0.5``. Nothing in
-# the row loops is 64 bits wide: the column offsets ``q`` are loaded as float32 from ``_COL`` (not
-# converted from the int64 loop index) and the loops count the pixels they stop instead of setting
-# bits at ``1 << q`` (as int32, cast back each step: numba types integer sums as int64). With a 64-bit lane in the loop LLVM sizes the vectors by it, and on AVX2 (no
-# vector int64 -> float conversion, 256-bit registers) it took 4 float lanes instead of 8 and left
-# the gradient row loop mostly scalar: 2.5x slower than with AVX-512 on the same core
-# (``bench/raster_kernel_ab.py --pass backward`` under ``NUMBA_CPU_NAME``/``NUMBA_CPU_FEATURES``).
+# pixel centre is ``xb + q`` (exact in float32), the same value as ``float32(x) + 0.5``.
+#
+# Nothing in the row loops is 64 bits wide. LLVM sizes a loop's vectors by its widest element, and
+# AVX2 (256-bit registers, no vector int64 -> float conversion) then got 4 float lanes instead of 8,
+# with the gradient row mostly scalar: 2.5x slower than the AVX-512 build on the same core
+# (``bench/raster_kernel_ab.py --pass backward --isa avx2``). So the column offsets are loaded as
+# float32 from ``_COL`` (not converted from the int64 loop index), and the loops count the pixels
+# they stop in an int32, cast back at each step (numba types integer sums as int64), instead of
+# setting bits at ``1 << q``; the caller rebuilds the row's live mask when a count is not 0.
 _COL = np.arange(_TS, dtype=np.float32)
+
+
 @njit(cache=True, fastmath=False, inline="always")
 def _composite_row8(S, lo, xb, mx, hA, cy, by, o, v0, v1, v2, v3):
     """Columns ``[lo, lo + 8)`` of a tile row; ``xb`` = centre of column ``lo``. Returns how many
