@@ -81,16 +81,30 @@ def add_isa(ap: argparse.ArgumentParser) -> None:
                     help="avx2: compile and dispatch as an AVX2-only machine would (no AVX-512), on this one")  # fmt: skip
 
 
+def avx2_env() -> dict[str, str] | None:
+    """The environment that builds and dispatches for AVX2 only on this machine (``run_as_isa``), or
+    ``None`` when this CPU has no AVX2: numba compiles for ``x86-64-v3`` with every AVX-512 feature
+    off (``NUMBA_CPU_NAME`` / ``NUMBA_CPU_FEATURES``; numba caches such code apart from the host's),
+    and torch, MKL and oneDNN dispatch their AVX2 kernels (``ATEN_CPU_CAPABILITY``,
+    ``MKL_ENABLE_INSTRUCTIONS``, ``ONEDNN_MAX_CPU_ISA``)."""
+    import llvmlite.binding as ll
+
+    feats = ll.get_host_cpu_features()
+    if not feats.get("avx2"):
+        return None
+    off = ("avx512", "avx10", "amx", "evex512")
+    flags = ",".join(("-" if k.startswith(off) or not v else "+") + k for k, v in sorted(feats.items()))
+    return {"NUMBA_CPU_NAME": AVX2_CPU, "NUMBA_CPU_FEATURES": flags, "ATEN_CPU_CAPABILITY": "avx2",
+            "MKL_ENABLE_INSTRUCTIONS": "AVX2", "ONEDNN_MAX_CPU_ISA": "AVX2"}  # fmt: skip
+
+
 def run_as_isa(isa: str, script: str | Path, argv: list[str] | None) -> None:
     """Re-run ``script`` with ``argv`` (``None``: this process's arguments) in a fresh process whose
     vector code is limited to ``isa``, and exit with its status; return at once for ``host`` or when
     this process already is that re-run.
 
-    ``avx2``: numba compiles the rasterizer's kernels for ``x86-64-v3`` with every AVX-512 feature
-    off (``NUMBA_CPU_NAME`` / ``NUMBA_CPU_FEATURES``; numba caches them apart from the host's), and
-    torch, MKL and oneDNN dispatch their AVX2 kernels (``ATEN_CPU_CAPABILITY``,
-    ``MKL_ENABLE_INSTRUCTIONS``, ``ONEDNN_MAX_CPU_ISA``). It measures what the code does with AVX2's
-    sixteen 256-bit registers on this core, not an AVX2 machine's clock or caches.
+    ``avx2``: the environment of ``avx2_env``. It measures what the code does with AVX2's sixteen
+    256-bit registers on this core, not an AVX2 machine's clock or caches.
 
     Raises:
         SystemExit: this CPU has no AVX2.
@@ -99,15 +113,9 @@ def run_as_isa(isa: str, script: str | Path, argv: list[str] | None) -> None:
         return
     import subprocess
 
-    import llvmlite.binding as ll
-
-    feats = ll.get_host_cpu_features()
-    if not feats.get("avx2"):
+    overrides = avx2_env()
+    if overrides is None:
         raise SystemExit("--isa avx2: this CPU has no AVX2")
-    off = ("avx512", "avx10", "amx", "evex512")
-    flags = ",".join(("-" if k.startswith(off) or not v else "+") + k for k, v in sorted(feats.items()))
-    env = dict(os.environ, NUMBA_CPU_NAME=AVX2_CPU, NUMBA_CPU_FEATURES=flags, ATEN_CPU_CAPABILITY="avx2",
-               MKL_ENABLE_INSTRUCTIONS="AVX2", ONEDNN_MAX_CPU_ISA="AVX2")  # fmt: skip
-    env[ISA_ENV] = isa
+    env = {**os.environ, **overrides, ISA_ENV: isa}
     args = sys.argv[1:] if argv is None else list(argv)
     raise SystemExit(subprocess.call([sys.executable, str(script), *args], env=env))

@@ -45,13 +45,18 @@ def test_write_json_makes_the_folder_and_skips_without_a_path(tmp_path, monkeypa
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["dir", "new", "r.json"]
 
 
-def _has_avx2() -> bool:
-    import llvmlite.binding as ll
+def avx2_env() -> dict[str, str] | None:
+    """``bench/_bench_cli.py``'s ``avx2_env()``, its module loaded by path (the bench folder stays off
+    ``sys.path``); also used by ``test_kernel_codegen.py``."""
+    import importlib.util
 
-    return bool(ll.get_host_cpu_features().get("avx2"))
+    spec = importlib.util.spec_from_file_location("_bench_cli_isa", ROOT / "bench" / "_bench_cli.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.avx2_env()
 
 
-@pytest.mark.skipif(not _has_avx2(), reason="needs an x86 CPU with AVX2")
+@pytest.mark.skipif(avx2_env() is None, reason="needs an x86 CPU with AVX2")
 def test_isa_avx2_reruns_the_script_with_avx512_off(tmp_path, monkeypatch):
     """``--isa avx2`` re-runs the script with its arguments in a process whose numba target has every
     AVX-512 feature off and AVX2 on, and torch / MKL / oneDNN told to dispatch AVX2; the re-run

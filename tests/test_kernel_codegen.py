@@ -5,8 +5,8 @@ vectors by a 64-bit lane in them (the column index converted to float, a stop ma
 ``1 << q``) and took 4 float lanes, leaving the gradient row mostly scalar: 2.5x slower than the
 AVX-512 build on the same core (docs/benchmarks.md, "Traced and fixed the next morning";
 ``fastgha_core/render/cpu_kernels.py``). This compiles both kernels, in a fresh process, for
-``x86-64-v3`` with every AVX-512 feature off (``bench/_bench_cli.py`` ``run_as_isa`` does the same
-for whole benchmarks) and reads their optimised LLVM IR: float vectors 8 lanes wide (4-lane ones
+``x86-64-v3`` with every AVX-512 feature off (``bench/_bench_cli.py`` ``avx2_env``, the environment
+``--isa avx2`` gives whole benchmarks) and reads their optimised LLVM IR: float vectors 8 lanes wide (4-lane ones
 rare), no vector of 64-bit integers. The kernels before the fix fail it (checked against 1a81e15
 with ``FASTGHA_CODEGEN_ROOT``).
 """
@@ -21,6 +21,8 @@ import sys
 from pathlib import Path
 
 import pytest
+
+from test_bench_scripts_cli import avx2_env
 
 ROOT = Path(os.environ.get("FASTGHA_CODEGEN_ROOT", Path(__file__).resolve().parents[1]))  # another checkout's kernels
 
@@ -47,20 +49,10 @@ print(json.dumps(res))
 """
 
 
-def _avx2_features() -> str | None:
-    import llvmlite.binding as ll
-
-    feats = ll.get_host_cpu_features()
-    if not feats.get("avx2"):
-        return None
-    off = ("avx512", "avx10", "amx", "evex512")
-    return ",".join(("-" if k.startswith(off) or not v else "+") + k for k, v in sorted(feats.items()))
-
-
-@pytest.mark.skipif(_avx2_features() is None, reason="needs an x86 CPU with AVX2 (LLVM targets the host's feature list)")
+@pytest.mark.skipif(avx2_env() is None, reason="needs an x86 CPU with AVX2 (LLVM targets the host's feature list)")
 def test_row_loops_vectorise_eight_wide_on_avx2(tmp_path):
-    env = dict(os.environ, NUMBA_CPU_NAME="x86-64-v3", NUMBA_CPU_FEATURES=_avx2_features(), NUMBA_CACHE_DIR=str(tmp_path),
-               PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))  # fmt: skip
+    env = {**os.environ, **avx2_env(), "NUMBA_CACHE_DIR": str(tmp_path),
+           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}  # fmt: skip
     run = subprocess.run([sys.executable, "-c", PROBE], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr[-2000:]
     got = json.loads(run.stdout.strip().splitlines()[-1])
