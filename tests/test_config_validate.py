@@ -47,6 +47,7 @@ BAD = [
     ("gaussians", "grazing_edge_px", -1, ">= 0"),
     ("gaussians", "grazing_edge_px", 2.5, "an integer"),
     ("gaussians", "grazing_min_ratio", -1.0, ">= 0"),
+    ("gaussians", "grazing_keep_features_mm", -1.0, ">= 0"),
     ("gaussians", "feature_dim", -1, ">= 0"),
     ("gaussians", "flow_register_clip_px", 0.0, "> 0"),
     ("gaussians", "edge_mode", "color", "one of ['colour', 'fade']"),

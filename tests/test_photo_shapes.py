@@ -104,6 +104,7 @@ def tiny():
     gc.prune_opacity = 0.0
     gc.coverage_target = 0.0
     gc.edge_margin_px = 0.0
+    gc.grazing_stretch = 0.0  # the pixels' own sizes (the stretch of grazing pixels is tested in test_surface_grazing.py)
     return model
 
 

@@ -11,7 +11,7 @@ import torch
 
 from fastgha_core.cameras import Cameras
 from fastgha_core.gaussians import Gaussians
-from fastgha_core.model.surface import behind_occluding_edges, stretch_to_patches, surface_steps
+from fastgha_core.model.surface import away_from_face_features, behind_occluding_edges, stretch_to_patches, surface_steps
 from fastgha_core.render import render
 
 S = 48
@@ -107,7 +107,7 @@ def test_only_pixels_just_behind_an_occluding_edge_are_flagged():
     assert bool(changed[:, 20:25].all()) and not bool(changed[:, :20].any() or changed[:, 25:].any())
 
 
-def test_reconstruct_lengthens_only_the_gaussians_behind_the_nose_ridge_when_asked():
+def test_reconstruct_lengthens_grazing_gaussians_away_from_the_face_features():
     import numpy as np
 
     from fastgha_core.constants import BACKGROUND_RGB
@@ -125,20 +125,76 @@ def test_reconstruct_lengthens_only_the_gaussians_behind_the_nose_ridge_when_ask
     imgs = torch.tensor(BACKGROUND_RGB, dtype=torch.float32).view(1, 3, 1, 1).repeat(3, 1, s, s)
     imgs[:, :, s // 4 : 3 * s // 4, s // 4 : 3 * s // 4] = torch.rand(3, 3, s // 2, s // 2)
     gc = model.config.gaussians
-    saved = (gc.grazing_stretch, gc.prune_opacity, model.config.deform.prior)
+    assert gc.grazing_stretch > 0 and gc.grazing_edge_px == 0 and gc.grazing_keep_features_mm > 0  # the defaults
     gc.mirror_views = False  # the photos' own Gaussians only (a fresh model: nothing to restore)
-    try:
-        gc.prune_opacity, model.config.deform.prior = 0.0, False  # keep every pixel's Gaussian, in order
-        gc.grazing_stretch = 0.0
-        off = model.reconstruct(imgs, cams, surface=head).gaussians
-        gc.grazing_stretch = 1.0
+    gc.prune_opacity, model.config.deform.prior = 0.0, False  # keep every pixel's Gaussian, in order
+
+    def changed_by(**fields):
+        for k, v in fields.items():
+            setattr(gc, k, v)
         on = model.reconstruct(imgs, cams, surface=head).gaussians
-    finally:
-        gc.grazing_stretch, gc.prune_opacity, model.config.deform.prior = saved
-    assert torch.equal(on.means, off.means)
-    changed = (on.scales != off.scales).any(-1).reshape(3, s, s)
-    near = behind_occluding_edges(surface_ray_depth(head, cams).t, cams, gc.grazing_edge_px)
+        assert torch.equal(on.means, off.means)
+        ch = (on.scales != off.scales).any(-1).reshape(3, s, s)
+        grown = on.scales.max(-1).values.reshape(3, s, s)[ch] / off.scales.max(-1).values.reshape(3, s, s)[ch]
+        assert float(grown.min()) >= 1.0 - 1e-5 and float(grown.max()) > 1.5
+        return ch
+
+    gc.grazing_stretch = 0.0
+    off = model.reconstruct(imgs, cams, surface=head).gaussians
+    t = surface_ray_depth(head, cams).t
+    # behind an occluding edge only, on the features too (the first form of the stretch)
+    changed = changed_by(grazing_stretch=1.0, grazing_edge_px=3, grazing_keep_features_mm=0.0)
+    near = behind_occluding_edges(t, cams, 3)
     assert bool(changed[1:].any())  # the turned views see the far side of the nose at a grazing angle
     assert not bool((changed & ~near).any())  # nothing away from an occluding edge
-    grown = on.scales.max(-1).values.reshape(3, s, s)[changed] / off.scales.max(-1).values.reshape(3, s, s)[changed]
-    assert float(grown.min()) >= 1.0 - 1e-5 and float(grown.max()) > 1.5
+    # the default: everywhere but the brows, eyes, nose and mouth
+    changed = changed_by(grazing_edge_px=0, grazing_keep_features_mm=25.0)
+    away = away_from_face_features(t, cams, head, 0.025)
+    assert not bool((changed & ~away).any())  # nothing within 25 mm of a feature landmark
+    assert int(changed[0].sum()) > 20  # the frontal view's cheeks and the side of its head
+    everywhere = changed_by(grazing_keep_features_mm=0.0)
+    assert bool((everywhere & ~away).any()) and bool((changed & ~everywhere).sum() == 0)
+
+
+def test_feature_pixels_are_those_near_the_tracked_landmarks():
+    import numpy as np
+
+    from fastgha_core.data.headmodel import HeadModel
+    from fastgha_core.model.surface import FACE_FEATURE_LANDMARKS, HeadSurface, surface_ray_depth
+    from fastgha_core.tracking.camera import pose_to_cameras
+    from fastgha_core.tracking.fit import FRONTAL_R, default_intrinsics
+
+    hm = HeadModel.load()
+    s = 64
+    cam = pose_to_cameras(FRONTAL_R[None], np.array([[0.0, 0.01, 0.6]]), default_intrinsics(s, s, 30.0), s, s)
+    head = HeadSurface(np.zeros(100, np.float32), np.zeros((1, 53), np.float32))
+    t = surface_ray_depth(head, cam).t
+    away = away_from_face_features(t, cam, head, 0.02)
+    lm = head.vertices(0, hm)[hm.landmarks68]
+    uv, _ = cam.project(torch.as_tensor(lm, dtype=torch.float32))
+    px = uv.reshape(-1, 2).floor().long().clamp(0, s - 1)  # corner convention: pixel x covers [x, x + 1)
+    feats = list(FACE_FEATURE_LANDMARKS)
+    assert not bool(away[0, px[feats, 1], px[feats, 0]].any())  # every feature landmark's own pixel is near a feature
+    assert bool(away[0, px[[0, 16], 1], px[[0, 16], 0]].all())  # the jaw line's ends (beside the ears) are not
+    assert 0.2 < float(away.float().mean()) < 0.95  # a part of the frame, not all or nothing
+    with pytest.raises(ValueError, match="radius_m must be > 0"):
+        away_from_face_features(t, cam, head, 0.0)
+    with pytest.raises(ValueError, match="away_from_face_features: t must have shape"):
+        away_from_face_features(t[0], cam, head, 0.02)
+
+
+def test_surface_points_are_the_views_vertices():
+    import numpy as np
+
+    from fastgha_core.data.headmodel import HeadModel
+    from fastgha_core.model.surface import HeadSurface
+
+    hm = HeadModel.load()
+    rng = np.random.default_rng(0)
+    h2w = np.eye(4)
+    h2w[:3, :3] = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    h2w[:3, 3] = [0.01, 0.02, -0.03]
+    head = HeadSurface(rng.normal(size=100).astype(np.float32), rng.uniform(0, 0.6, (3, 53)).astype(np.float32), h2w)
+    ids = hm.landmarks68[17:]
+    ref = np.stack([head.vertices(v, hm)[ids] for v in range(3)])
+    assert np.abs(head.points(ids, hm) - ref).max() < 1e-6

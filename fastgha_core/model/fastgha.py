@@ -567,9 +567,11 @@ class FastGHA(nn.Module):
         ``config.gaussians.off_head_draw="under"`` (the default) the off-head pixels' Gaussians are
         recorded (``ViewBlend.under``) and drawn under the others in every frame
         (``viewblend.push_under``; other modes: ``surface.off_head_draw_flags``); with
-        ``config.gaussians.grazing_stretch > 0`` (off by default) the Gaussians of pixels just behind an
-        occluding edge of the head (the far side of the nose ridge), which see it at a grazing angle,
-        are lengthened along it to cover their patch of skin (``surface.stretch_to_patches``).
+        ``config.gaussians.grazing_stretch > 0`` (0.5 by default) the Gaussians of pixels that see the head
+        at a grazing angle (the cheek and the side of the head in a frontal photo) are lengthened
+        along it to cover their patch of skin (``surface.stretch_to_patches``), except on the brows,
+        eyes, nose and mouth (``grazing_keep_features_mm``, ``surface.away_from_face_features``) and,
+        with ``grazing_edge_px > 0``, only just behind an occluding edge (``surface.behind_occluding_edges``).
         On a surface (or everywhere with ``config.gaussians.view_blend_surface_only=False``) the
         avatar also records each reconstructed Gaussian's source view and which input views see its
         point (``avatar.view_blend``, ``model/viewblend.py``) for view-dependent frames. With
@@ -682,6 +684,11 @@ class FastGHA(nn.Module):
 
             gc, c32 = self.config.gaussians, cameras.to(dev, torch.float32)
             near = behind_occluding_edges(sd.t.to(dev), c32, gc.grazing_edge_px) if gc.grazing_edge_px > 0 else None
+            if gc.grazing_keep_features_mm > 0:  # not on the brows, eyes, nose and mouth (model/surface.py away_from_face_features)
+                from .surface import away_from_face_features
+
+                away = away_from_face_features(sd.t.to(dev), c32, surface, gc.grazing_keep_features_mm * 1e-3)
+                near = away if near is None else near & away
             g = stretch_to_patches(g, *surface_steps(sd.t.to(dev), c32), gc.grazing_stretch, gc.grazing_min_ratio, where=near)
         margin = self.config.gaussians.edge_margin_px
         if margin > 0:  # matte-outline pixels are part wall: on profiles they would draw a streak down the face's midline

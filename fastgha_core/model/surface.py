@@ -53,8 +53,10 @@ turned view) the view meets the surface at a grazing angle: each pixel's patch o
 footprints long, and from the front its pixel-sized Gaussians leave gaps. Through them the back of
 the head showed a dark hatched streak down the nose of frontal renders (real photo sets, issue 17).
 ``FastGHA.reconstruct`` can lengthen those Gaussians along the surface (``surface_steps``,
-``behind_occluding_edges``, ``stretch_to_patches``; ``GaussianHeadConfig.grazing_stretch``, off by
-default: it removes the streak but costs identity distance, ``docs/model-card.md``).
+``behind_occluding_edges``, ``stretch_to_patches``; ``GaussianHeadConfig.grazing_stretch``). Since
+2026-12-03 it does so wherever a view sees the head at a grazing angle except on the brows, eyes,
+nose and mouth (``away_from_face_features``): a frontal photo's cheek columns left the same gaps,
+seen from the side as stripes (``docs/model-card.md``, "The cheek stripes of side views").
 
 Photos that come with their own cameras (held-out synthetic renders, a request's ``cameras.json``)
 have a world of their own: ``tracking.pipeline.track_known_cameras`` fits the head through those
@@ -85,6 +87,8 @@ __all__ = [
     "surface_steps",
     "stretch_to_patches",
     "behind_occluding_edges",
+    "away_from_face_features",
+    "FACE_FEATURE_LANDMARKS",
     "sample_photo_colours",
     "hull_ray_depth",
     "off_head_on_hull",
@@ -190,6 +194,22 @@ class HeadSurface:
             h = self.head_to_world
             v = (v.astype(np.float64) @ h[:3, :3].T + h[:3, 3]).astype(np.float32)
         return v
+
+    def points(self, vertex_ids, head=None) -> np.ndarray:
+        """World positions ``[V, K, 3]`` (metres) of the head model's vertices ``vertex_ids [K]`` in every
+        view's expression: ``vertices(view)[vertex_ids]`` for each view, blended for those vertices only."""
+        from ..data.headmodel import HeadModel
+
+        head = head or HeadModel.load()
+        ids = np.asarray(vertex_ids, dtype=np.int64)
+        ident = np.zeros(head.num_identity, np.float32)
+        ident[: len(self.identity)] = self.identity[: head.num_identity]
+        base = head.neutral[ids].astype(np.float64) + np.einsum("k,kij->ij", ident.astype(np.float64), head.identity_basis[:, ids])
+        p = base[None] + np.einsum("vk,kij->vij", self.expressions.astype(np.float64), head.expression_basis[:, ids])
+        if self.head_to_world is not None:
+            h = self.head_to_world
+            p = p @ h[:3, :3].T + h[:3, 3]
+        return p.astype(np.float32)
 
     def head_fit(self, basis, hair_m=0.0):
         """The ``model.prior.HeadFit`` of this head at the neutral expression (identity truncated to
@@ -604,6 +624,44 @@ def behind_occluding_edges(t: Tensor, cameras: Cameras, radius_px: int = 3, jump
     tmin = -torch.nn.functional.max_pool2d(-t[:, None], 2 * radius_px + 1, stride=1, padding=radius_px)[:, 0]
     foot = t / cams.K[:, 0, 0].to(t.device, torch.float32)[:, None, None]
     return (t - tmin) > jump * foot
+
+
+FACE_FEATURE_LANDMARKS = tuple(range(17, 68))  # Multi-PIE 68-point ids of the brows, nose, eyes and mouth (not the jaw line, 0-16)
+
+
+def away_from_face_features(t: Tensor, cameras: Cameras, surface: "HeadSurface", radius_m: float, head=None) -> Tensor:
+    """``[V, H, W]`` bool: pixels whose surface point lies more than ``radius_m`` from every brow, nose,
+    eye and mouth landmark of the tracked head (``FACE_FEATURE_LANDMARKS``, in each of the surface's
+    expressions).
+
+    Why (issue 17, the real sets' side views, ``docs/model-card.md`` "The cheek stripes of side
+    views"): lengthening grazing pixels' Gaussians along the surface (``stretch_to_patches``) closes
+    the gaps between a frontal photo's pixel columns on the cheek and the side of the head, which a
+    side view showed as stripes; on the features themselves it blurred what identity rests on (the
+    eye corners stayed open when the lids closed, the nose tip smeared forward in profiles). The
+    landmarks are the ICT-FaceKit head's 68 points (``data/headmodel.py``), moved by the surface's
+    ``head_to_world``; mirrored virtual views (``model/mirror.py``) share the head frame, and the
+    features are the same on both sides of it.
+
+    Args:
+        t: ``[V, H, W]`` metres along each pixel's unit ray (``SurfaceDepth.t``).
+        cameras: ``Cameras`` of ``V`` views of size ``W x H``.
+        surface: the tracked ``HeadSurface`` (any number of expressions >= 1).
+        radius_m: metres (> 0).
+        head: the ``HeadModel`` (default: the shipped one).
+    Raises:
+        ValueError: when ``t`` is not ``[V, H, W]`` of the cameras' batch and size, or ``radius_m <= 0``.
+    """
+    from ..data.headmodel import HeadModel
+
+    cams = _per_pixel_of(cameras, t, "away_from_face_features")
+    if not radius_m > 0:
+        raise ValueError(f"away_from_face_features: radius_m must be > 0, got {radius_m}")
+    head = head or HeadModel.load()
+    lm = torch.as_tensor(surface.points(head.landmarks68[list(FACE_FEATURE_LANDMARKS)], head)).reshape(-1, 3).to(t.device, torch.float32)
+    o, d = cams.pixel_rays()
+    pts = (o.to(t.device, torch.float32) + d.to(t.device, torch.float32) * t.float()[..., None]).reshape(-1, 3)
+    return (torch.cdist(pts, lm).amin(1) > radius_m).reshape(t.shape)
 
 
 def sample_photo_colours(points: Tensor, cameras: Cameras, photos: Tensor, view_index: Tensor) -> Tensor:
