@@ -634,6 +634,10 @@ class FastGHA(nn.Module):
 
                     hair = hair * hair_carve_fractions(surface, cameras.to(dtype=torch.float32), foreground_weight(images.float()), hair, HAIR_CARVE_DILATE_PX, HAIR_CARVE_MAX_UP)
             sd = surface_ray_depth(surface, cameras, hair, neck=self.config.gaussians.neck_cylinder if surface_mode == "replace" else "off")
+            if self.config.gaussians.off_head_behind_ears and surface_mode == "replace":  # hair beside the face no nearer than the ears (model/surface.py)
+                from .surface import off_head_behind_ears
+
+                sd = off_head_behind_ears(sd, surface, cameras)
             if self.config.gaussians.off_head_hull != "off" and surface_mode == "replace":  # off-head pixels on the photos' visual hull (model/surface.py)
                 from .gaussian_head import foreground_weight
                 from .surface import off_head_on_hull

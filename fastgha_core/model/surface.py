@@ -21,6 +21,10 @@ Per pixel of each input view (``surface_ray_depth``):
   (nose, lips, chin, forehead centre): in front of a profile's nose there is only air, and what a matte leaves there
   (wall, shadow) would be laid along the nose as a white streak (seen on the real sets);
   ``beyond_face`` marks them and ``FastGHA.reconstruct`` drops their Gaussians.
+- by default (``GaussianHeadConfig.off_head_behind_ears``), off-head pixels beside the face, seen by a
+  roughly frontal view, lie no nearer their camera than the ears' plane (``off_head_behind_ears``):
+  a frontal photo's hair beside the cheeks, placed at the cheek outline's distance, stood in the air
+  in front of the mouth of side views (``docs/model-card.md``, "Hair beside the face");
 - optionally (``neck``, ``GaussianHeadConfig.neck_cylinder``, off by default), pixels below the
   chin whose ray enters the tracked neck continued as a cylinder (``neck_cylinder_depth``) lie there
   instead; tried against phone-5's shoulder smears, it lowered the real-photo means and left the
@@ -93,8 +97,12 @@ __all__ = [
     "hull_ray_depth",
     "off_head_on_hull",
     "below_chin",
+    "off_head_behind_ears",
 ]
 
+BESIDE_FACE_MAX_ANGLE_DEG = 45.0  # off_head_behind_ears: only rays within this angle of the head's backward axis (frontal-ish views; a side view's ray runs nearly along the ears' plane)
+BESIDE_FACE_MAX_MOVE_M = 0.06  # off_head_behind_ears: pixels that would move further than this (metres) stay
+BESIDE_FACE_LATERAL_M = 0.06  # off_head_behind_ears: off-head points further than this from the midline (metres) count as beside the face
 HAIR_CANDIDATES_M = (0.0, 0.005, 0.01, 0.015, 0.02, 0.025, 0.03)  # fit_hair_thickness' default choices (metres)
 
 
@@ -1161,3 +1169,73 @@ def below_chin(points: Tensor, surface: HeadSurface, margin_m: float = 0.0) -> T
     c = torch.as_tensor(chin, dtype=torch.float32, device=points.device)
     u = torch.as_tensor(up, dtype=torch.float32, device=points.device)
     return ((points.detach().float() - c) @ u) < -float(margin_m)
+
+
+def off_head_behind_ears(sd: SurfaceDepth, surface: HeadSurface, cameras: Cameras, lateral_m: float = BESIDE_FACE_LATERAL_M,
+                         max_angle_deg: float = BESIDE_FACE_MAX_ANGLE_DEG, max_move_m: float = BESIDE_FACE_MAX_MOVE_M) -> SurfaceDepth:
+    """``sd`` with the off-head pixels beside the face pushed back along their rays, no nearer the
+    camera than the plane of the ears.
+
+    Which pixels: those whose ray misses the head (``~sd.hit``) and whose nearest-hit placement
+    lies, in the head frame of their view's tracked head, more than ``lateral_m`` metres to the side
+    of the midline (``|x| > lateral_m``: beyond the jaw, whose corners are 7.4 cm out on the ICT mean
+    head), above the chin (ICT's landmark 8, at the view's expression) and in front of the ears'
+    coronal plane (``z > 0``: the head frame's origin lies between the ears, ``docs/conventions.md``),
+    in a view that looks at the face within ``max_angle_deg`` of the head's front-back axis (the ray's
+    head-frame direction has ``-z >= cos(max_angle_deg)``). Each moves along its own ray to where the
+    ray crosses that plane (``z = 0``): only further from its camera, and only when that is at most
+    ``max_move_m`` away; its own camera still sees it where it was, and the rest of ``sd`` is unchanged.
+    A side view's rays run nearly inside the ears' plane, where the move would take its hair tens of
+    centimetres back (seen: spikes above phone-5's head in other views), hence the two limits.
+
+    Why (issue 17, studio-4's leave-one-out render at -70 degrees, ``docs/model-card.md`` "Hair beside
+    the face"): a frontal photo's long hair hanging beside the cheeks misses the bald head model, so
+    ``surface_ray_depth`` gives it the distance of the nearest head pixel, the cheek's outline: 3-5 cm
+    in front of where hair falls from the scalp. Seen from the side, those Gaussians stand in the air
+    in front of the mouth, and since off-head Gaussians are drawn under the others
+    (``off_head_draw = "under"``), exactly there, where no other Gaussian covers them, they show as a
+    dark blot before the lips. Pixels near the midline (a profile's nose and lips beyond the mesh,
+    hair above the crown) and below the chin (neck, collar, chest) keep their placement.
+
+    Args:
+        sd: ``SurfaceDepth`` of ``V`` views (``surface_ray_depth``).
+        surface: the ``V`` views' tracked head (``HeadSurface``).
+        cameras: ``Cameras [V]`` of the views (world = ``surface``'s world).
+        lateral_m: the half-width (metres) beyond which an off-head pixel counts as beside the face.
+        max_angle_deg: the views whose rays lie within this angle (degrees, in (0, 90]) of the head's
+            backward axis are the ones whose pixels move.
+        max_move_m: the largest move (metres) along a ray; pixels that would move further stay.
+    Returns:
+        a new ``SurfaceDepth`` (``t`` changed where moved; ``hit``, ``beyond_face``, ``face_hit`` shared).
+    Raises:
+        ValueError: when the views' counts or sizes differ, ``lateral_m`` or ``max_move_m`` is not
+            positive, or ``max_angle_deg`` is outside (0, 90].
+    """
+    from ..data.headmodel import HeadModel
+
+    cams = cameras.flatten()
+    v, h, w = sd.t.shape
+    if len(cams.K) != v or len(surface) != v or (cams.width, cams.height) != (w, h):
+        raise ValueError(f"off_head_behind_ears: {v} depth maps of {w}x{h}, {len(surface)} surface views and {len(cams.K)} cameras of {cams.width}x{cams.height}")
+    if not (lateral_m > 0 and max_move_m > 0):
+        raise ValueError(f"off_head_behind_ears: lateral_m and max_move_m must be > 0, got {lateral_m} and {max_move_m}")
+    if not 0 < max_angle_deg <= 90:
+        raise ValueError(f"off_head_behind_ears: max_angle_deg must be in (0, 90], got {max_angle_deg}")
+    head = HeadModel.load()
+    chin_y = surface.points([int(head.landmarks68[8])], head)  # [V, 1, 3] world
+    h2w = np.eye(4) if surface.head_to_world is None else np.asarray(surface.head_to_world, dtype=np.float64)
+    w2h = np.linalg.inv(h2w)
+    origins, dirs = cams.to(dtype=torch.float64).pixel_rays()  # [V, H, W, 3] world, unit directions
+    t = sd.t.clone()
+    for i in range(v):
+        o = origins[i].numpy() @ w2h[:3, :3].T + w2h[:3, 3]
+        d = dirs[i].numpy() @ w2h[:3, :3].T
+        p = o + sd.t[i].double().numpy()[..., None] * d
+        chin = (chin_y[i, 0].astype(np.float64) @ w2h[:3, :3].T + w2h[:3, 3])[1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_plane = np.where(d[..., 2] < 0, -o[..., 2] / d[..., 2], -np.inf)
+        t0 = sd.t[i].double().numpy()
+        move = (~sd.hit[i].numpy() & (np.abs(p[..., 0]) > lateral_m) & (p[..., 1] > chin) & (p[..., 2] > 0)
+                & (-d[..., 2] >= np.cos(np.radians(max_angle_deg))) & (t_plane > t0) & (t_plane - t0 <= max_move_m))
+        t[i][torch.from_numpy(move)] = torch.from_numpy(t_plane[move].astype(np.float32))
+    return SurfaceDepth(t, sd.hit, sd.beyond_face, sd.face_hit)
