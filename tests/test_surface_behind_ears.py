@@ -51,8 +51,32 @@ def test_hair_beside_a_frontal_face_moves_back_to_the_ears_plane():
     step = (out.t - sd.t)[0][moved]
     assert float(step.min()) > 0 and float(step.max()) <= BESIDE_FACE_MAX_MOVE_M + 1e-6  # only ever further back
     hm = HeadModel.load()
-    chin = head.vertices(0, hm)[hm.landmarks68[8]]
-    assert bool((before[:, 1] > float(chin[1])).all())  # the neck and the collar below the chin keep theirs
+    verts = head.vertices(0, hm)
+    chin, brow = float(verts[hm.landmarks68[8], 1]), float(verts[hm.landmarks68[17:27], 1].mean())
+    assert bool((before[:, 1] > chin).all())  # the neck and the collar below the chin keep theirs
+    assert bool((before[:, 1] < brow).all())  # hair above the brows (the temples, the crown) keeps its place
+
+
+def test_hair_above_the_brows_stays_where_it_would_otherwise_move():
+    """A view from above sees off-head pixels beside the skull above the brows that pass every other
+    test (beside the face, in front of the ears, a move within the limit): they stay."""
+    from fastgha_core.data.headmodel import HeadModel
+
+    hm = HeadModel.load()
+    for pitch in (0.0, -25.0):
+        cam, head = _view(pitch_deg=pitch), _head()
+        sd = surface_ray_depth(head, cam)
+        out = off_head_behind_ears(sd, head, cam)
+        p = _points(cam, sd.t)
+        o, d = cam.to(dtype=torch.float64).pixel_rays()
+        t_plane = -o[0, ..., 2] / d[0, ..., 2]
+        verts = head.vertices(0, hm)
+        brow = float(verts[hm.landmarks68[17:27], 1].mean())
+        other_tests = (~sd.hit[0] & (p[..., 0].abs() > BESIDE_FACE_LATERAL_M) & (p[..., 2] > 0)
+                       & (t_plane > sd.t[0].double()) & (t_plane - sd.t[0].double() <= BESIDE_FACE_MAX_MOVE_M))
+        above = other_tests & (p[..., 1] > brow)
+        assert int(above.sum()) > 0  # the case exists
+        assert torch.equal(out.t[0][above], sd.t[0][above])
 
 
 def test_the_head_frame_is_taken_through_head_to_world():
