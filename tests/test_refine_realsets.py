@@ -4,14 +4,14 @@ step count, and the face counts of the renders beside those of the left-out phot
 import pytest
 import torch
 
-from fastgha_core.refine.realsets import error_split, list_sets, summary_table
+from fastgha_core.refine.realsets import beyond_mask, error_split, in_photo_frame, list_sets, summary_table
 
 
-def _row(left_out, psnr, render, photo, ident=0.5, steps=0, s="a", cnn=(None, None), split=(None, None, None)):
+def _row(left_out, psnr, render, photo, ident=0.5, steps=0, s="a", cnn=(None, None), split=(None, None, None), beyond=None):
     return {"set": s, "left_out": left_out, "steps": steps, "masked_psnr": psnr, "masked_ssim": 0.8,
             "identity_distance": ident, "faces_in_render": render, "faces_in_photo": photo, "refine_s": 0.0,
             "cnn_faces_in_render": cnn[0], "cnn_faces_in_photo": cnn[1],
-            "uncovered_frac": split[0], "psnr_uncovered_only": split[1], "psnr_covered_only": split[2]}
+            "uncovered_frac": split[0], "psnr_uncovered_only": split[1], "psnr_covered_only": split[2], "beyond_mask_frac": beyond}
 
 
 def test_summary_counts_faces_in_renders_and_in_the_left_out_photos():
@@ -22,7 +22,7 @@ def test_summary_counts_faces_in_renders_and_in_the_left_out_photos():
         _row("00", 20.0, 1, 1, s="b"),
     ]
     lines = summary_table(rows).strip().splitlines()
-    assert lines[0].count("|") == lines[1].count("|") == 14
+    assert lines[0].count("|") == lines[1].count("|") == 15
     a = [c.strip() for c in lines[2].strip("|").split("|")]
     assert a[0] == "a" and a[2] == "3"
     assert a[3] == "12.00"  # mean PSNR over the three left-out photos
@@ -35,17 +35,17 @@ def test_summary_counts_faces_in_renders_and_in_the_left_out_photos():
 def test_summary_without_a_face_detector_says_n_a():
     rows = [_row("00", 10.0, None, None, ident=None)]
     cells = [c.strip() for c in summary_table(rows).strip().splitlines()[2].strip("|").split("|")]
-    assert cells[5:] == ["n/a"] * 8
+    assert cells[5:] == ["n/a"] * 9
 
 
 def test_summary_gives_the_cnn_counts_and_the_error_split():
     rows = [
-        _row("00", 10.0, 0, 0, cnn=(1, 1), split=(0.10, 12.0, 20.0)),  # a profile HOG misses, the CNN finds
-        _row("01", 14.0, 1, 1, cnn=(2, 1), split=(0.02, 24.0, 16.0)),  # a doubled face by the CNN
+        _row("00", 10.0, 0, 0, cnn=(1, 1), split=(0.10, 12.0, 20.0), beyond=0.25),  # a profile HOG misses, the CNN finds
+        _row("01", 14.0, 1, 1, cnn=(2, 1), split=(0.02, 24.0, 16.0), beyond=0.05),  # a doubled face by the CNN
     ]
     cells = [c.strip() for c in summary_table(rows).strip().splitlines()[2].strip("|").split("|")]
     assert cells[6:10] == ["1/2", "1/2", "1/2", "2/2"]
-    assert cells[10:] == ["6.0%", "18.00", "18.00"]
+    assert cells[10:] == ["6.0%", "18.00", "18.00", "15.0%"]
 
 
 def test_error_split_adds_up_to_the_masked_error():
@@ -99,3 +99,36 @@ def test_mirror_variant_sets_the_named_fields_and_restores_every_one():
     assert {f: getattr(g, f) for f in MIRROR_FIELDS} == before
     with mirror_variant(g, None):
         assert {f: getattr(g, f) for f in MIRROR_FIELDS} == before
+
+
+def test_beyond_mask_counts_what_the_render_draws_outside_the_photos_outline():
+    mask = torch.zeros(1, 40, 40)
+    mask[:, 10:30, 10:30] = 1  # 400 pixels
+    alpha = torch.zeros(1, 40, 40)
+    alpha[:, 10:30, 10:30] = 1.0
+    assert beyond_mask(alpha, mask) == 0.0  # the render fills the outline and stops there
+    alpha[:, 5:10, 10:30] = 0.9  # 5 rows above the outline: the 2 rows beyond the 3-pixel margin count
+    assert beyond_mask(alpha, mask) == pytest.approx(2 * 20 / 400)
+    assert beyond_mask(alpha, mask, dilate_px=0) == pytest.approx(5 * 20 / 400)
+    alpha[:, 30:40, 10:30] = 0.3  # faint: below the 0.5 threshold, not drawn
+    assert beyond_mask(alpha, mask) == pytest.approx(2 * 20 / 400)
+    frame = torch.ones(40, 40, dtype=torch.bool)
+    frame[:8] = False  # the photo ends 8 rows from the crop's top: the padding above is not the photo's background
+    assert beyond_mask(alpha, mask, frame) == 0.0
+    with pytest.raises(ValueError, match="mask is empty"):
+        beyond_mask(alpha, torch.zeros(40, 40))
+    with pytest.raises(ValueError, match="one size"):
+        beyond_mask(alpha, mask, torch.ones(20, 20, dtype=torch.bool))
+
+
+def test_in_photo_frame_marks_the_crop_pixels_inside_the_photo():
+    from fastgha_core.cameras import Cameras
+
+    K = torch.tensor([[[100.0, 0.0, 50.0], [0.0, 100.0, 40.0], [0.0, 0.0, 1.0]]])
+    photo = Cameras(K, torch.eye(4)[None], 100, 80)
+    crop = photo.crop(-10, 30, 60, 60).resize(120, 120)  # 10 columns of padding on the left, 10 rows below
+    inside = in_photo_frame(crop, photo)
+    assert inside.shape == (120, 120)
+    cols, rows = inside.any(0), inside.any(1)
+    assert int((~cols).sum()) == 20 and bool(~cols[:20].any())  # 10 photo pixels = 20 crop pixels on the left
+    assert int((~rows).sum()) == 20 and bool(~rows[-20:].any())  # and 10 rows at the bottom

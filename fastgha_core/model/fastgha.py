@@ -632,7 +632,8 @@ class FastGHA(nn.Module):
                 if self.config.gaussians.hair_carve and hair > 0:  # thinner where the photos' outlines say so (model/surface.py)
                     from .surface import hair_carve_fractions
 
-                    hair = hair * hair_carve_fractions(surface, cameras.to(dtype=torch.float32), foreground_weight(images.float()), hair, HAIR_CARVE_DILATE_PX, HAIR_CARVE_MAX_UP)
+                    hair = hair * hair_carve_fractions(surface, cameras.to(dtype=torch.float32), foreground_weight(images.float()), hair, HAIR_CARVE_DILATE_PX, HAIR_CARVE_MAX_UP,
+                                                         mirror=self.config.gaussians.hair_carve_mirror)
             sd = surface_ray_depth(surface, cameras, hair, neck=self.config.gaussians.neck_cylinder if surface_mode == "replace" else "off")
             if self.config.gaussians.off_head_behind_ears and surface_mode == "replace":  # hair beside the face no nearer than the ears (model/surface.py)
                 from .surface import off_head_behind_ears
@@ -839,14 +840,16 @@ class FastGHA(nn.Module):
         holds it (``surface.carve_into_mattes``): the fitted head can be wider than the person's, and an
         opaque shell beyond a photo's outline is drawn as a dark rim beside the hair."""
         from .gaussian_head import foreground_weight
-        from .surface import carve_into_mattes
+        from .surface import carve_into_mattes, midline_reflection
 
         k = self._shell_count()
         if k == 0 or len(g) < n_rec + k:
             return g
         means = g.means.clone()
         fg = foreground_weight(images.float())
-        means[n_rec : n_rec + k] = carve_into_mattes(means[n_rec : n_rec + k].float().cpu(), cameras.to("cpu", torch.float32), fg.cpu(), surface.centre, dilate_px=SHELL_CARVE_DILATE_PX).to(means)
+        mirror = midline_reflection(surface.head_to_world) if self.config.gaussians.hair_carve_mirror else None
+        means[n_rec : n_rec + k] = carve_into_mattes(means[n_rec : n_rec + k].float().cpu(), cameras.to("cpu", torch.float32), fg.cpu(), surface.centre,
+                                                     dilate_px=SHELL_CARVE_DILATE_PX, mirror=mirror).to(means)
         return g.replace(means=means)
 
     def _add_mirrored_views(self, g: Gaussians, images: Tensor, cameras: Cameras, sd, expressions: Tensor | None, surface):

@@ -88,6 +88,7 @@ __all__ = [
     "hair_vertex_weight",
     "fit_hair_thickness",
     "carve_into_mattes",
+    "midline_reflection",
     "hair_carve_fractions",
     "surface_steps",
     "stretch_to_patches",
@@ -787,13 +788,36 @@ def _in_every_matte(points: Tensor, cameras: Cameras, mattes: Tensor) -> Tensor:
     return _matte_votes(points, cameras, mattes)[0]
 
 
+def midline_reflection(head_to_world: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(A [3, 3], b [3])``: world points mirrored about the head's midline plane (head frame
+    ``x = 0``, ``docs/conventions.md``) are ``p @ A.T + b``. ``head_to_world`` ``[4, 4]`` (rigid;
+    ``None``: the world is the head frame)."""
+    h2w = np.eye(4) if head_to_world is None else np.asarray(head_to_world, dtype=np.float64)
+    r, t = h2w[:3, :3], h2w[:3, 3]
+    a = r @ np.diag([-1.0, 1.0, 1.0]) @ r.T
+    return a, t - a @ t
+
+
+def _mirrored(points: Tensor, reflection: tuple[np.ndarray, np.ndarray]) -> Tensor:
+    a, b = (torch.as_tensor(x, dtype=points.dtype, device=points.device) for x in reflection)
+    return points @ a.T + b
+
+
 def carve_into_mattes(points: Tensor, cameras: Cameras, foreground: Tensor, centre: Tensor | None = None,
-                      step_m: float = 0.005, max_m: float = 0.05, dilate_px: int = 1) -> Tensor:
+                      step_m: float = 0.005, max_m: float = 0.05, dilate_px: int = 1,
+                      mirror: tuple[np.ndarray, np.ndarray] | None = None, mirror_max_m: float = 0.02) -> Tensor:
     """``points [N, 3]`` (world, metres) each moved towards ``centre`` (default the origin: the
     tracker's head centre) in steps of ``step_m``, by at most ``max_m``, until it projects onto
     foreground (> 0.5, the matte dilated by ``dilate_px`` pixels for a pixel of misregistration)
     in every view whose image it falls inside; a view whose image a point leaves does not judge it.
-    A point that no step brings inside stays where it was.
+    A point that no step brings inside stays where it was. With ``mirror`` (``midline_reflection``),
+    a step counts only when the point's mirror image projects onto the mattes too, for at most
+    ``mirror_max_m`` beyond the first step that holds the point alone (or where that step puts it,
+    when ``max_m`` runs out first): the head is about left-right symmetric, so a side photo's outline
+    bounds the back of the head on the side it does not see (issue 17: with one side photo left out,
+    the shell stood 1-2 cm beyond the back of phone-5's head in that photo's view), but a wrong
+    tracked pose or hair worn to one side can leave a mirror image outside every step; unbounded,
+    those points stayed put while their neighbours moved in, as dark blobs in the air.
 
     Why (issue 17, the real photo sets' orbit renders): the back-of-head shell (``prior.back_shell``)
     lies on the fitted head, which can be wider or longer than the person's (short hair at the back,
@@ -819,21 +843,30 @@ def carve_into_mattes(points: Tensor, cameras: Cameras, foreground: Tensor, cent
     inward = F.normalize(c - pts, dim=-1)
     out = pts.clone()
     todo = torch.ones(len(pts), dtype=torch.bool, device=pts.device)
+    alone_at = torch.full((len(pts),), -1, dtype=torch.long, device=pts.device)  # the first step the point alone is held at
+    extra = round(mirror_max_m / step_m)
     for k in range(round(max_m / step_m) + 1):
         if not bool(todo.any()):
             break
         idx = todo.nonzero()[:, 0]
         q = pts[idx] + inward[idx] * (k * step_m)
         ok = _in_every_matte(q, cams, fg)
+        if mirror is not None:
+            first = ok & (alone_at[idx] < 0)
+            alone_at[idx[first]] = k
+            ok &= _in_every_matte(_mirrored(q, mirror), cams, fg) | (k - alone_at[idx] >= extra)
         out[idx[ok]] = q[ok]
         todo[idx[ok]] = False
+    late = todo & (alone_at >= 0)  # held alone but not with the mirror image within max_m: where the point alone is held
+    out[late] = pts[late] + inward[late] * (alone_at[late, None].float() * step_m)
     return out.to(points.dtype)
 
 
 HAIR_CARVE_STEPS = (1.0, 0.75, 0.5, 0.25, 0.0)  # hair_carve_fractions' fractions of the hair thickness, tried in this order
 
 
-def hair_carve_fractions(surface: HeadSurface, cameras: Cameras, foreground: Tensor, hair_m: float, dilate_px: int = 1, max_up: float = 1.0) -> np.ndarray:
+def hair_carve_fractions(surface: HeadSurface, cameras: Cameras, foreground: Tensor, hair_m: float, dilate_px: int = 1, max_up: float = 1.0,
+                         mirror: bool = False) -> np.ndarray:
     """``[Nv]`` fraction (one of ``HAIR_CARVE_STEPS``) of the hair thickness ``hair_m`` each ICT-FaceKit
     vertex keeps: the largest whose laid-out point (``hair_vertex_weight`` x normal, on view 0's
     tracked head; the scalp does not move with expressions) projects onto foreground (> 0.5, the
@@ -867,14 +900,17 @@ def hair_carve_fractions(surface: HeadSurface, cameras: Cameras, foreground: Ten
     up[1] = 1.0
     if surface.head_to_world is not None:
         up = np.asarray(surface.head_to_world, dtype=np.float64)[:3, :3] @ up
+    reflection = midline_reflection(surface.head_to_world)
     nrm = off / np.maximum(np.linalg.norm(off, axis=1, keepdims=True), 1e-12)
     undecided &= nrm @ up <= max_up  # the top of the head (normals within acos(max_up) of up) keeps its thickness
     for step in HAIR_CARVE_STEPS:
         if not undecided.any():
             break
         idx = np.nonzero(undecided)[0]
-        pts = torch.from_numpy((vw[idx] + step * hair_m * off[idx]).astype(np.float32))
-        ok = _in_every_matte(pts, cams, fg)
+        p = vw[idx] + step * hair_m * off[idx]
+        ok = _in_every_matte(torch.from_numpy(p.astype(np.float32)), cams, fg)
+        if mirror:  # its mirror image about the head's midline must project onto the mattes too
+            ok &= _in_every_matte(torch.from_numpy((p @ reflection[0].T + reflection[1]).astype(np.float32)), cams, fg)
         good = ok.numpy() | (step == HAIR_CARVE_STEPS[-1])
         frac[idx[good]] = step
         undecided[idx[good]] = False

@@ -17,7 +17,10 @@ left-out photo's tracked camera with its tracked expression, and compare with th
   turned heads: a measurement beside HOG's, not the same detector;
 - where the masked error comes from (``error_split``): the pixels inside the photo's mask that the
   render leaves uncovered (render alpha < 0.5: hair, neck, shoulders no other photo saw) and the
-  covered ones, each given as the PSNR that term alone would allow.
+  covered ones, each given as the PSNR that term alone would allow;
+- what the render draws beyond the photo's outline, which the masked scores never see
+  (``beyond_mask``: render alpha >= 0.5 outside the mask dilated by 3 pixels, within the photo's
+  frame, as a share of the mask's pixels).
 
 With ``--align-left-out`` every row also carries the **test-view pose alignment** diagnostic
 (``refine/testpose.py``; the protocol of pose-free novel-view-synthesis evaluations: the avatar
@@ -115,6 +118,57 @@ def error_split(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, al
     return out
 
 
+BEYOND_MASK_DILATE_PX = 3  # beyond_mask: the photo's mask is dilated by this many pixels (its edge and a pixel of misregistration do not count)
+
+
+def beyond_mask(alpha: torch.Tensor, mask: torch.Tensor, in_frame: torch.Tensor | None = None, thresh: float = 0.5,
+                dilate_px: int = BEYOND_MASK_DILATE_PX) -> float:
+    """Where the render draws the head and the photo shows none: the share (of the mask's pixel
+    count) of pixels with ``alpha >= thresh`` outside the photo's mask dilated by ``dilate_px``
+    pixels and inside the photo's frame.
+
+    The masked scores never see these pixels (outside the mask both images are set to the
+    background), yet a viewer does: a head drawn larger than the person's (a skull or hair layer
+    the other photos do not bound) shows as a rim of hair in the air around the real outline.
+
+    Args:
+        alpha: ``[1, H, W]`` or ``[H, W]`` the render's accumulated opacity.
+        mask: ``[1, H, W]`` or ``[H, W]``, > 0.5 inside the photo's matte.
+        in_frame: ``bool [H, W]``: the crop's pixels that lie inside the original photo (the crop's
+            padding beyond the photo's edge is unknown, not background); None: all.
+    Returns:
+        the share, >= 0 (it can exceed 1).
+    Raises:
+        ValueError: when the shapes differ or the mask is empty.
+    """
+    import torch.nn.functional as F
+
+    a = alpha.reshape(alpha.shape[-2:])
+    m = mask.reshape(mask.shape[-2:]) > 0.5
+    if a.shape != m.shape or (in_frame is not None and tuple(in_frame.shape) != tuple(a.shape)):
+        raise ValueError(f"beyond_mask: alpha {list(a.shape)}, mask {list(m.shape)} and in_frame {None if in_frame is None else list(in_frame.shape)} must have one size")
+    n = int(m.sum())
+    if n == 0:
+        raise ValueError("beyond_mask: the mask is empty")
+    k = 2 * dilate_px + 1
+    grown = F.max_pool2d(m.float()[None, None], k, stride=1, padding=dilate_px)[0, 0] > 0.5 if dilate_px > 0 else m
+    out = (a >= thresh) & ~grown
+    if in_frame is not None:
+        out &= in_frame.to(out.device)
+    return float(out.sum()) / n
+
+
+def in_photo_frame(crop_camera, photo_camera) -> torch.Tensor:
+    """``bool [H, W]``: the pixels of a crop (``crop_camera``, batch ``[1]``, ``W x H``) whose centre
+    lies inside the photo it was cut from (``photo_camera``: the same pose, the full photo's
+    intrinsics; ``TrackedPhotos.photo_cameras``), through the two cameras' intrinsics."""
+    kc, kp = crop_camera.flatten().K[0].double(), photo_camera.flatten().K[0].double()
+    w, h = crop_camera.width, crop_camera.height
+    u = (torch.arange(w, dtype=torch.float64) + 0.5 - kc[0, 2]) / kc[0, 0] * kp[0, 0] + kp[0, 2]
+    v = (torch.arange(h, dtype=torch.float64) + 0.5 - kc[1, 2]) / kc[1, 1] * kp[1, 1] + kp[1, 2]
+    return ((v >= 0) & (v < photo_camera.height))[:, None] & ((u >= 0) & (u < photo_camera.width))[None, :]
+
+
 def _count_cnn(faces, img: np.ndarray) -> int | None:
     """Faces found by dlib's CNN (MMOD) detector in ``img`` (upsampled once, as for HOG), or None
     when it is not loaded."""
@@ -148,11 +202,11 @@ def _identity(faces, img: np.ndarray, box=None):
     return np.asarray(faces.face_rec.compute_face_descriptor(img, shape), dtype=np.float64), n, box
 
 
-def _score(pred: torch.Tensor, alpha: torch.Tensor, target: torch.Tensor, m: torch.Tensor, faces, t_desc, t_box) -> dict:
+def _score(pred: torch.Tensor, alpha: torch.Tensor, target: torch.Tensor, m: torch.Tensor, faces, t_desc, t_box, in_frame: torch.Tensor | None = None) -> dict:
     """The scores of one render ``pred [1, 3, S, S]`` (alpha ``[1, 1, S, S]``) of the left-out photo
     ``target [1, 3, S, S]`` inside its mask ``m [1, 1, S, S]`` (0/1): masked PSNR / SSIM, the dlib
-    identity distance to the photo's descriptor ``t_desc`` (face box ``t_box``), the face counts and
-    ``error_split``."""
+    identity distance to the photo's descriptor ``t_desc`` (face box ``t_box``), the face counts,
+    ``error_split`` and ``beyond_mask_frac`` (``beyond_mask``, within ``in_frame``)."""
     from ..train.faces import to_uint8_hwc
     from ..train.metrics import ssim
 
@@ -174,6 +228,7 @@ def _score(pred: torch.Tensor, alpha: torch.Tensor, target: torch.Tensor, m: tor
         if p_desc is not None and t_desc is not None:
             out["identity_distance"] = float(np.linalg.norm(p_desc - t_desc))
     out.update(error_split(pred[0], target[0], m[0], alpha[0]))
+    out["beyond_mask_frac"] = beyond_mask(alpha[0], m[0], in_frame)
     return out
 
 
@@ -315,6 +370,7 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
         t_img = to_uint8_hwc(target[0])
         t_desc, n_photo, t_box = _identity(faces, t_img) if faces is not None else (None, None, None)
         n_photo_cnn = _count_cnn(faces, t_img) if faces is not None else None
+        in_frame = in_photo_frame(cams[k : k + 1], tr.photo_cameras[k] if isinstance(tr.photo_cameras, list) else tr.photo_cameras[k : k + 1])
         for steps in steps_list:
             t1 = time.perf_counter()
             res = refine_avatar(
@@ -329,7 +385,7 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
                 "set": folder.name,
                 "left_out": names[k],
                 "steps": steps,
-                **_score(pred, ro.alpha, target, m, faces, t_desc, t_box),
+                **_score(pred, ro.alpha, target, m, faces, t_desc, t_box, in_frame),
                 "faces_in_photo": n_photo,
                 "cnn_faces_in_photo": n_photo_cnn,
                 "refine_s": round(dt, 2),
@@ -428,12 +484,13 @@ def summary_table(rows: list[dict]) -> str:
 
     Columns after identity: photos with exactly one face by HOG (renders, left-out photos) and by
     dlib's CNN detector (renders, photos); the mean share of the mask left uncovered by the render,
-    and the mean PSNR each error term alone would allow (``error_split``)."""
+    the mean PSNR each error term alone would allow (``error_split``), and the mean share the render
+    draws beyond the mask (``beyond_mask``)."""
     mir = any("mirror" in r for r in rows)
     head = (
         "| set | refine steps | photos | masked PSNR ↑ | masked SSIM ↑ | identity distance ↓ | renders with exactly 1 face | left-out photos with exactly 1 face "
-        "| CNN: renders with 1 face | CNN: photos with 1 face | mask uncovered | PSNR, uncovered error only | PSNR, covered error only |\n"
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
+        "| CNN: renders with 1 face | CNN: photos with 1 face | mask uncovered | PSNR, uncovered error only | PSNR, covered error only | render beyond the mask |\n"
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
     )
     if mir:  # the mirrored-view variant (model/mirror.py) after the set
         head = head.replace("| set |", "| set | mirror |", 1).replace("|---|", "|---|---|", 1)
@@ -448,9 +505,13 @@ def summary_table(rows: list[dict]) -> str:
             f"{_fmt(idd, '.3f')} | {_count_one(rs, 'faces_in_render')} | {_count_one(rs, 'faces_in_photo')} | "
             f"{_count_one(rs, 'cnn_faces_in_render')} | {_count_one(rs, 'cnn_faces_in_photo')} | "
             f"{'n/a' if unc is None else f'{100 * unc:.1f}%'} | {_fmt(_mean([r.get('psnr_uncovered_only') for r in rs]), '.2f')} | "
-            f"{_fmt(_mean([r.get('psnr_covered_only') for r in rs]), '.2f')} |\n"
+            f"{_fmt(_mean([r.get('psnr_covered_only') for r in rs]), '.2f')} | {_pct(_mean([r.get('beyond_mask_frac') for r in rs]))} |\n"
         )
     return head + body
+
+
+def _pct(x) -> str:
+    return "n/a" if x is None else f"{100 * x:.1f}%"
 
 
 def _median(vals):
