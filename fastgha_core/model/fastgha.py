@@ -838,7 +838,9 @@ class FastGHA(nn.Module):
         """``reconstruct``'s back-of-head and chin shells (the ``_shell_count()`` Gaussians after the
         ``n_rec`` reconstructed ones) moved towards the head centre until every real input's matte
         holds it (``surface.carve_into_mattes``): the fitted head can be wider than the person's, and an
-        opaque shell beyond a photo's outline is drawn as a dark rim beside the hair."""
+        opaque shell beyond a photo's outline is drawn as a dark rim beside the hair. The crops' padding
+        beyond their photos' edges (``surface.frames``) holds every point: a photo whose frame cuts the
+        hair does not cut the shell."""
         from .gaussian_head import foreground_weight
         from .surface import carve_into_mattes, midline_reflection
 
@@ -847,6 +849,7 @@ class FastGHA(nn.Module):
             return g
         means = g.means.clone()
         fg = foreground_weight(images.float())
+        fg = torch.maximum(fg, surface.padding(fg.shape[-1], fg.shape[-2]).to(fg))  # the crops' padding holds every point (HeadSurface.frames)
         mirror = midline_reflection(surface.head_to_world) if self.config.gaussians.hair_carve_mirror else None
         means[n_rec : n_rec + k] = carve_into_mattes(means[n_rec : n_rec + k].float().cpu(), cameras.to("cpu", torch.float32), fg.cpu(), surface.centre,
                                                      dilate_px=SHELL_CARVE_DILATE_PX, mirror=mirror).to(means)

@@ -135,6 +135,16 @@ def hair_vertex_weight(head) -> np.ndarray:
     return w
 
 
+def _photo_frame(crop: Cameras, photo: Cameras) -> np.ndarray:
+    """``[4]`` (left, top, right, bottom): the photo's image, as fractions of the crop's width and
+    height, through the two cameras' intrinsics (one pose: the crop is the photo's camera cropped and
+    resized, ``Cameras.crop`` / ``resize``)."""
+    kc, kp = crop.flatten().K[0].double().numpy(), photo.flatten().K[0].double().numpy()
+    x = (np.array([0.0, photo.width]) - kp[0, 2]) / kp[0, 0] * kc[0, 0] + kc[0, 2]
+    y = (np.array([0.0, photo.height]) - kp[1, 2]) / kp[1, 1] * kc[1, 1] + kc[1, 2]
+    return np.array([x[0] / crop.width, y[0] / crop.height, x[1] / crop.width, y[1] / crop.height])
+
+
 @dataclass
 class HeadSurface:
     """The tracked ICT-FaceKit head of one person, one expression per input view.
@@ -146,11 +156,18 @@ class HeadSurface:
             head frame (module doc) to the world of the cameras the surface is used with; None =
             identity (the tracker's head-centric cameras). From ``tracking.fit.fit_known_cameras``
             when the photos came with their own cameras.
+        frames: ``[V, 4]`` the part of each view's image that shows its photo, as ``(left, top,
+            right, bottom)`` fractions of the image's width and height; the rest is the tracker's
+            crop padding (``BACKGROUND_RGB``, like matted background, but nothing is known there).
+            From ``tracking.TrackedPhotos`` (``from_tracking``); None = every pixel is the photo's.
+            Fractions, so they hold for the view resized (``FastGHA.prepare`` resizes the square
+            crops); ``padding`` gives the pixels.
     """
 
     identity: np.ndarray
     expressions: np.ndarray
     head_to_world: np.ndarray | None = None
+    frames: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.identity = np.asarray(self.identity, dtype=np.float32).reshape(-1)
@@ -167,6 +184,11 @@ class HeadSurface:
             raise ValueError(f"HeadSurface: expressions must have shape [V, 53] (ict53), got {list(self.expressions.shape)}")
         if self.identity.shape[0] > 100:
             raise ValueError(f"HeadSurface: identity must have at most 100 ICT coefficients, got {self.identity.shape[0]}")
+        if self.frames is not None:
+            f = np.asarray(self.frames, dtype=np.float64)
+            if f.shape != (self.expressions.shape[0], 4) or not np.isfinite(f).all() or (f[:, 2] <= f[:, 0]).any() or (f[:, 3] <= f[:, 1]).any():
+                raise ValueError(f"HeadSurface: frames must be [V, 4] finite (left, top, right, bottom) fractions with right > left and bottom > top, one row per view, got shape {list(f.shape)}")
+            self.frames = f
         if not (np.isfinite(self.identity).all() and np.isfinite(self.expressions).all()):
             raise ValueError("HeadSurface: identity and expressions must be finite")
 
@@ -183,13 +205,32 @@ class HeadSurface:
 
     @staticmethod
     def from_tracking(tracked) -> "HeadSurface":
-        """From ``tracking.TrackedPhotos`` (or a ``tracking.fit.FitResult``)."""
+        """From ``tracking.TrackedPhotos`` (with the crops' ``frames``, from each crop's camera and its
+        photo's) or a ``tracking.fit.FitResult`` (without)."""
         fit = getattr(tracked, "fit", tracked)
-        return HeadSurface(fit.identity, fit.expressions, getattr(fit, "head_to_world", None))
+        frames = None
+        photo_cams = getattr(tracked, "photo_cameras", None)
+        if photo_cams is not None and getattr(tracked, "cameras", None) is not None:
+            crops = tracked.cameras.flatten()
+            frames = np.stack([_photo_frame(crops[i], photo_cams[i] if isinstance(photo_cams, list) else photo_cams.flatten()[i]) for i in range(len(crops.K))])
+        return HeadSurface(fit.identity, fit.expressions, getattr(fit, "head_to_world", None), frames)
 
     def subset(self, views) -> "HeadSurface":
         """The surface of the views ``views`` (indices or a bool mask), in that order."""
-        return HeadSurface(self.identity, self.expressions[np.asarray(views)], self.head_to_world)
+        idx = np.asarray(views)
+        return HeadSurface(self.identity, self.expressions[idx], self.head_to_world, None if self.frames is None else self.frames[idx])
+
+    def padding(self, width: int, height: int) -> Tensor:
+        """``bool [V, height, width]``: the pixels of each view, at that size, outside its photo's
+        frame (``frames``; all False without frames)."""
+        out = torch.zeros(len(self), height, width, dtype=torch.bool)
+        if self.frames is None:
+            return out
+        u = (torch.arange(width, dtype=torch.float64) + 0.5) / width
+        r = (torch.arange(height, dtype=torch.float64) + 0.5) / height
+        for i, (l, t, rr, b) in enumerate(self.frames):
+            out[i] = ~(((r >= t) & (r < b))[:, None] & ((u >= l) & (u < rr))[None, :])
+        return out
 
     def vertices(self, view: int, head=None) -> np.ndarray:
         """World vertices ``[Nv, 3]`` (metres) of view ``view``'s expression: the head frame moved by
@@ -376,6 +417,7 @@ def fit_hair_thickness(surface: HeadSurface, cameras: Cameras, masks: Tensor, ca
     faces = head.visible_faces(eyelashes=False)
     ones = np.ones((head.num_vertices, 1), np.float32)
     mk = masks.detach().cpu().numpy() > 0.5
+    pad = surface.padding(w, h).numpy()  # the crop's padding: neither the person nor background
     rows = np.arange(h)[:, None]
     scores = np.zeros(len(cand))
     for i in range(v):
@@ -386,7 +428,7 @@ def fit_hair_thickness(surface: HeadSurface, cameras: Cameras, masks: Tensor, ca
             pts = (vw + c * off) @ w2c[:3, :3].T + w2c[:3, 3]
             if j == 0:
                 brow = pts[head.landmarks68[17:27]]
-                top = (rows < float((K[1, 1] * brow[:, 1] / brow[:, 2] + K[1, 2]).min())) & np.ones((1, w), bool)
+                top = (rows < float((K[1, 1] * brow[:, 1] / brow[:, 2] + K[1, 2]).min())) & ~pad[i]
             cov = render_mesh(pts.astype(np.float32), faces, ones, K, w, h, supersample=1).alpha > 0.5
             union = ((cov | mk[i]) & top).sum()
             scores[j] += ((cov & mk[i]) & top).sum() / union if union else 0.0
@@ -893,7 +935,7 @@ def hair_carve_fractions(surface: HeadSurface, cameras: Cameras, foreground: Ten
     frac = np.ones(head.num_vertices, np.float32)
     if hair_m <= 0:
         return frac
-    fg = _mattes(foreground.cpu(), dilate_px)
+    fg = _mattes(foreground.cpu(), dilate_px) | surface.padding(w, h)  # the crop's padding says nothing: it holds every point
     vw, off = _hair_offsets(surface, 0, head, head.visible_faces(eyelashes=False))
     undecided = np.linalg.norm(off, axis=1) > 0
     up = np.zeros(3)
