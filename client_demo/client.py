@@ -313,10 +313,11 @@ def load_request_dir(folder: str | Path) -> tuple[list[Path], list[dict] | None,
 def load_head(folder: str | Path, images: Sequence[Path]) -> dict | None:
     """The ``head`` part of a tracked request folder, or None when it has no ``head.json``.
 
-    ``fastgha track`` writes ``head.json`` (``{"model": "ict_facekit", "identity": [...]}``) and
-    ``expressions.json`` (each crop's ``ict53`` expression, by file name); the server takes both as
-    one object, head.json's with ``"expressions"``: one list of 53 weights per image of ``images``,
-    in their order (``docs/protocol.md``, the ``head`` part). ValueError when head.json comes without
+    ``fastgha track`` writes ``head.json`` (``{"model": "ict_facekit", "identity": [...], "frames":
+    {crop file name: [left, top, right, bottom]}}``) and ``expressions.json`` (each crop's ``ict53``
+    expression, by file name); the server takes both as one object, head.json's with
+    ``"expressions"``: one list of 53 weights per image of ``images``, in their order, and ``"frames"``
+    likewise (``docs/protocol.md``, the ``head`` part). ValueError when head.json comes without
     cameras.json or without an expression for every image.
     """
     folder = Path(folder)
@@ -335,7 +336,15 @@ def load_head(folder: str | Path, images: Sequence[Path]) -> dict | None:
     if not isinstance(head, dict) or missing:
         why = f"no tracked expression for {missing}" if missing else "head.json is not a JSON object"
         raise ValueError(f"request folder {folder}: {why} (expressions.json and head.json of `fastgha track` go with its crops)")
-    return {**head, "expressions": [by_name[Path(p).name] for p in images]}
+    part = {**head, "expressions": [by_name[Path(p).name] for p in images]}
+    frames = head.get("frames")
+    if isinstance(frames, dict):  # head.json's by crop file name -> one per image, in their order (none when one is missing)
+        names = [Path(p).name for p in images]
+        if all(n in frames for n in names):
+            part["frames"] = [frames[n] for n in names]
+        else:
+            part.pop("frames")
+    return part
 
 
 def _as_bytes(item: Any) -> tuple[bytes, str]:

@@ -1,8 +1,10 @@
 """The tracked head of a request folder (``head.json`` of ``fastgha track``), read one way everywhere.
 
-``fastgha track`` writes ``head.json`` = ``{"model": "ict_facekit", "identity": [100 floats]}`` (the
-person's ICT-FaceKit identity coefficients, modes ~ N(0, 1)) and ``expressions.json`` (each photo's
-``ict53`` expression, weights in [0, 1]). ``fastgha reconstruct`` and the server's ``head`` part of
+``fastgha track`` writes ``head.json`` = ``{"model": "ict_facekit", "identity": [100 floats],
+"frames": {crop file name: [left, top, right, bottom]}}`` (the person's ICT-FaceKit identity
+coefficients, modes ~ N(0, 1); each crop's photo as fractions of the crop, whose padding beyond the
+photo's edge is then not read as background, ``HeadSurface.frames``) and ``expressions.json`` (each
+photo's ``ict53`` expression, weights in [0, 1]). ``fastgha reconstruct`` and the server's ``head`` part of
 ``POST /v1/avatars`` (``docs/protocol.md``) both turn them into a
 ``fastgha_core.model.surface.HeadSurface`` with :func:`head_surface_from_json` and reconstruct with
 every pixel's Gaussian on it (``surface_mode="replace"``) and the photos' expressions undone
@@ -35,22 +37,28 @@ def _numbers(value: Any, what: str) -> np.ndarray:
     return arr
 
 
-def head_surface_from_json(data: Any, expressions: Any, num_views: int | None = None, source: str = "head.json"):
+def head_surface_from_json(data: Any, expressions: Any, num_views: int | None = None, source: str = "head.json", names: list[str] | None = None):
     """``HeadSurface`` of head.json's content ``data`` and the photos' expressions.
 
     Args:
         data: the parsed JSON object ``{"model": "ict_facekit" (optional), "identity": [1..100 numbers]}``;
-            other keys (``expressions``, see below) are allowed.
+            other keys (``expressions``, ``frames``, see below) are allowed.
         expressions: ``[V, 53]`` ``ict53`` weights of the photos in [0, 1], in the order of the
             photos (array or nested lists); None takes ``data["expressions"]``.
         num_views: the number of photos the expressions must cover, or None.
         source: how messages name the JSON (a path, or ``"head"`` for the server's part).
+        names: the photos' file names, in their order: ``data["frames"]`` as head.json holds it, an
+            object by crop file name, is read for them. Without names, ``frames`` must be a list, one
+            ``[left, top, right, bottom]`` per photo in their order (the server's ``head`` part).
+            Optional either way (absent: no padding known).
     Returns:
-        ``fastgha_core.model.surface.HeadSurface`` (identity ``[K <= 100]``, expressions ``[V, 53]``).
+        ``fastgha_core.model.surface.HeadSurface`` (identity ``[K <= 100]``, expressions ``[V, 53]``,
+        ``frames`` ``[V, 4]`` or None).
     Raises:
         ValueError: naming ``source`` and what was expected vs what came (not an object, another
             model, identity not 1..100 numbers within +-MAX_ABS_IDENTITY, expressions not [V, 53] in
-            [0, 1], or V != ``num_views``).
+            [0, 1], V != ``num_views``, or frames that are not one ``[left, top, right, bottom]``
+            with right > left and bottom > top per photo).
     """
     from .model.surface import HeadSurface
 
@@ -88,7 +96,28 @@ def head_surface_from_json(data: Any, expressions: Any, num_views: int | None = 
         raise ValueError(f"{source}: ict53 expression weights must lie in [0, 1], got [{expr.min():.4g}, {expr.max():.4g}]")
     if num_views is not None and expr.shape[0] != num_views:
         raise ValueError(f"{source}: expressions for {expr.shape[0]} photo(s), but {num_views} photo(s) came; send one per photo, in their order")
-    return HeadSurface(ident.astype(np.float32), expr.astype(np.float32))
+    return HeadSurface(ident.astype(np.float32), expr.astype(np.float32), None, _frames(data.get("frames"), len(expr), names, source))
+
+
+def _frames(value: Any, views: int, names: list[str] | None, source: str) -> np.ndarray | None:
+    """``[views, 4]`` frames of head.json's ``frames`` (module doc), or None when absent."""
+    if value is None:
+        return None
+    if isinstance(value, dict):
+        if names is None:
+            raise ValueError(f"{source}: frames by file name need the photos' names; send a list, one [left, top, right, bottom] per photo in their order")
+        missing = [n for n in names if n not in value]
+        if missing:
+            raise ValueError(f"{source}: frames has no entry for {missing} (head.json of `fastgha track` goes with its crops)")
+        value = [value[n] for n in names]
+    if not isinstance(value, list) or len(value) != views:
+        got = f"{len(value)} entries" if isinstance(value, list) else type(value).__name__
+        raise ValueError(f"{source}: frames must hold one [left, top, right, bottom] per photo ({views}), got {got}")
+    rows = [_numbers(r, f"{source}: frames[{i}]") for i, r in enumerate(value)]
+    f = np.stack(rows) if all(len(r) == 4 for r in rows) else None
+    if f is None or (f[:, 2] <= f[:, 0]).any() or (f[:, 3] <= f[:, 1]).any():
+        raise ValueError(f"{source}: each frame must be [left, top, right, bottom] with right > left and bottom > top (fractions of the crop)")
+    return f
 
 
 def head_expressions(surface, model):

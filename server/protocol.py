@@ -273,6 +273,7 @@ def parse_cameras_json(text: str | bytes) -> list[Cameras]:
 def parse_head_json(text: str | bytes, num_images: int):
     """The ``head`` part of ``POST /v1/avatars``: ``fastgha track``'s head.json with each photo's
     expression, ``{"model": "ict_facekit", "identity": [1..100 numbers], "expressions": [[53] per image]}``
+    and optionally each image's ``"frames"`` entry, ``[left, top, right, bottom]`` in the images' order
     (``docs/protocol.md``) -> ``fastgha_core.model.surface.HeadSurface``, read by
     ``fastgha_core.headfile.head_surface_from_json`` as ``fastgha reconstruct`` reads head.json.
 

@@ -381,7 +381,8 @@ def test_demo_takes_a_whole_tracked_folder(page, server):
     cams = httpx.get(f"{server.base}/v1/samples/{SAMPLE_NAME}/cameras.json").json()[:2]
     names = page.evaluate("window.fastghaDemo.model.expression_names")
     tracked = {"space": "ict53", "names": names, "images": ["00_me.png", "01_me.png"], "expressions": [[0.0] * len(names)] * 2}
-    head = {"model": "ict_facekit", "identity": [0.0] * 100}
+    frames = {"00_me.png": [0.0, -0.1, 1.0, 1.2], "01_me.png": [0.1, 0.0, 0.9, 1.0]}  # by crop file name, as `fastgha track` writes them
+    head = {"model": "ict_facekit", "identity": [0.0] * 100, "frames": frames}
     page.set_input_files("#file-input", files=[  # head.json first: it must not be read as the sequence
         {"name": "head.json", "mimeType": "application/json", "buffer": json.dumps(head).encode()},
         {"name": "00_me.jpg", "mimeType": "image/jpeg", "buffer": jpg},
@@ -401,7 +402,9 @@ def test_demo_takes_a_whole_tracked_folder(page, server):
     page.click("#create")
     page.wait_for_function("window.__sent !== undefined", timeout=10_000)
     sent = page.evaluate("window.__sent")
-    assert json.loads(sent["head"]) == {**head, "expressions": tracked["expressions"]} and len(json.loads(sent["cameras"])) == 2
+    # ... and each photo's frame, in the photos' order (by stem: the crops were written as .png)
+    assert json.loads(sent["head"]) == {**head, "expressions": tracked["expressions"], "frames": [frames["00_me.png"], frames["01_me.png"]]}
+    assert len(json.loads(sent["cameras"])) == 2
     page.wait_for_function("window.fastghaDemo.frames >= 1", timeout=60_000)  # the server took it
     assert "creating the avatar failed" not in page.inner_text("#messages")
 

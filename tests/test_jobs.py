@@ -833,9 +833,10 @@ def _head_folder(samples: Path, dst: Path, seed: int = 3) -> tuple[Path, dict]:
     ident = np.zeros(100)
     ident[:20] = rng.standard_normal(20) * 0.5
     expr = (rng.uniform(0.0, 0.3, (len(imgs), 53))).round(4)
-    (dst / "head.json").write_text(json.dumps({"model": "ict_facekit", "identity": ident.round(5).tolist()}))
+    frames = [[0.0, 0.0, 1.0, 1.0] if i % 2 else [0.0, -0.1, 0.85, 1.0] for i in range(len(imgs))]  # each photo's frame: some padding right and top
+    (dst / "head.json").write_text(json.dumps({"model": "ict_facekit", "identity": ident.round(5).tolist(), "frames": dict(zip(imgs, frames))}))
     (dst / "expressions.json").write_text(json.dumps({"space": "ict53", "names": list(ICT53_NAMES), "images": imgs, "expressions": expr.tolist()}))
-    return dst, {"model": "ict_facekit", "identity": ident.round(5).tolist(), "expressions": expr.tolist()}
+    return dst, {"model": "ict_facekit", "identity": ident.round(5).tolist(), "frames": frames, "expressions": expr.tolist()}
 
 
 def _head_distance(avatar, head_part: dict) -> float:
@@ -900,7 +901,9 @@ def test_head_part_validation_names_the_part_and_what_was_expected():
     from server.protocol import ProtocolError, parse_head_json
 
     good = {"model": "ict_facekit", "identity": [0.1] * 100, "expressions": [[0.0] * 53, [0.2] * 53]}
-    assert len(parse_head_json(json.dumps(good), 2)) == 2
+    assert len(parse_head_json(json.dumps(good), 2)) == 2 and parse_head_json(json.dumps(good), 2).frames is None
+    framed = parse_head_json(json.dumps({**good, "frames": [[0.0, -0.1, 1.0, 1.0], [0.1, 0.0, 0.9, 1.2]]}), 2)
+    assert np.allclose(framed.frames, [[0.0, -0.1, 1.0, 1.0], [0.1, 0.0, 0.9, 1.2]])
     cases = [
         ("{not json", "invalid_json", "head is not valid JSON"),
         (json.dumps([1, 2]), "invalid_head", "expected a JSON object"),
@@ -913,6 +916,10 @@ def test_head_part_validation_names_the_part_and_what_was_expected():
         (json.dumps({**good, "expressions": [[0.0] * 52, [0.0] * 53]}), "invalid_head", "expressions[0] must be a list of 53 ict53 weights, got 52"),
         (json.dumps({**good, "expressions": [[2.0] * 53, [0.0] * 53]}), "invalid_head", "must lie in [0, 1]"),
         (json.dumps({**good, "expressions": [[0.0] * 53]}), "head_count_mismatch", "head: expressions for 1 photo(s) but 2 images came"),
+        (json.dumps({**good, "frames": [[0.0, 0.0, 1.0, 1.0]]}), "invalid_head", "frames must hold one [left, top, right, bottom] per photo (2), got 1 entries"),
+        (json.dumps({**good, "frames": [[0.0, 0.0, 1.0, 1.0], [0.5, 0.0, 0.4, 1.0]]}), "invalid_head", "right > left and bottom > top"),
+        (json.dumps({**good, "frames": [[0.0, 0.0, 1.0, 1.0], [0.0, 0.0, 1.0]]}), "invalid_head", "right > left and bottom > top"),
+        (json.dumps({**good, "frames": {"a.png": [0.0, 0.0, 1.0, 1.0]}}), "invalid_head", "frames by file name need the photos' names"),
         ('{"identity": [NaN], "expressions": [[0.0]]}', "non_finite_number", "head: JSON numbers must be finite"),
     ]
     for text, code, words in cases:

@@ -218,8 +218,13 @@ def test_track_then_reconstruct_uses_the_tracked_head(tmp_path, capsys):
     Image.open(cbook.get_sample_data("grace_hopper.jpg", asfileobj=False)).convert("RGB").save(photo)
     req = tmp_path / "req"
     assert main(["track", "--images", str(photo), "--out", str(req), "--size", "128"]) == 0
-    ident = np.asarray(json.loads((req / "head.json").read_text())["identity"], np.float32)
+    head = json.loads((req / "head.json").read_text())
+    ident = np.asarray(head["identity"], np.float32)
     assert ident.shape == (100,) and np.abs(ident).max() > 0
+    crops = sorted(p.name for p in req.glob("[0-9][0-9]_*.png") if not p.stem.endswith("_mask"))
+    assert sorted(head["frames"]) == crops  # each crop's photo, by file name (HeadSurface.frames)
+    f = np.asarray(head["frames"][crops[0]])
+    assert f.shape == (4,) and f[2] > f[0] and f[3] > f[1]
     assert main(["reconstruct", "--input", str(req), "--out", str(tmp_path / "a.safetensors")]) == 0
     assert main(["reconstruct", "--input", str(req), "--out", str(tmp_path / "b.safetensors"), "--no-surface"]) == 0
     a, b = CanonicalAvatar.load(tmp_path / "a.safetensors"), CanonicalAvatar.load(tmp_path / "b.safetensors")

@@ -263,7 +263,11 @@
       const expressions = imgs.map((f) => byName.get(f.name) || byStem.get(f.name.replace(/\.[^.]+$/, "")));
       const missing = imgs.filter((f, i) => !expressions[i]).map((f) => f.name);
       if (missing.length) throw new Error(`expressions.json has no expression for ${missing.join(", ")}`);
-      return { ...h, expressions };
+      // head.json's frames (each crop's photo, by file name) go one per photo, in their order; left out when one is missing
+      const { frames: byFile, ...head } = h;
+      const frames = byFile && typeof byFile === "object" && !Array.isArray(byFile)
+        ? imgs.map((f) => byFile[f.name] || byFile[f.name.replace(/\.[^.]+$/, "") + ".png"]) : null;
+      return frames && frames.every(Boolean) ? { ...head, expressions, frames } : { ...head, expressions };
     } catch (e) {
       say(`ignored ${headFile.name}: ${e.message}; the Gaussians follow the network's depth`, "err");
       return null;

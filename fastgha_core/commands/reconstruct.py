@@ -86,16 +86,17 @@ def _tracked_expressions(paths):
     return np.asarray([by_name[p.name] for p in paths], dtype=np.float32)
 
 
-def _read_surface(path, expressions):
-    """The tracked head of ``head.json`` (``{"identity": [100 ICT coefficients]}``) with each image's
-    expression (``fastgha_core.headfile``: the same reading as the server's ``head`` part)."""
+def _read_surface(path, expressions, names=None):
+    """The tracked head of ``head.json`` (``{"identity": [100 ICT coefficients], "frames": {...}}``)
+    with each image's expression and frame (``names``: the images' file names; ``fastgha_core.headfile``:
+    the same reading as the server's ``head`` part)."""
     import json
 
     from ..headfile import head_surface_from_json
 
     if expressions is None:
         raise ValueError(f"{path} needs expressions.json beside it (both are written by `fastgha track`)")
-    return head_surface_from_json(json.loads(path.read_text()), expressions, source=str(path))
+    return head_surface_from_json(json.loads(path.read_text()), expressions, source=str(path), names=names)
 
 
 def _fit_surface(images, cams, masks):
@@ -196,7 +197,7 @@ def run(args) -> int:
     surface = None
     head_file = paths[0].parent / "head.json"
     if head_file.exists() and not args.no_surface:
-        surface = _read_surface(head_file, expr_ict53)
+        surface = _read_surface(head_file, expr_ict53, [p.name for p in paths])
     mode = "replace"
     if surface is None and args.surface_fit != "off" and not args.no_surface:
         surface = _fit_surface(images, cams, masks)

@@ -130,7 +130,12 @@ def run(args) -> int:
     expr = {"space": "ict53", "names": list(ICT53_NAMES), "images": [f"{s}.png" for s in stems], "expressions": res.expressions.round(4).tolist()}
     (out / "expressions.json").write_text(json.dumps(expr))
     # the tracked head (shared identity): `fastgha reconstruct` puts every pixel's Gaussian on it
-    (out / "head.json").write_text(json.dumps({"model": "ict_facekit", "identity": res.fit.identity.round(5).tolist()}))
+    # and each crop's photo (its padding is not background: HeadSurface.frames)
+    from ..model.surface import HeadSurface
+
+    frames = HeadSurface.from_tracking(res).frames
+    head = {"model": "ict_facekit", "identity": res.fit.identity.round(5).tolist(), "frames": {f"{s}.png": frames[i].round(5).tolist() for i, s in enumerate(stems)}}
+    (out / "head.json").write_text(json.dumps(head))
     if args.json:
         from ..tracking.realsets import head_angles_deg
 
