@@ -947,7 +947,8 @@ def test_server_takes_a_head_with_the_cameras_and_refuses_malformed_ones(server,
         ({"head": json.dumps(head_part)}, "head_without_cameras", "send the 'cameras' part too"),
         ({"cameras": cams, "head": "{"}, "invalid_head", "head is not valid JSON (Expecting property name"),
         ({"cameras": cams, "head": json.dumps({**head_part, "model": "flame"})}, "invalid_head", "ict_facekit"),
-        ({"cameras": cams, "head": json.dumps({**head_part, "expressions": head_part["expressions"][:2]})}, "head_count_mismatch", "but 4 images came"),
+        ({"cameras": cams, "head": json.dumps({**head_part, "expressions": head_part["expressions"][:2], "frames": head_part["frames"][:2]})}, "head_count_mismatch", "but 4 images came"),
+        ({"cameras": cams, "head": json.dumps({**head_part, "frames": head_part["frames"][:3]})}, "invalid_head", "frames must hold one [left, top, right, bottom] per photo (4), got 3"),
     ]
     for data, code, words in bad:
         r = _post(server, files, KEYS[1], data=data)
