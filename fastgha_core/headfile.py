@@ -48,7 +48,8 @@ def head_surface_from_json(data: Any, expressions: Any, num_views: int | None = 
         num_views: the number of photos the expressions must cover, or None.
         source: how messages name the JSON (a path, or ``"head"`` for the server's part).
         names: the photos' file names, in their order: ``data["frames"]`` as head.json holds it, an
-            object by crop file name, is read for them. Without names, ``frames`` must be a list, one
+            object by crop file name, is read for them (none used when a name has no entry, as the
+            Python client and the browser demo do). Without names, ``frames`` must be a list, one
             ``[left, top, right, bottom]`` per photo in their order (the server's ``head`` part).
             Optional either way (absent: no padding known).
     Returns:
@@ -106,9 +107,8 @@ def _frames(value: Any, views: int, names: list[str] | None, source: str) -> np.
     if isinstance(value, dict):
         if names is None:
             raise ValueError(f"{source}: frames by file name need the photos' names; send a list, one [left, top, right, bottom] per photo in their order")
-        missing = [n for n in names if n not in value]
-        if missing:
-            raise ValueError(f"{source}: frames has no entry for {missing} (head.json of `fastgha track` goes with its crops)")
+        if not all(n in value for n in names):  # a photo added after tracking: no frame known for it, so none used
+            return None
         value = [value[n] for n in names]
     if not isinstance(value, list) or len(value) != views:
         got = f"{len(value)} entries" if isinstance(value, list) else type(value).__name__

@@ -4,7 +4,7 @@ step count, and the face counts of the renders beside those of the left-out phot
 import pytest
 import torch
 
-from fastgha_core.refine.realsets import beyond_mask, error_split, in_photo_frame, list_sets, summary_table
+from fastgha_core.refine.realsets import beyond_mask, error_split, list_sets, summary_table
 
 
 def _row(left_out, psnr, render, photo, ident=0.5, steps=0, s="a", cnn=(None, None), split=(None, None, None), beyond=None):
@@ -119,16 +119,3 @@ def test_beyond_mask_counts_what_the_render_draws_outside_the_photos_outline():
         beyond_mask(alpha, torch.zeros(40, 40))
     with pytest.raises(ValueError, match="one size"):
         beyond_mask(alpha, mask, torch.ones(20, 20, dtype=torch.bool))
-
-
-def test_in_photo_frame_marks_the_crop_pixels_inside_the_photo():
-    from fastgha_core.cameras import Cameras
-
-    K = torch.tensor([[[100.0, 0.0, 50.0], [0.0, 100.0, 40.0], [0.0, 0.0, 1.0]]])
-    photo = Cameras(K, torch.eye(4)[None], 100, 80)
-    crop = photo.crop(-10, 30, 60, 60).resize(120, 120)  # 10 columns of padding on the left, 10 rows below
-    inside = in_photo_frame(crop, photo)
-    assert inside.shape == (120, 120)
-    cols, rows = inside.any(0), inside.any(1)
-    assert int((~cols).sum()) == 20 and bool(~cols[:20].any())  # 10 photo pixels = 20 crop pixels on the left
-    assert int((~rows).sum()) == 20 and bool(~rows[-20:].any())  # and 10 rows at the bottom

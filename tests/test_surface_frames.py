@@ -98,3 +98,18 @@ def test_reconstruct_does_not_carve_the_shell_into_the_padding():
     d_pad = (whole - cut_as_pad).norm(dim=-1) > 1e-4
     assert int(d_pad.sum()) <= int(moved.sum()) // 3  # read as padding, the shell is mostly as without the cut ...
     assert float((cut_as_pad.norm(dim=-1) - whole.norm(dim=-1)).min()) > -1e-6  # ... and nowhere pulled in further (the padding holds more than the uncut matte)
+
+
+def test_head_json_frames_are_read_by_file_name():
+    """head.json holds the frames by crop file name (``fastgha track``); ``fastgha reconstruct`` reads
+    them for its images, in their order, and without a frame for every image uses none."""
+    from fastgha_core.headfile import head_surface_from_json
+
+    data = {"identity": [0.1] * 100, "frames": {"00_a.png": [0.0, 0.0, 1.0, 1.0], "01_b.png": [0.1, -0.2, 0.9, 1.0]}}
+    expr = np.zeros((2, 53))
+    s = head_surface_from_json(data, expr, names=["01_b.png", "00_a.png"])
+    assert np.allclose(s.frames, [[0.1, -0.2, 0.9, 1.0], [0.0, 0.0, 1.0, 1.0]])
+    assert head_surface_from_json(data, expr, names=["00_a.png", "02_new.png"]).frames is None  # a photo added after tracking
+    assert head_surface_from_json({"identity": [0.1] * 100}, expr, names=["00_a.png", "01_b.png"]).frames is None  # a head.json from before frames
+    with pytest.raises(ValueError, match="need the photos' names"):
+        head_surface_from_json(data, expr)

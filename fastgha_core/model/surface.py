@@ -949,10 +949,10 @@ def hair_carve_fractions(surface: HeadSurface, cameras: Cameras, foreground: Ten
         if not undecided.any():
             break
         idx = np.nonzero(undecided)[0]
-        p = vw[idx] + step * hair_m * off[idx]
-        ok = _in_every_matte(torch.from_numpy(p.astype(np.float32)), cams, fg)
+        pts = torch.from_numpy((vw[idx] + step * hair_m * off[idx]).astype(np.float32))
+        ok = _in_every_matte(pts, cams, fg)
         if mirror:  # its mirror image about the head's midline must project onto the mattes too
-            ok &= _in_every_matte(torch.from_numpy((p @ reflection[0].T + reflection[1]).astype(np.float32)), cams, fg)
+            ok &= _in_every_matte(_mirrored(pts, reflection), cams, fg)
         good = ok.numpy() | (step == HAIR_CARVE_STEPS[-1])
         frac[idx[good]] = step
         undecided[idx[good]] = False

@@ -135,7 +135,8 @@ def beyond_mask(alpha: torch.Tensor, mask: torch.Tensor, in_frame: torch.Tensor 
         alpha: ``[1, H, W]`` or ``[H, W]`` the render's accumulated opacity.
         mask: ``[1, H, W]`` or ``[H, W]``, > 0.5 inside the photo's matte.
         in_frame: ``bool [H, W]``: the crop's pixels that lie inside the original photo (the crop's
-            padding beyond the photo's edge is unknown, not background); None: all.
+            padding beyond the photo's edge is unknown, not background: ``~HeadSurface.padding``);
+            None: all.
     Returns:
         the share, >= 0 (it can exceed 1).
     Raises:
@@ -156,17 +157,6 @@ def beyond_mask(alpha: torch.Tensor, mask: torch.Tensor, in_frame: torch.Tensor 
     if in_frame is not None:
         out &= in_frame.to(out.device)
     return float(out.sum()) / n
-
-
-def in_photo_frame(crop_camera, photo_camera) -> torch.Tensor:
-    """``bool [H, W]``: the pixels of a crop (``crop_camera``, batch ``[1]``, ``W x H``) whose centre
-    lies inside the photo it was cut from (``photo_camera``: the same pose, the full photo's
-    intrinsics; ``TrackedPhotos.photo_cameras``), through the two cameras' intrinsics."""
-    kc, kp = crop_camera.flatten().K[0].double(), photo_camera.flatten().K[0].double()
-    w, h = crop_camera.width, crop_camera.height
-    u = (torch.arange(w, dtype=torch.float64) + 0.5 - kc[0, 2]) / kc[0, 0] * kp[0, 0] + kp[0, 2]
-    v = (torch.arange(h, dtype=torch.float64) + 0.5 - kc[1, 2]) / kc[1, 1] * kp[1, 1] + kp[1, 2]
-    return ((v >= 0) & (v < photo_camera.height))[:, None] & ((u >= 0) & (u < photo_camera.width))[None, :]
 
 
 def _count_cnn(faces, img: np.ndarray) -> int | None:
@@ -351,6 +341,7 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
     cams = tr.cameras
     expr = torch.from_numpy(tr.expressions).float()
     v = len(names)
+    padding = HeadSurface.from_tracking(tr).padding(size, size)  # [V, S, S] the crops beyond their photos (not the photos' background)
     variants = [None] if mirror is None else list(mirror)
     rows, renders = [], {(s if mv is None else (mv, s)): [] for mv in variants for s in steps_list}
     if align_left_out:
@@ -370,7 +361,7 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
         t_img = to_uint8_hwc(target[0])
         t_desc, n_photo, t_box = _identity(faces, t_img) if faces is not None else (None, None, None)
         n_photo_cnn = _count_cnn(faces, t_img) if faces is not None else None
-        in_frame = in_photo_frame(cams[k : k + 1], tr.photo_cameras[k] if isinstance(tr.photo_cameras, list) else tr.photo_cameras[k : k + 1])
+        in_frame = ~padding[k]
         for steps in steps_list:
             t1 = time.perf_counter()
             res = refine_avatar(
