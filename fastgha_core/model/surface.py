@@ -942,7 +942,7 @@ def hair_carve_fractions(surface: HeadSurface, cameras: Cameras, foreground: Ten
     up[1] = 1.0
     if surface.head_to_world is not None:
         up = np.asarray(surface.head_to_world, dtype=np.float64)[:3, :3] @ up
-    reflection = midline_reflection(surface.head_to_world)
+    reflection = midline_reflection(surface.head_to_world) if mirror else None
     nrm = off / np.maximum(np.linalg.norm(off, axis=1, keepdims=True), 1e-12)
     undecided &= nrm @ up <= max_up  # the top of the head (normals within acos(max_up) of up) keeps its thickness
     for step in HAIR_CARVE_STEPS:
@@ -951,7 +951,7 @@ def hair_carve_fractions(surface: HeadSurface, cameras: Cameras, foreground: Ten
         idx = np.nonzero(undecided)[0]
         pts = torch.from_numpy((vw[idx] + step * hair_m * off[idx]).astype(np.float32))
         ok = _in_every_matte(pts, cams, fg)
-        if mirror:  # its mirror image about the head's midline must project onto the mattes too
+        if reflection is not None:  # its mirror image about the head's midline must project onto the mattes too
             ok &= _in_every_matte(_mirrored(pts, reflection), cams, fg)
         good = ok.numpy() | (step == HAIR_CARVE_STEPS[-1])
         frac[idx[good]] = step

@@ -142,7 +142,7 @@ def beyond_mask(alpha: torch.Tensor, mask: torch.Tensor, in_frame: torch.Tensor 
     Raises:
         ValueError: when the shapes differ or the mask is empty.
     """
-    import torch.nn.functional as F
+    from ..model.surface import _mattes
 
     a = alpha.reshape(alpha.shape[-2:])
     m = mask.reshape(mask.shape[-2:]) > 0.5
@@ -151,9 +151,7 @@ def beyond_mask(alpha: torch.Tensor, mask: torch.Tensor, in_frame: torch.Tensor 
     n = int(m.sum())
     if n == 0:
         raise ValueError("beyond_mask: the mask is empty")
-    k = 2 * dilate_px + 1
-    grown = F.max_pool2d(m.float()[None, None], k, stride=1, padding=dilate_px)[0, 0] > 0.5 if dilate_px > 0 else m
-    out = (a >= thresh) & ~grown
+    out = (a >= thresh) & ~_mattes(m[None].float(), dilate_px)[0].to(a.device)  # the mask grown as the carves grow mattes
     if in_frame is not None:
         out &= in_frame.to(out.device)
     return float(out.sum()) / n
