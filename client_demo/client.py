@@ -36,6 +36,7 @@ from __future__ import annotations
 import asyncio
 import io
 import json
+import logging
 import math
 import struct
 import time
@@ -48,6 +49,8 @@ from urllib.parse import urlsplit, urlunsplit
 import httpx
 import numpy as np
 from PIL import Image
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "FastGHAClient",
@@ -298,7 +301,8 @@ def load_request_dir(folder: str | Path) -> tuple[list[Path], list[dict] | None,
         cams = cams["cameras"]
     if cams is not None and (not isinstance(cams, list) or len(cams) != len(images)):
         n = len(cams) if isinstance(cams, list) else type(cams).__name__
-        raise ValueError(f"request folder {folder}: {len(images)} images but cameras.json holds {n} cameras")
+        shown = ", ".join(p.name for p in images[:8]) + (", ..." if len(images) > 8 else "")
+        raise ValueError(f"request folder {folder}: {len(images)} images ({shown}) but cameras.json holds {n} cameras, one per image in file-name order")
     masks = []
     for p in images:
         cands = [folder / f"{p.stem}_mask.png", folder / "masks" / f"{p.stem}.png"]
@@ -340,9 +344,11 @@ def load_head(folder: str | Path, images: Sequence[Path]) -> dict | None:
     frames = head.get("frames")
     if isinstance(frames, dict):  # head.json's by crop file name -> one per image, in their order (none when one is missing)
         names = [Path(p).name for p in images]
-        if all(n in frames for n in names):
+        missing = [n for n in names if n not in frames]
+        if not missing:
             part["frames"] = [frames[n] for n in names]
-        else:
+        else:  # a photo added after tracking: its padding is unknown, so none is sent
+            log.warning("request folder %s: head.json's frames have no entry for %s; sending none (the crops' padding reads as background)", folder, ", ".join(missing[:4]))
             part.pop("frames")
     return part
 

@@ -440,7 +440,11 @@ def load_request_folder(folder: str | Path) -> tuple[list[Path], list[Cameras]]:
     )
     cams = cameras_from_json(cam_file.read_text())
     if len(images) != len(cams):
-        raise ValueError(f"request folder {folder}: {len(images)} images but {len(cams)} cameras in cameras.json")
+        shown = ", ".join(p.name for p in images[:8]) + (", ..." if len(images) > 8 else "")
+        raise ValueError(
+            f"request folder {folder}: {len(images)} images ({shown}) but {len(cams)} cameras in cameras.json, "
+            "one per image in file-name order; remove the images that are not views, or add their cameras"
+        )
     return images, cams
 
 

@@ -14,10 +14,13 @@ tracker's head-centric cameras), so the surface has no ``head_to_world``.
 
 from __future__ import annotations
 
+import logging
 import math
 from typing import Any
 
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 __all__ = ["HEAD_MODEL", "MAX_ABS_IDENTITY", "head_surface_from_json", "head_expressions"]
 
@@ -101,23 +104,34 @@ def head_surface_from_json(data: Any, expressions: Any, num_views: int | None = 
 
 
 def _frames(value: Any, views: int, names: list[str] | None, source: str) -> np.ndarray | None:
-    """``[views, 4]`` frames of head.json's ``frames`` (module doc), or None when absent."""
+    """``[views, 4]`` frames of head.json's ``frames`` (module doc), or None when absent.
+
+    A frame's values may lie outside [0, 1]: where the photo reaches past the crop's edge (a
+    tight crop inside a big photo) it is, e.g., ``[-0.5, 0.1, 1.7, 2.3]``, and only the
+    part of the crop beyond it is padding (``HeadSurface.padding``)."""
     if value is None:
         return None
+    labels = [f"frames[{i}]" for i in range(views)]
     if isinstance(value, dict):
         if names is None:
             raise ValueError(f"{source}: frames by file name need the photos' names; send a list, one [left, top, right, bottom] per photo in their order")
-        if not all(n in value for n in names):  # a photo added after tracking: no frame known for it, so none used
+        missing = [n for n in names if n not in value]
+        if missing:  # a photo added after tracking: no frame known for it, so none used
+            log.warning("%s: frames has no entry for %s (of %s); the crops' padding reads as background", source, ", ".join(missing[:4]), ", ".join(sorted(value)[:4]))
             return None
-        value = [value[n] for n in names]
+        value, labels = [value[n] for n in names], [f"frames[{n!r}]" for n in names]
     if not isinstance(value, list) or len(value) != views:
         got = f"{len(value)} entries" if isinstance(value, list) else type(value).__name__
         raise ValueError(f"{source}: frames must hold one [left, top, right, bottom] per photo ({views}), got {got}")
-    rows = [_numbers(r, f"{source}: frames[{i}]") for i, r in enumerate(value)]
-    f = np.stack(rows) if all(len(r) == 4 for r in rows) else None
-    if f is None or (f[:, 2] <= f[:, 0]).any() or (f[:, 3] <= f[:, 1]).any():
-        raise ValueError(f"{source}: each frame must be [left, top, right, bottom] with right > left and bottom > top (fractions of the crop)")
-    return f
+    rows = []
+    for label, r in zip(labels, value):
+        r = _numbers(r, f"{source}: {label}")
+        if len(r) != 4:
+            raise ValueError(f"{source}: {label} must be [left, top, right, bottom] (4 numbers, fractions of the crop), got {len(r)} value(s)")
+        if r[2] <= r[0] or r[3] <= r[1]:
+            raise ValueError(f"{source}: {label} = {r.tolist()} must have right > left and bottom > top (fractions of the crop)")
+        rows.append(r)
+    return np.stack(rows)
 
 
 def head_expressions(surface, model):

@@ -184,6 +184,10 @@ def test_json_round_trip_and_errors(tmp_path):
     (tmp_path / "cameras.json").write_text(json.dumps(objs * 2))
     images, cams = load_request_folder(tmp_path)
     assert [p.name for p in images] == ["a.png", "b.png"] and len(cams) == 2
+    (tmp_path / "c.png").write_bytes(b"")  # a file that is not a view: the message names the images
+    with pytest.raises(ValueError, match=r"3 images \(a\.png, b\.png, c\.png\) but 2 cameras in cameras\.json"):
+        load_request_folder(tmp_path)
+    (tmp_path / "c.png").unlink()
     with pytest.raises(ValueError, match=r"a\.png is a file; expected a folder of photos"):
         load_request_folder(tmp_path / "a.png")  # a photo given where its folder is meant
     with pytest.raises(ValueError, match=r"nowhere does not exist"):

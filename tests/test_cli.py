@@ -2,6 +2,7 @@
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -302,3 +303,37 @@ def test_animate_names_the_frame_of_a_bad_expression(tmp_path):
     seq.write_text(json.dumps([{"jawOpen": 0.5}, [0.0] * 53]))
     codes = load_expressions(seq, space)
     assert codes.shape == (2, 53) and codes[0, space.names.index("jawOpen")] == 0.5
+
+
+def test_track_takes_a_photos_mask_listed_beside_it_as_its_mask(tmp_path, capsys, monkeypatch):
+    """``fastgha track --images folder/*.png`` on a folder of photos with their ``<stem>_mask.png``
+    (a tracked folder, say) lists the masks too: each is used as its photo's mask, not tracked as a
+    photo (it used to fail with "no face found in ..._mask.png"); a ``*_mask.png`` whose photo is
+    not listed is still a photo."""
+    import numpy as np
+    from PIL import Image
+
+    import fastgha_core.tracking as tracking
+
+    rgb = np.zeros((32, 32, 3), np.uint8)
+    rgb[8:24, 8:24] = 200
+    mask = np.zeros((32, 32), np.uint8)
+    mask[4:28, 4:28] = 255
+    Image.fromarray(rgb).save(tmp_path / "00_me.png")
+    Image.fromarray(mask).save(tmp_path / "00_me_mask.png")
+    Image.fromarray(rgb).save(tmp_path / "01_orphan_mask.png")
+    seen = {}
+
+    def fake_track(photos, config, masks=None, names=None, focal_35mm=None):
+        seen.update(names=names, masks=masks)
+        raise ValueError("stopped by the test")
+
+    monkeypatch.setattr(tracking, "track_photos", fake_track)
+    monkeypatch.setattr("fastgha_core.commands.track._same_person", lambda photos, names: None)
+    argv = ["track", "--images", *sorted(str(p) for p in tmp_path.glob("*.png")), "--out", str(tmp_path / "out")]
+    assert main(argv) == 2
+    assert [Path(n).name for n in seen["names"]] == ["00_me.png", "01_orphan_mask.png"]
+    assert seen["masks"][0] is not None and seen["masks"][1] is None
+    assert np.array_equal(np.asarray(seen["masks"][0]) > 0.5, mask > 127)
+    err = capsys.readouterr().err
+    assert "not tracked" in err and "00_me_mask.png" in err and "stopped by the test" in err

@@ -106,7 +106,7 @@ def test_load_request_dir(request_dir, tmp_path):
     got_images, got_cams, got_masks = load_request_dir(bare)
     assert [p.name for p in got_images] == ["00.jpg", "01.jpg"] and got_cams is None and got_masks is None
     (bare / "cameras.json").write_text("[{}]")
-    with pytest.raises(ValueError, match="2 images but cameras.json holds 1"):
+    with pytest.raises(ValueError, match=r"2 images \(00.jpg, 01.jpg\) but cameras.json holds 1 cameras"):  # names them: which one is extra?
         load_request_dir(bare)
 
 

@@ -980,6 +980,24 @@ def test_python_client_sends_a_tracked_folders_head(server, samples, tmp_path, m
         load_head(folder, images)
 
 
+def test_python_client_warns_and_sends_no_frames_when_a_photo_has_none(samples, tmp_path, caplog):
+    """A photo added to a tracked folder after `fastgha track` has no frame in head.json: the client
+    sends no frames (the server then reads every crop's border as the photo's) and says which photo."""
+    import logging
+
+    from client_demo.client import load_head, load_request_dir
+
+    folder, head_part = _head_folder(samples, tmp_path / "tracked")
+    images, _, _ = load_request_dir(folder)
+    head = json.loads((folder / "head.json").read_text())
+    del head["frames"][images[1].name]
+    (folder / "head.json").write_text(json.dumps(head))
+    with caplog.at_level(logging.WARNING, logger="client_demo.client"):
+        part = load_head(folder, images)
+    assert "frames" not in part and part["expressions"] == head_part["expressions"]
+    assert images[1].name in caplog.text and images[0].name not in caplog.text
+
+
 @needs_faces
 def test_fastgha_client_sends_the_head_of_a_folder_fastgha_track_wrote(server, tmp_path, capsys):
     """The fresh-user path: `fastgha track` a photo, then `fastgha client --input` that folder: the

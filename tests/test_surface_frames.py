@@ -113,3 +113,30 @@ def test_head_json_frames_are_read_by_file_name():
     assert head_surface_from_json({"identity": [0.1] * 100}, expr, names=["00_a.png", "01_b.png"]).frames is None  # a head.json from before frames
     with pytest.raises(ValueError, match="need the photos' names"):
         head_surface_from_json(data, expr)
+
+
+def test_head_json_frame_errors_name_the_photo_and_what_came(caplog):
+    """A wrong frame is refused naming its photo (by crop file name, as head.json keys it) and what
+    came; values beyond [0, 1] are a photo reaching past the crop, and a photo without an entry
+    gets a warning that names it (no frames are used then)."""
+    import logging
+
+    from fastgha_core.headfile import head_surface_from_json
+
+    expr = np.zeros((2, 53))
+    names = ["00_a.png", "01_b.png"]
+    ok = [0.0, 0.0, 1.0, 1.0]
+    with pytest.raises(ValueError, match=r"frames\['01_b.png'\] must be \[left, top, right, bottom\] \(4 numbers.*got 3 value"):
+        head_surface_from_json({"identity": [0.1] * 100, "frames": {"00_a.png": ok, "01_b.png": [0.1, 0.2, 0.9]}}, expr, names=names)
+    with pytest.raises(ValueError, match=r"frames\['00_a.png'\] = \[0.5, 0.0, 0.2, 1.0\] must have right > left"):
+        head_surface_from_json({"identity": [0.1] * 100, "frames": {"00_a.png": [0.5, 0.0, 0.2, 1.0], "01_b.png": ok}}, expr, names=names)
+    with pytest.raises(ValueError, match=r"frames\['01_b.png'\] must be a list of numbers, got str"):
+        head_surface_from_json({"identity": [0.1] * 100, "frames": {"00_a.png": ok, "01_b.png": "0 0 1 1"}}, expr, names=names)
+    with pytest.raises(ValueError, match=r"frames\[1\] must be \[left, top, right, bottom\] \(4 numbers.*got 5 value"):
+        head_surface_from_json({"identity": [0.1] * 100, "frames": [ok, ok + [1.0]]}, expr)
+    wide = head_surface_from_json({"identity": [0.1] * 100, "frames": {"00_a.png": [-0.47, 0.07, 1.73, 2.27], "01_b.png": ok}}, expr, names=names)
+    pad = wide.padding(100, 100)[0]  # the photo starts 7 % down the crop and covers the rest of it
+    assert np.allclose(wide.frames[0], [-0.47, 0.07, 1.73, 2.27]) and bool(pad[:7].all()) and not bool(pad[7:].any())
+    with caplog.at_level(logging.WARNING, logger="fastgha_core.headfile"):
+        s = head_surface_from_json({"identity": [0.1] * 100, "frames": {"00_a.png": ok, "01_typo.png": ok}}, expr, names=names)
+    assert s.frames is None and "01_b.png" in caplog.text and "padding reads as background" in caplog.text

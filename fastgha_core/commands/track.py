@@ -68,9 +68,20 @@ def _earlier_run_files(out, sources) -> list:
     return [out / n for n in sorted(ours) if (out / n).is_file()]
 
 
+def _without_their_masks(paths: list) -> list:
+    """``paths`` without the files named ``<stem>_mask.png`` of another path's photo ``<stem>.<ext>``
+    (beside it): those are that photo's mask (``--images``' help), which a shell glob such as
+    ``folder/*.png`` picks up with the photos. A ``*_mask.png`` whose photo is not given stays."""
+    from pathlib import Path
+
+    masks_of_given = {Path(p).with_name(Path(p).stem + "_mask.png") for p in paths}
+    return [p for p in paths if not (Path(p).stem.endswith("_mask") and Path(p) in masks_of_given)]
+
+
 def run(args) -> int:
     import json
     import logging
+    import sys
     from pathlib import Path
 
     import numpy as np
@@ -89,9 +100,14 @@ def run(args) -> int:
     if not 1 <= args.fov <= 150:
         raise CLIError(f"--fov must be in [1, 150] degrees, got {args.fov}")
     out = Path(args.out)
-    earlier = _earlier_run_files(out, [Path(n) for n in args.images])
+    given = [Path(n) for n in args.images]
+    images = _without_their_masks(given)
+    if len(images) < len(given):  # `--images folder/*.png` also matches the masks beside the photos
+        skipped = [str(p) for p in given if p not in images]
+        print(f"not tracked (the mask of a photo given with it, used as that photo's mask): {', '.join(skipped)}", file=sys.stderr, flush=True)
+    earlier = _earlier_run_files(out, images)
     photos, masks, names, focals = [], [], [], []
-    for p in map(Path, args.images):
+    for p in images:
         if p.is_dir():
             raise CLIError(f"--images {p} is a folder; give the photo files (e.g. {p}/*.jpg)")
         if not p.is_file():
@@ -106,7 +122,6 @@ def run(args) -> int:
         focals.append(decoded.exif_focal_35mm)
         names.append(str(p))
     _same_person(photos, names)
-    import sys
 
     print(f"tracking {len(names)} photo(s): finding the face and landmarks, fitting one head ...", file=sys.stderr, flush=True)
     try:
