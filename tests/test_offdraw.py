@@ -111,9 +111,9 @@ def test_reconstruct_drops_or_sharpens_only_the_off_head_gaussians_in_front_of_a
     assert gc.off_head_draw == "under"  # the default (docs/model-card.md)
     default = gc.off_head_draw
     imgs = test_surface_hull.head_case_photos(fg, s)
-    saved = gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.head_on_colour_tol, gc.off_head_behind_ears
+    saved = gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.head_on_colour_tol, gc.off_head_behind_ears, gc.off_head_smooth
     # one Gaussian per pixel, at the nearest head pixel's distance (the fixture's sd)
-    gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.head_on_colour_tol, gc.off_head_behind_ears = 0.0, False, 0.0, False, 0.0, False
+    gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.head_on_colour_tol, gc.off_head_behind_ears, gc.off_head_smooth = 0.0, False, 0.0, False, 0.0, False, 0.0
     out = {}
     try:
         for mode in ("off", "drop", "cover_sharp", "behind", "headon_sharp"):
@@ -124,7 +124,7 @@ def test_reconstruct_drops_or_sharpens_only_the_off_head_gaussians_in_front_of_a
             model.reconstruct(imgs, cams, surface=surface)
     finally:
         gc.off_head_draw = default
-        gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.head_on_colour_tol, gc.off_head_behind_ears = saved
+        gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.head_on_colour_tol, gc.off_head_behind_ears, gc.off_head_smooth = saved
     n = 3 * s * s
     fw = foreground_weight(imgs)
     off = ~sd.hit & ~sd.beyond_face & (fw > 0.5)

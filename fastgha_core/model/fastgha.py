@@ -638,7 +638,14 @@ class FastGHA(nn.Module):
             if self.config.gaussians.off_head_behind_ears and surface_mode == "replace":  # hair beside the face no nearer than the ears (model/surface.py)
                 from .surface import off_head_behind_ears
 
+                sd_near = sd
                 sd = off_head_behind_ears(sd, surface, cameras)
+            if self.config.gaussians.off_head_smooth > 0 and surface_mode == "replace":  # no steps in the off-head distances: no slits through long hair (model/surface.py)
+                from .gaussian_head import foreground_weight
+                from .surface import smooth_off_head_depth
+
+                placed = (sd.t != sd_near.t) if self.config.gaussians.off_head_behind_ears else None  # behind the ears on purpose: kept
+                sd = smooth_off_head_depth(sd, foreground_weight(images.float()), self.config.gaussians.off_head_smooth, placed, self.config.gaussians.off_head_smooth_axis)
             if self.config.gaussians.off_head_hull != "off" and surface_mode == "replace":  # off-head pixels on the photos' visual hull (model/surface.py)
                 from .gaussian_head import foreground_weight
                 from .surface import off_head_on_hull

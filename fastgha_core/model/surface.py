@@ -1323,3 +1323,65 @@ def off_head_behind_ears(sd: SurfaceDepth, surface: HeadSurface, cameras: Camera
                 & (-d[..., 2] >= np.cos(np.radians(max_angle_deg))) & (t_plane > t0) & (t_plane - t0 <= max_move_m))
         t[i][torch.from_numpy(move)] = torch.from_numpy(t_plane[move].astype(np.float32))
     return SurfaceDepth(t, sd.hit, sd.beyond_face, sd.face_hit)
+
+
+OFF_HEAD_SMOOTH_AXES = ("vertical", "both")  # smooth_off_head_depth's neighbours: the pixels above and below, or also left and right
+
+
+def smooth_off_head_depth(sd: SurfaceDepth, foreground: Tensor, length: float, fixed: Tensor | None = None, axis: str = "vertical") -> SurfaceDepth:
+    """``sd`` with the off-head pixels' ray distances relaxed towards a membrane between the head's.
+
+    ``surface_ray_depth`` gives every pixel whose ray misses the head the distance of its nearest hit
+    pixel: a piecewise-constant field, constant along the lines to each boundary point, whose
+    neighbouring pixels jump by centimetres where their nearest hit points differ (on studio-4's
+    frontal photo, 57 neighbour steps above 3 cm in its long hair). Seen from another camera, the two
+    sides of such a step move apart and a slit of background opens through the hair (the white
+    streaks across the hair tips of studio-4's pitched-up leave-one-out render; ``docs/model-card.md``
+    "Slits through long hair"). Here the off-head pixels inside their view's matte (``~sd.hit``,
+    ``foreground > 0.5``, not ``fixed``) take, by Jacobi iterations from the nearest-hit values, the
+    mean of their neighbours inside the matte or on the head: the hit (and ``fixed``) pixels hold their
+    distances, the matte's outline lets nothing in. ``length`` sets how far the relaxation reaches:
+    ``round((length * S)^2)`` iterations for ``S``-pixel views, a diffusion length of about
+    ``length * S`` pixels, so the result does not depend on the input size.
+
+    Args:
+        sd: ``SurfaceDepth`` of ``V`` views of ``S x S`` pixels (``surface_ray_depth``).
+        foreground: ``[V, S, S]`` matte weights (``gaussian_head.foreground_weight``).
+        length: the diffusion length as a fraction of the views' side (0 = ``sd`` unchanged).
+        fixed: ``bool [V, S, S]`` more pixels that keep their distance (e.g. those
+            ``off_head_behind_ears`` placed), or None.
+        axis: ``"vertical"``: each pixel averages the pixels above and below it only, along the way
+            long hair hangs: a torso beside a turned head, whose nearest-hit distances change from
+            the throat to the nape across the image, is not tilted into a sheet (relaxed both ways,
+            phone-5's -70 degree photo's shoulder drew pale stripes over the neck of its pitched-up
+            render); ``"both"``: the four neighbours.
+    Returns:
+        a new ``SurfaceDepth`` (``t`` changed on the relaxed pixels; ``hit``, ``beyond_face``, ``face_hit`` shared).
+    Raises:
+        ValueError: on a negative ``length``, an unknown ``axis`` or shapes that do not match ``sd.t``.
+    """
+    if not length >= 0:
+        raise ValueError(f"smooth_off_head_depth: length must be >= 0, got {length}")
+    if axis not in OFF_HEAD_SMOOTH_AXES:
+        raise ValueError(f"smooth_off_head_depth: axis must be one of {OFF_HEAD_SMOOTH_AXES}, got {axis!r}")
+    v, h, w = sd.t.shape
+    if tuple(foreground.shape) != (v, h, w) or (fixed is not None and tuple(fixed.shape) != (v, h, w)):
+        raise ValueError(f"smooth_off_head_depth: foreground and fixed must be [{v}, {h}, {w}] like sd.t, got "
+                         f"{list(foreground.shape)} and {None if fixed is None else list(fixed.shape)}")
+    iters = int(round((length * max(h, w)) ** 2))
+    if iters == 0:
+        return sd
+    fg = foreground.detach().float().cpu() > 0.5
+    hold = sd.hit.cpu() if fixed is None else sd.hit.cpu() | fixed.cpu()
+    free = (~hold & fg)[:, None]
+    valid = (sd.hit.cpu() | fg)[:, None].float()
+    kernel = torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, 0.0], [0.0, 1.0, 0.0]]) if axis == "vertical" else torch.tensor([[0.0, 1.0, 0.0], [1.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
+    kernel = kernel.view(1, 1, 3, 3)
+    count = torch.nn.functional.conv2d(valid, kernel, padding=1)  # valid neighbours, constant over the iterations
+    inv = torch.where(count > 0, 1.0 / count.clamp_min(1.0), torch.zeros_like(count))
+    free = free & (count > 0)
+    x = sd.t.cpu().float()[:, None].clone()
+    for _ in range(iters):
+        avg = torch.nn.functional.conv2d(x * valid, kernel, padding=1) * inv
+        x = torch.where(free, avg, x)
+    return SurfaceDepth(x[:, 0].to(sd.t.device, sd.t.dtype), sd.hit, sd.beyond_face, sd.face_hit)
