@@ -268,6 +268,7 @@ class FastGHAConfig:
 EDGE_MODES = ("colour", "fade")
 NECK_CYLINDER_MODES = ("off", "off_head", "below_ring")
 OFF_HEAD_HULL_MODES = ("off", "entry", "nearest", "middle")
+OFF_HEAD_SMOOTH_AXES = ("vertical", "both")  # = model/surface.py's
 OFF_HEAD_DRAW_MODES = ("off", "behind", "drop", "sharp", "headon_sharp", "cover_sharp", "under")  # = model/surface.py's
 PHOTO_SHAPES_MODES = ("off", "colour_opacity", "colour_opacity_scale")  # = model/surface.py's
 MAX_VIEW_BLEND_TAU_DEG = 360.0  # = fastgha_core.commands.MAX_VIEW_BLEND_TAU_DEG (the server's bound on its override)
@@ -333,6 +334,8 @@ def _validate_gaussians(g: GaussianHeadConfig) -> None:
     _in_range(w + "coverage_target", g.coverage_target, 0, 1, note="a fraction of each matte; 0 = off")
     _one_of(w + "neck_cylinder", g.neck_cylinder, NECK_CYLINDER_MODES)
     _one_of(w + "off_head_hull", g.off_head_hull, OFF_HEAD_HULL_MODES)
+    _in_range(w + "off_head_smooth", g.off_head_smooth, 0, 1, note="a fraction of the input's side; 0 = off")
+    _one_of(w + "off_head_smooth_axis", g.off_head_smooth_axis, OFF_HEAD_SMOOTH_AXES)
     _one_of(w + "off_head_draw", g.off_head_draw, OFF_HEAD_DRAW_MODES)
     _in_range(w + "head_on_colour_tol", g.head_on_colour_tol, 0, 1, note="a colour difference, channels in 0..1; 0 = off")
     _in_range(w + "head_on_gain_deg", g.head_on_gain_deg, 0, 180, note="degrees")

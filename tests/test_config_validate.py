@@ -54,6 +54,8 @@ BAD = [
     ("gaussians", "neck_cylinder", "on", "one of"),
     ("gaussians", "off_head_hull", "enter", "one of"),
     ("gaussians", "off_head_draw", "unde", "one of"),
+    ("gaussians", "off_head_smooth", -0.1, "in [0, 1]"),
+    ("gaussians", "off_head_smooth_axis", "horizontal", "one of ['vertical', 'both']"),
     ("deform", "hidden_size", 0, ">= 1"),
     ("deform", "num_layers", 0, ">= 1"),
     ("deform", "pe_freqs", -1, ">= 0"),
@@ -133,9 +135,10 @@ def test_shipped_configs_presets_and_defaults_validate():
 def test_the_string_options_match_the_modes_their_users_accept():
     from fastgha_core import config
     from fastgha_core.commands import MAX_VIEW_BLEND_TAU_DEG
-    from fastgha_core.model.surface import OFF_HEAD_DRAW_MODES
+    from fastgha_core.model.surface import OFF_HEAD_DRAW_MODES, OFF_HEAD_SMOOTH_AXES
 
     assert config.OFF_HEAD_DRAW_MODES == OFF_HEAD_DRAW_MODES
+    assert config.OFF_HEAD_SMOOTH_AXES == OFF_HEAD_SMOOTH_AXES
     assert config.MAX_VIEW_BLEND_TAU_DEG == MAX_VIEW_BLEND_TAU_DEG
 
 

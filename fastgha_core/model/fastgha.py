@@ -563,7 +563,10 @@ class FastGHA(nn.Module):
         scalp is laid out by a hair thickness fitted to the inputs' mattes
         (``config.gaussians.hair_fit``, ``surface.fit_hair_thickness``), and with
         ``config.gaussians.off_head_hull`` (off by default) the pixels off the head move onto the
-        visual hull of the other inputs' mattes (``surface.off_head_on_hull``); with
+        visual hull of the other inputs' mattes (``surface.off_head_on_hull``); with ``config.gaussians.off_head_smooth > 0`` (0.11 by default) the
+        off-head pixels' distances, the nearest head pixel's, are relaxed along image columns between
+        the head's (``surface.smooth_off_head_depth``: their steps opened slits through long hair in other
+        views), the pixels ``off_head_behind_ears`` placed held; with
         ``config.gaussians.off_head_draw="under"`` (the default) the off-head pixels' Gaussians are
         recorded (``ViewBlend.under``) and drawn under the others in every frame
         (``viewblend.push_under``; other modes: ``surface.off_head_draw_flags``); with
