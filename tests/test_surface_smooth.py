@@ -69,13 +69,32 @@ def test_vertical_relaxation_leaves_a_left_right_gradient_alone():
     assert not torch.allclose(shuffled_both, both.t[..., perm], atol=1e-3)  # "both" mixes neighbouring columns
 
 
+def test_the_band_beside_the_head_keeps_the_nearest_head_distance():
+    """With ``hold``, the off-head pixels within ``round(hold * S)`` pixels of the head's outline keep
+    their nearest-hit distance (the hair lying against the head, framing the face); beyond the band
+    the step is still relaxed, and the band's edge is held like the head."""
+    s = 32
+    t = torch.full((1, s, s), 0.7)
+    hit = torch.zeros(1, s, s, dtype=torch.bool)
+    hit[0, :4] = True
+    t[0, :4], t[0, 4:12] = 0.5, 0.5  # nearest-hit below the head rows: 0.5, then a 20 cm step at row 12
+    fg = torch.ones(1, s, s)
+    out = smooth_off_head_depth(_depth(t, hit), fg, length=1.0, hold=4 / s)  # a 4-pixel band: rows 4..7
+    assert torch.equal(out.t[0, 4:8], t[0, 4:8])
+    assert float((out.t[0, 9:, 5] - out.t[0, 8:-1, 5]).abs().max()) < 0.05  # beyond it, no 20 cm step left
+    free = smooth_off_head_depth(_depth(t, hit), fg, length=1.0)
+    assert not torch.equal(free.t[0, 11:13], t[0, 11:13]) and float((free.t[0, 4:8] - t[0, 4:8]).abs().max()) < 0.2
+
+
 def test_zero_length_is_the_identity_and_bad_arguments_are_refused():
     t = torch.rand(2, 8, 8)
     hit = torch.rand(2, 8, 8) > 0.5
     sd = _depth(t, hit)
     assert smooth_off_head_depth(sd, torch.ones(2, 8, 8), 0.0) is sd
-    with pytest.raises(ValueError, match="length must be >= 0"):
+    with pytest.raises(ValueError, match="length and hold must be >= 0"):
         smooth_off_head_depth(sd, torch.ones(2, 8, 8), -0.1)
+    with pytest.raises(ValueError, match="length and hold must be >= 0"):
+        smooth_off_head_depth(sd, torch.ones(2, 8, 8), 0.1, hold=-0.05)
     with pytest.raises(ValueError, match="axis must be one of"):
         smooth_off_head_depth(sd, torch.ones(2, 8, 8), 0.1, axis="diagonal")
     with pytest.raises(ValueError, match=r"must be \[2, 8, 8\]"):

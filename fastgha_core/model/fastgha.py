@@ -566,7 +566,8 @@ class FastGHA(nn.Module):
         visual hull of the other inputs' mattes (``surface.off_head_on_hull``); with ``config.gaussians.off_head_smooth > 0`` (0.11 by default) the
         off-head pixels' distances, the nearest head pixel's, are relaxed along image columns between
         the head's (``surface.smooth_off_head_depth``: their steps opened slits through long hair in other
-        views), the pixels ``off_head_behind_ears`` placed held; with
+        views), the pixels ``off_head_behind_ears`` placed and those beside the head's outline
+        (``off_head_smooth_hold``) held; with
         ``config.gaussians.off_head_draw="under"`` (the default) the off-head pixels' Gaussians are
         recorded (``ViewBlend.under``) and drawn under the others in every frame
         (``viewblend.push_under``; other modes: ``surface.off_head_draw_flags``); with
@@ -648,7 +649,8 @@ class FastGHA(nn.Module):
                 from .surface import smooth_off_head_depth
 
                 placed = (sd.t != sd_near.t) if self.config.gaussians.off_head_behind_ears else None  # behind the ears on purpose: kept
-                sd = smooth_off_head_depth(sd, foreground_weight(images.float()), self.config.gaussians.off_head_smooth, placed, self.config.gaussians.off_head_smooth_axis)
+                gc = self.config.gaussians
+                sd = smooth_off_head_depth(sd, foreground_weight(images.float()), gc.off_head_smooth, placed, gc.off_head_smooth_axis, gc.off_head_smooth_hold)
             if self.config.gaussians.off_head_hull != "off" and surface_mode == "replace":  # off-head pixels on the photos' visual hull (model/surface.py)
                 from .gaussian_head import foreground_weight
                 from .surface import off_head_on_hull
