@@ -918,7 +918,7 @@ def test_head_part_validation_names_the_part_and_what_was_expected():
         (json.dumps({**good, "expressions": [[0.0] * 53]}), "head_count_mismatch", "head: expressions for 1 photo(s) but 2 images came"),
         (json.dumps({**good, "frames": [[0.0, 0.0, 1.0, 1.0]]}), "invalid_head", "frames must hold one [left, top, right, bottom] per photo (2), got 1 entries"),
         (json.dumps({**good, "frames": [[0.0, 0.0, 1.0, 1.0], [0.5, 0.0, 0.4, 1.0]]}), "invalid_head", "right > left and bottom > top"),
-        (json.dumps({**good, "frames": [[0.0, 0.0, 1.0, 1.0], [0.0, 0.0, 1.0]]}), "invalid_head", "right > left and bottom > top"),
+        (json.dumps({**good, "frames": [[0.0, 0.0, 1.0, 1.0], [0.0, 0.0, 1.0]]}), "invalid_head", "frames[1] must be [left, top, right, bottom] (4 numbers, fractions of the crop), got 3 value(s)"),
         (json.dumps({**good, "frames": {"a.png": [0.0, 0.0, 1.0, 1.0]}}), "invalid_head", "frames by file name need the photos' names"),
         ('{"identity": [NaN], "expressions": [[0.0]]}', "non_finite_number", "head: JSON numbers must be finite"),
     ]
