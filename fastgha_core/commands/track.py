@@ -30,6 +30,14 @@ def _same_person(photos, names) -> None:
         raise CLIError(f"{e} (fastgha track fits one head to all the photos)") from None
 
 
+def _mask_beside(photo):
+    """The path of ``photo``'s own mask, ``<stem>_mask.png`` beside it (``--images``' help)."""
+    from pathlib import Path
+
+    photo = Path(photo)
+    return photo.with_name(photo.stem + "_mask.png")
+
+
 def _earlier_run_files(out, sources) -> list:
     """Crops and masks an earlier ``fastgha track`` run wrote into ``out`` (listed in its
     expressions.json), to be replaced. ``CLIError`` when ``out`` holds other photos: ``reconstruct``
@@ -53,7 +61,7 @@ def _earlier_run_files(out, sources) -> list:
         stem = Path(name).stem
         ours |= {f"{stem}.png", f"{stem}_mask.png"}
     inputs = {p.resolve() for p in sources if p.exists()}
-    inputs |= {p.with_name(p.stem + "_mask.png").resolve() for p in sources}
+    inputs |= {_mask_beside(p).resolve() for p in sources}
     others = sorted(
         p.name for p in out.iterdir()
         if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and (p.name not in ours or p.resolve() in inputs)
@@ -74,8 +82,8 @@ def _without_their_masks(paths: list) -> list:
     ``folder/*.png`` picks up with the photos. A ``*_mask.png`` whose photo is not given stays."""
     from pathlib import Path
 
-    masks_of_given = {Path(p).with_name(Path(p).stem + "_mask.png") for p in paths}
-    return [p for p in paths if not (Path(p).stem.endswith("_mask") and Path(p) in masks_of_given)]
+    masks_of_given = {_mask_beside(p) for p in paths}
+    return [p for p in paths if Path(p) not in masks_of_given]
 
 
 def run(args) -> int:
@@ -112,7 +120,7 @@ def run(args) -> int:
             raise CLIError(f"--images {p} is a folder; give the photo files (e.g. {p}/*.jpg)")
         if not p.is_file():
             raise CLIError(f"{p} does not exist")
-        mp = p.with_name(p.stem + "_mask.png")
+        mp = _mask_beside(p)
         try:  # upright (EXIF orientation applied) 8-bit pixels whatever the file's mode
             decoded = read_image(p)
             masks.append(read_mask(mp) if mp.is_file() else None)
