@@ -84,3 +84,19 @@ def test_leave_one_out_runs_end_to_end_on_a_synthetic_set(tmp_path, capsys):
     if load_face_metrics() is not None:  # dlib's face descriptor: each scored render is the same person as its photo
         scored = [r["identity_distance"] for r in rows if r["identity_distance"] is not None]
         assert scored and max(scored) < 0.6, rows
+
+
+def test_synthetic_sets_are_never_written_among_other_photo_sets(tmp_path, capsys):
+    from fastgha_core.refine.realsets import main
+
+    real = tmp_path / "phone-5"
+    real.mkdir()
+    for i in range(2):
+        Image.new("RGB", (8, 8)).save(real / f"{i:02d}.jpg")
+    with pytest.raises(SystemExit):
+        main(["--synthetic", "1", "--root", str(tmp_path)])
+    assert "holds other photo sets (phone-5)" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["phone-5"]
+    with pytest.raises(SystemExit):
+        main(["--first-seed", "1000700"])  # a seed without --synthetic
+    assert "--first-seed needs --synthetic" in capsys.readouterr().err

@@ -604,6 +604,10 @@ def main(argv=None) -> int:
     if args.synthetic:
         from ..data.photosets import PHOTOSET_FIRST_SEED, write_photosets
 
+        if args.root:  # never mixed into a folder of real sets: every set under --root would be evaluated with them
+            others = [d.name for d in list_sets(Path(args.root)) if not d.name.startswith("syn")]
+            if others:
+                ap.error(f"--synthetic writes its sets to --root, which holds other photo sets ({', '.join(others[:3])}): give an empty or new folder")
         with ExitStack() as stack:
             root = Path(args.root) if args.root else Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="fastgha-photosets-")))
             try:
