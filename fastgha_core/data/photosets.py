@@ -39,7 +39,7 @@ PHOTOSET_FIRST_SEED = 1_000_700
 # Vertical field of view (degrees): wider than the training rig's FOV_DEG, so the photos show neck and
 # shoulders around the head as photos of people do (the tracking evaluation's renders use the same).
 PHOTOSET_FOV_DEG = 25.0
-_S_PHOTOSET = 11  # SeedSequence stream id (synthetic.py's streams use 0-5, synth_writer.py 5)
+_S_PHOTOSET = 11  # SeedSequence stream id (synthetic.py's streams are 1-4, synth_writer.py's 5)
 
 
 def photo_name(index: int, yaw: float, pitch: float) -> str:
