@@ -234,6 +234,16 @@ class Cameras:
         return Cameras(K, w2c, width, height)
 
     @staticmethod
+    def facing_head(yaw_deg: float, pitch_deg: float = 0.0, *, distance: float = 1.0, fov_deg: float = 20.0, size: int = 256) -> "Cameras":
+        """One square camera (batch ``[1]``) ``distance`` metres from the origin, looking at it, that
+        sees a head at the origin facing +z turned by ``yaw_deg`` (+ = nose towards the image's right
+        edge, the real photo sets' convention) and pitched by ``pitch_deg`` (+ = nose up: the camera
+        below the head). The camera sits at azimuth ``-yaw_deg`` and elevation ``-pitch_deg``."""
+        a, b = -math.radians(yaw_deg), math.radians(pitch_deg)
+        eye = [distance * math.sin(a) * math.cos(b), -distance * math.sin(b), distance * math.cos(a) * math.cos(b)]
+        return Cameras.look_at(eye, fov_deg=fov_deg, width=size, height=size).flatten()
+
+    @staticmethod
     def stack(cams: Sequence["Cameras"]) -> "Cameras":
         if not cams:
             raise ValueError("need at least one camera to stack, got none")

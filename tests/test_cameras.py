@@ -426,3 +426,21 @@ def test_farthest_viewpoint_sampling_hand_made_set():
         farthest_viewpoint_sampling(centers, 6)
     with pytest.raises(ValueError, match="start must be a camera index"):
         farthest_viewpoint_sampling(centers, 2, start=9)
+
+
+@pytest.mark.parametrize("yaw, pitch", [(0.0, 0.0), (40.0, 0.0), (-65.0, 0.0), (0.0, 25.0), (30.0, -20.0)])
+def test_facing_head_places_the_camera_by_the_real_sets_convention(yaw, pitch):
+    """+yaw: the nose turns towards the image's right edge, so the camera sits on the head's -x side
+    (azimuth -yaw); +pitch: nose up, the camera below. The head's origin projects to the image centre."""
+    cam = Cameras.facing_head(yaw, pitch, distance=0.8, fov_deg=25.0, size=200)
+    centre = cam.c2w[0, :3, 3]
+    assert_close(centre.norm(), torch.tensor(0.8), atol=1e-6, rtol=0)
+    assert math.degrees(math.atan2(-centre[0].item(), centre[2].item())) == pytest.approx(yaw, abs=1e-4)
+    assert math.degrees(math.asin(-centre[1].item() / 0.8)) == pytest.approx(pitch, abs=1e-4)
+    uv, _ = cam.project(torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.1]]))  # the head's origin, and 10 cm along its face's axis (the nose)
+    uv = uv.reshape(2, 2)
+    assert_close(uv[0], torch.tensor([100.0, 100.0]), atol=1e-3, rtol=0)
+    if yaw:
+        assert (uv[1, 0].item() - 100.0) * yaw > 0  # the nose towards the right edge for +yaw
+    if pitch:
+        assert (100.0 - uv[1, 1].item()) * pitch > 0  # and up for +pitch

@@ -18,7 +18,6 @@ like people who hold still for a few photos. Everything is drawn from
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Sequence
 
@@ -45,13 +44,6 @@ _S_PHOTOSET = 11  # SeedSequence stream id (synthetic.py's streams are 1-4, synt
 def photo_name(index: int, yaw: float, pitch: float) -> str:
     """``NN_yaw+Y_pitch+P.jpg`` (whole degrees, signed): the real sets' file names carry the yaw the same way."""
     return f"{index:02d}_yaw{round(yaw):+d}_pitch{round(pitch):+d}.jpg"
-
-
-def _camera(yaw: float, pitch: float, size: int) -> Cameras:
-    """The camera that sees the head at ``yaw`` / ``pitch`` (degrees; module docstring's signs), looking at the origin."""
-    a, b = -math.radians(yaw), math.radians(pitch)
-    eye = [CAMERA_DISTANCE * math.sin(a) * math.cos(b), -CAMERA_DISTANCE * math.sin(b), CAMERA_DISTANCE * math.cos(a) * math.cos(b)]
-    return Cameras.look_at(eye, fov_deg=PHOTOSET_FOV_DEG, width=size, height=size).flatten()
 
 
 def write_photoset(folder: str | Path, seed: int, views: Sequence[tuple[float, float]] = PHOTOSET_VIEWS, size: int = 512,
@@ -91,7 +83,7 @@ def write_photoset(folder: str | Path, seed: int, views: Sequence[tuple[float, f
         e = np.zeros(53, dtype=np.float32)
         k = int(rng.integers(2, 5))
         e[rng.choice(53, k, replace=False)] = rng.uniform(0.1, 0.5, k)
-        rgb = subject.render(subject.frame(e), _camera(yaw, pitch, int(size)))[0].image  # [3, S, S] in [0, 1]
+        rgb = subject.render(subject.frame(e), Cameras.facing_head(yaw, pitch, distance=CAMERA_DISTANCE, fov_deg=PHOTOSET_FOV_DEG, size=int(size)))[0].image  # [3, S, S] in [0, 1]
         img = (rgb.permute(1, 2, 0).numpy() * 255.0).round().astype(np.uint8)  # [S, S, 3]
         path = folder / photo_name(i, yaw, pitch)
         Image.fromarray(img).save(path, quality=int(jpeg_quality))

@@ -249,8 +249,6 @@ def evaluate_renders(subjects: int = 6, yaws: tuple[float, ...] = (0.0, 30.0, 60
 
 def _renders_group(sub, name, codes, yaws, pitches, rng, det, size, fov_deg, model, config, align, Bf, nf, out, names) -> None:
     """One joint fit of ``sub`` rendered at every (yaw, pitch) (``evaluate_renders``); appends to ``out``."""
-    import math as _m
-
     from ..cameras import Cameras
     from .realsets import head_angles_deg
 
@@ -269,9 +267,7 @@ def _renders_group(sub, name, codes, yaws, pitches, rng, det, size, fov_deg, mod
                 e[rng.choice(53, k, replace=False)] = rng.uniform(0.2, 0.9, k)
             else:
                 e = e_fixed
-            a, b = -_m.radians(yaw), _m.radians(pitch)
-            eye = [_m.sin(a) * _m.cos(b), -_m.sin(b), _m.cos(a) * _m.cos(b)]  # below the head: nose up
-            cam = Cameras.look_at(eye, fov_deg=fov_deg, width=size, height=size).flatten()
+            cam = Cameras.facing_head(yaw, pitch, fov_deg=fov_deg, size=size)  # + pitch: the camera below the head, nose up
             fr = frame if frame is not None else sub.frame(e.astype(np.float32))
             img = (sub.render(fr, cam)[0].image.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
             faces = det.detect_all(img)

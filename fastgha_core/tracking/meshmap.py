@@ -221,8 +221,6 @@ def build_pose_table(seeds=CALIBRATION_SEEDS, size: int = 512, fov_deg: float = 
     (-1 = no hit in at least half of the renders), "hits": [P, B, 468] int16}``.
     Raises ImportError without mediapipe (``faces`` extra).
     """
-    import math
-
     from scipy.spatial import cKDTree
 
     from ..cameras import Cameras
@@ -243,11 +241,8 @@ def build_pose_table(seeds=CALIBRATION_SEEDS, size: int = 512, fov_deg: float = 
         normals = head.vertex_normals(verts)
         cand = np.arange(0, 11248)
         for q, pitch in enumerate(pitch_bins):
-            el = math.radians(pitch)
             for b, yaw in enumerate(yaw_bins):
-                a = -math.radians(yaw)  # a camera at azimuth -yaw sees the head turned by +yaw
-                eye = [math.sin(a) * math.cos(el), -math.sin(el), math.cos(a) * math.cos(el)]  # below the head: nose up
-                cam = Cameras.look_at(eye, fov_deg=fov_deg, width=size, height=size).flatten()
+                cam = Cameras.facing_head(yaw, pitch, fov_deg=fov_deg, size=size)  # azimuth -yaw, below the head for + pitch: nose up
                 view = sub.render(frame, cam)[0]
                 img = (view.image.permute(1, 2, 0).numpy() * 255).round().astype(np.uint8)
                 faces = det.detect_all(img)
