@@ -100,3 +100,21 @@ def test_synthetic_sets_are_never_written_among_other_photo_sets(tmp_path, capsy
     with pytest.raises(SystemExit):
         main(["--first-seed", "1000700"])  # a seed without --synthetic
     assert "--first-seed needs --synthetic" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--synthetic", "2", "--first-seed", "1009999"], "would use 1009999-1010000"),  # the range runs past the held-out seeds
+    (["--synthetic", "1", "--sets", "phone-5"], "--sets picks among the real sets"),
+    (["--synthetic", "1", "--root", "FILE"], "is a file"),
+])  # fmt: skip
+def test_synthetic_arguments_that_cannot_work_are_refused_before_anything_is_written(tmp_path, capsys, argv, message):
+    from fastgha_core.refine.realsets import main
+
+    (tmp_path / "a_file").write_text("not a folder")
+    argv = [str(tmp_path / "a_file") if a == "FILE" else a for a in argv]
+    if "--root" not in argv:
+        argv += ["--root", str(tmp_path / "sets")]
+    with pytest.raises(SystemExit):
+        main(argv)
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "sets").exists()

@@ -95,9 +95,14 @@ def write_photosets(root: str | Path, subjects: int = 4, first_seed: int = PHOTO
                     views: Sequence[tuple[float, float]] = PHOTOSET_VIEWS, size: int = 512) -> list[Path]:
     """``subjects`` sets, seeds ``first_seed ..``, each in ``root/syn<seed>/`` (``write_photoset``).
 
-    Returns the sets' folders. Raises ValueError for ``subjects < 1`` and as ``write_photoset``."""
+    Returns the sets' folders. Raises ValueError for ``subjects < 1``, seeds ``first_seed ..
+    first_seed + subjects - 1`` not all held out (before anything is written), and as ``write_photoset``."""
     if int(subjects) < 1:
         raise ValueError(f"subjects must be >= 1, got {subjects}")
+    last = int(first_seed) + int(subjects) - 1
+    if int(first_seed) not in HELDOUT_SEEDS or last not in HELDOUT_SEEDS:
+        raise ValueError(f"photo sets use held-out seeds ({HELDOUT_SEEDS.start}-{HELDOUT_SEEDS.stop - 1}); "
+                         f"{subjects} set(s) from seed {first_seed} would use {first_seed}-{last}")
     root = Path(root)
     out = []
     for s in range(int(subjects)):

@@ -31,7 +31,7 @@ file name's annotated yaw. The headline scores stay those at the tracked camera 
 protocol); the aligned ones bound how much of the loss the left-out camera's own pose accounts for.
 
 ``python -m fastgha_core.refine.realsets --refine-steps 0,60 --grid OUT.png`` prints a markdown
-table and writes a grid picture (per set: photo, then one render per step count; with ``--mirror off,30``
+table and writes a grid picture (one row per left-out photo: the photo, then one render per step count; with ``--mirror off,30``
 one per mirrored-view variant and step count, ``model/mirror.py``; with ``--align-left-out`` each
 render is followed by the render at the aligned camera; ``--own-cameras`` adds the
 input-view check, the avatar of all of a set's photos at each photo's own camera). The sets are not
@@ -570,7 +570,8 @@ def _from_annotation(r: dict) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description="leave-one-out evaluation on real photo sets")
+    ap = argparse.ArgumentParser(prog="python -m fastgha_core.refine.realsets",
+                                 description="leave-one-out evaluation on photo sets: the real ones, or held-out synthetic ones with --synthetic")
     ap.add_argument("--root", default=None, help="folder of sets (default $FASTGHA_REALSETS or ../shared/realsets)")
     ap.add_argument("--sets", default=None, help="comma-separated set names (default: all)")
     ap.add_argument("--model", default="tiny")
@@ -593,14 +594,19 @@ def main(argv=None) -> int:
     ap.add_argument("--synthetic", type=int, default=0, metavar="N",
                     help="instead of the real sets: N held-out synthetic photo sets laid out like them (fastgha_core/data/photosets.py), "
                     "written to --root when given (else a temporary folder) and evaluated the same way, tracking included")
-    ap.add_argument("--first-seed", type=int, default=None, help="with --synthetic: the first subject's held-out seed (default 1000700)")
+    ap.add_argument("--first-seed", type=int, default=None,
+                    help="with --synthetic: the first subject's seed; the sets use seeds S..S+N-1, each held out (1000000-1009999), in folders syn<seed> (default 1000700)")
     ap.add_argument("--json", default=None, help="write all rows here")
     ap.add_argument("--grid", default=None, help="write a grid picture here (NOT inside the repository)")
     args = ap.parse_args(argv)
     if args.synthetic < 0:
         ap.error(f"--synthetic must be >= 0, got {args.synthetic}")
     if args.first_seed is not None and not args.synthetic:
-        ap.error("--first-seed needs --synthetic")
+        ap.error("--first-seed needs --synthetic N with N >= 1")
+    if args.synthetic and args.sets:
+        ap.error("--sets picks among the real sets; with --synthetic the sets are chosen by N and --first-seed")
+    if args.synthetic and args.root and Path(args.root).exists() and not Path(args.root).is_dir():
+        ap.error(f"--root {args.root} is a file: --synthetic writes its sets into a folder there")
     if args.synthetic:
         from ..data.photosets import PHOTOSET_FIRST_SEED, write_photosets
 
