@@ -29,9 +29,15 @@ def test_a_set_is_named_by_its_poses_and_a_pure_function_of_its_seed(tmp_path):
     assert np.abs(_pixels(a[0]) - _pixels(c[0])).mean() > 5  # another person
 
 
-def test_the_name_carries_whole_signed_degrees():
+def test_the_name_carries_whole_signed_degrees_that_the_tracking_report_reads_back():
+    from fastgha_core.tracking.realsets import annotated_pitch, annotated_yaw
+
     assert photo_name(3, -64.6, 25.2) == "03_yaw-65_pitch+25.jpg"
     assert photo_name(0, 0.0, -10.0) == "00_yaw+0_pitch-10.jpg"
+    for yaw, pitch in ((-65.0, 25.0), (0.0, -10.0), (70.0, 0.0)):
+        name = photo_name(1, yaw, pitch)
+        assert (annotated_yaw(name), annotated_pitch(name)) == (yaw, pitch)
+    assert annotated_pitch("03_yaw0_pitch-down.jpg") is None  # the real sets' names carry no pitch figure
 
 
 @pytest.mark.parametrize("kwargs, match", [
@@ -60,6 +66,8 @@ def test_the_tracker_reads_the_yaw_the_names_carry(tmp_path):
     for r in rows:
         assert r["yaw_error"] <= 15.0, r
     assert rows[3]["pitch"] > rows[0]["pitch"] + 10.0  # the pitched-up photo reads nose up
+    assert [r["pitch_annotated"] for r in rows] == [0.0, 0.0, 0.0, 25.0]
+    assert max(r["pitch_error"] for r in rows) <= 10.0
 
 
 def test_leave_one_out_runs_end_to_end_on_a_synthetic_set(tmp_path, capsys):

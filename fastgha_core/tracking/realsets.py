@@ -9,7 +9,8 @@ sub-folder holds the photos of one person, and each file name carries the annota
 the image's right edge (annotations are estimates, +-10-15 degrees).
 
 Each set is tracked jointly (``track_photos``: one identity, one field of view); per photo the
-report gives the annotated and estimated yaw, the estimated pitch and roll, the landmark RMS,
+report gives the annotated and estimated yaw, the estimated pitch (beside the annotated one where the
+name carries ``pitch<signed degrees>``, as the synthetic photo sets' do) and roll, the landmark RMS,
 the largest expression weight and the set's tracking time in seconds (``set_seconds``; the
 detector is loaded before the first set).
 """
@@ -28,9 +29,10 @@ import numpy as np
 
 from .fit import head_angles_deg  # (yaw, pitch, roll) of a fitted head: the fitter's convention
 
-__all__ = ["realsets_root", "annotated_yaw", "head_angles_deg", "evaluate_realsets"]
+__all__ = ["realsets_root", "annotated_yaw", "annotated_pitch", "head_angles_deg", "evaluate_realsets"]
 
 _YAW = re.compile(r"yaw([+-]?\d+(?:\.\d+)?)")
+_PITCH = re.compile(r"pitch([+-]?\d+(?:\.\d+)?)")
 
 
 def realsets_root() -> Path:
@@ -44,6 +46,13 @@ def realsets_root() -> Path:
 def annotated_yaw(name: str) -> float | None:
     """Degrees from a file name's ``yaw<deg>`` tag, or None."""
     m = _YAW.search(Path(name).stem)
+    return float(m.group(1)) if m else None
+
+
+def annotated_pitch(name: str) -> float | None:
+    """Degrees from a file name's ``pitch<signed degrees>`` tag (+ = nose up; the synthetic photo sets'
+    names, ``data/photosets.py``), or None (the real sets' ``pitch-down`` / ``pitch-up`` carry no number)."""
+    m = _PITCH.search(Path(name).stem)
     return float(m.group(1)) if m else None
 
 
@@ -81,12 +90,14 @@ def evaluate_realsets(root: Path | None = None, detector=None, config=None) -> l
         for v, p in enumerate(paths):
             yaw, pitch, roll = head_angles_deg(res.fit.rotations[v])
             ann = annotated_yaw(p.name)
+            ann_pitch = annotated_pitch(p.name)
             top = int(np.argmax(res.expressions[v]))
             from ..expressions import ICT53_NAMES
 
             rows.append({
                 "set": d.name, "photo": p.name, "yaw_annotated": ann, "yaw": round(yaw, 1), "pitch": round(pitch, 1),
                 "roll": round(roll, 1), "yaw_error": None if ann is None else round(abs(yaw - ann), 1),
+                "pitch_annotated": ann_pitch, "pitch_error": None if ann_pitch is None else round(abs(pitch - ann_pitch), 1),
                 "rms_px": round(float(res.fit.rms_px[v]), 2), "max_expression": round(float(res.expressions[v, top]), 2),
                 "max_expression_name": ICT53_NAMES[top], "set_seconds": round(seconds, 2),
                 "align_deg": None if res.alignment is None else round(float(res.alignment.rotation_deg[v]), 2),
@@ -105,16 +116,20 @@ def main(argv: list[str] | None = None) -> int:
     from .pipeline import TrackConfig
 
     rows = evaluate_realsets(Path(a.root) if a.root else None, config=TrackConfig(photo_align=a.photo_align))
-    print("| set | photo | yaw annotated | yaw | error | pitch | roll | RMS px | largest expression | registration (deg; mm) | RMS px before it |")
+    print("| set | photo | yaw annotated | yaw | error | pitch (annotated) | roll | RMS px | largest expression | registration (deg; mm) | RMS px before it |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
+        pitch = str(r["pitch"]) if r["pitch_annotated"] is None else f"{r['pitch']} ({r['pitch_annotated']:g})"
         reg = "-" if r["align_deg"] is None else f"{r['align_deg']}; {', '.join(f'{x:+.1f}' for x in r['align_mm'])}"
-        print(f"| {r['set']} | {r['photo']} | {r['yaw_annotated']} | {r['yaw']} | {r['yaw_error']} | {r['pitch']} | {r['roll']} | "
+        print(f"| {r['set']} | {r['photo']} | {r['yaw_annotated']} | {r['yaw']} | {r['yaw_error']} | {pitch} | {r['roll']} | "
               f"{r['rms_px']} | {r['max_expression_name']} {r['max_expression']} | {reg} | {r['rms_px_before_align'] or '-'} |")  # fmt: skip
     secs = {r["set"]: r["set_seconds"] for r in rows}
     print("tracking time per set (s, detection + fit + crops + masks): " + ", ".join(f"{k} {v:.1f}" for k, v in secs.items()))
     errs = [r["yaw_error"] for r in rows if r["yaw_error"] is not None]
     print(f"{len(rows)} photos, yaw error median {np.median(errs):.1f} deg, max {max(errs):.1f} deg")
+    perrs = [r["pitch_error"] for r in rows if r["pitch_error"] is not None]
+    if perrs:  # names with a pitch<degrees> tag (the synthetic photo sets)
+        print(f"{len(perrs)} photos with an annotated pitch, pitch error median {np.median(perrs):.1f} deg, max {max(perrs):.1f} deg")
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1))
     return 0
