@@ -603,13 +603,13 @@ def main(argv=None) -> int:
         ap.error(f"--synthetic must be >= 0, got {args.synthetic}")
     if args.first_seed is not None and not args.synthetic:
         ap.error("--first-seed needs --synthetic N with N >= 1")
-    if args.synthetic and args.sets:
-        ap.error("--sets picks among the real sets; with --synthetic the sets are chosen by N and --first-seed")
-    if args.synthetic and args.root and Path(args.root).exists() and not Path(args.root).is_dir():
-        ap.error(f"--root {args.root} is a file: --synthetic writes its sets into a folder there")
     if args.synthetic:
         from ..data.photosets import PHOTOSET_FIRST_SEED, write_photosets
 
+        if args.sets:
+            ap.error("--sets picks among the real sets; with --synthetic the sets are chosen by N and --first-seed")
+        if args.root and Path(args.root).exists() and not Path(args.root).is_dir():
+            ap.error(f"--root {args.root} is a file: --synthetic writes its sets into a folder there")
         if args.root:  # never mixed into a folder of real sets: every set under --root would be evaluated with them
             others = [d.name for d in list_sets(Path(args.root)) if not d.name.startswith("syn")]
             if others:
