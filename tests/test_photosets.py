@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from fastgha_core.data.photosets import PHOTOSET_VIEWS, photo_name, write_photoset
+from fastgha_core.data.photosets import PHOTOSET_VIEWS, photo_name, photoset_truth, write_photoset
 
 
 def _pixels(path):
@@ -114,6 +114,7 @@ def test_synthetic_sets_are_never_written_among_other_photo_sets(tmp_path, capsy
     (["--synthetic", "2", "--first-seed", "1009999"], "would use 1009999-1010000"),  # the range runs past the held-out seeds
     (["--synthetic", "1", "--sets", "phone-5"], "--sets picks among the real sets"),
     (["--synthetic", "1", "--root", "FILE"], "is a file"),
+    (["--synthetic", "0", "--truth", "cameras"], "--truth needs --synthetic"),
 ])  # fmt: skip
 def test_synthetic_arguments_that_cannot_work_are_refused_before_anything_is_written(tmp_path, capsys, argv, message):
     from fastgha_core.refine.realsets import main
@@ -126,3 +127,58 @@ def test_synthetic_arguments_that_cannot_work_are_refused_before_anything_is_wri
         main(argv)
     assert message in capsys.readouterr().err
     assert not (tmp_path / "sets").exists()
+
+
+def test_the_truth_is_what_the_photos_were_drawn_from(tmp_path):
+    """``photoset_truth`` recomputed from the seed renders the written photos again (JPEG error only)."""
+    from fastgha_core.data.synthetic import SyntheticSubject
+
+    views = ((0.0, 0.0), (-65.0, 0.0), (0.0, 25.0))
+    paths = write_photoset(tmp_path, 1_000_701, views, size=96)
+    truth = photoset_truth(1_000_701, views, size=96)
+    assert truth.expressions.shape == (3, 53) and len(truth.cameras.flatten().K) == 3
+    assert ((truth.expressions > 0).sum(1) >= 2).all() and truth.expressions.max() <= 0.5
+    subject = SyntheticSubject(1_000_701)
+    np.testing.assert_array_equal(truth.identity, subject.identity)
+    for i, path in enumerate(paths):
+        rgb = subject.render(subject.frame(truth.expressions[i]), truth.cameras[i : i + 1])[0].image.permute(1, 2, 0).numpy()
+        mse = np.mean((rgb - _pixels(path) / 255.0) ** 2)
+        assert -10 * np.log10(mse) > 30.0, (path.name, mse)
+    other = photoset_truth(1_000_702, views, size=96)
+    assert not np.allclose(other.expressions, truth.expressions)
+
+
+def test_the_truth_replaces_what_tracking_found(tmp_path):
+    """``--truth``'s remake of a tracking result: the photos' cameras are the true ones, the identity
+    and expressions too with ``all``; the crops are cut around the true head."""
+    pytest.importorskip("mediapipe", reason="needs the faces extra (MediaPipe Face Mesh)")
+    from fastgha_core.refine.realsets import _with_truth
+    from fastgha_core.tracking import track_photos
+    from fastgha_core.tracking.pipeline import TrackConfig
+
+    views = ((0.0, 0.0), (40.0, 0.0), (0.0, 25.0))
+    paths = write_photoset(tmp_path, 1_000_700, views, size=384)
+    photos = [_pixels(p) for p in paths]
+    names = [p.name for p in paths]
+    truth = photoset_truth(1_000_700, views, size=384)
+    idx = [2, 0]  # a subset in another order (as after a dropped photo): the truth's rows follow idx
+    photos, names = [photos[i] for i in idx], [names[i] for i in idx]
+    tr = track_photos(photos, TrackConfig(size=128), names=names)
+    for parts in ("cameras", "all"):
+        got = _with_truth(tr, photos, names, truth, idx, parts, 128)
+        cams = got.photo_cameras.flatten()
+        np.testing.assert_allclose(cams.w2c.numpy(), truth.cameras.flatten().w2c[idx].numpy(), atol=1e-5)
+        np.testing.assert_allclose(cams.K.numpy(), truth.cameras.flatten().K[idx].numpy(), rtol=1e-6)
+        head = got.cameras.flatten()  # the crops' cameras put the true head centre (the origin) mid-crop
+        for v in range(2):
+            c = head.K[v].double() @ head.w2c[v, :3, 3].double()
+            assert np.allclose((c[:2] / c[2]).numpy(), 64.0, atol=8.0), (parts, v, c)
+        if parts == "all":
+            np.testing.assert_array_equal(got.expressions, truth.expressions[idx])
+            np.testing.assert_allclose(got.fit.identity, truth.identity, atol=1e-6)
+        else:
+            np.testing.assert_array_equal(got.expressions, tr.expressions)
+    with pytest.raises(ValueError, match="truth_parts must be one of"):
+        from fastgha_core.refine.realsets import evaluate_set
+
+        evaluate_set(None, tmp_path, [0], truth=truth, truth_parts="poses")

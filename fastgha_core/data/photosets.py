@@ -18,6 +18,7 @@ like people who hold still for a few photos. Everything is drawn from
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -26,7 +27,7 @@ import numpy as np
 from ..cameras import Cameras
 from .synthetic import CAMERA_DISTANCE, HELDOUT_SEEDS, SyntheticSubject
 
-__all__ = ["PHOTOSET_VIEWS", "PHOTOSET_FIRST_SEED", "PHOTOSET_FOV_DEG", "write_photoset", "write_photosets", "photo_name"]
+__all__ = ["PHOTOSET_VIEWS", "PHOTOSET_FIRST_SEED", "PHOTOSET_FOV_DEG", "write_photoset", "write_photosets", "photo_name", "PhotosetTruth", "photoset_truth"]
 
 # (yaw, pitch) in degrees of each photo: a frontal, both sides at the real sets' turns short of a
 # profile (MediaPipe finds no face in some 75-85-degree renders, as the tracking docs measure) and a
@@ -44,6 +45,32 @@ _S_PHOTOSET = 11  # SeedSequence stream id (synthetic.py's streams are 1-4, synt
 def photo_name(index: int, yaw: float, pitch: float) -> str:
     """``NN_yaw+Y_pitch+P.jpg`` (whole degrees, signed): the real sets' file names carry the yaw the same way."""
     return f"{index:02d}_yaw{round(yaw):+d}_pitch{round(pitch):+d}.jpg"
+
+
+@dataclass
+class PhotosetTruth:
+    """What a photo set's ``V`` photos show, as drawn (``photoset_truth``): what tracking has to find."""
+
+    identity: np.ndarray  # [100] the subject's ICT-FaceKit identity coefficients (SyntheticSubject.identity)
+    expressions: np.ndarray  # [V, 53] float32 ict53 weights of each photo
+    cameras: Cameras  # [V] of the photos (OpenCV, head at the world origin in the head model's axes)
+
+
+def photoset_truth(seed: int, views: Sequence[tuple[float, float]] = PHOTOSET_VIEWS, size: int = 512,
+                   subject: SyntheticSubject | None = None) -> PhotosetTruth:
+    """The identity, per-photo expressions and cameras of ``write_photoset(folder, seed, views, size)``'s photos.
+
+    Drawn from ``SeedSequence([seed, _S_PHOTOSET])`` in view order (the same draw the photos are
+    rendered from). ``subject``: the seed's ``SyntheticSubject`` when already built. No checks:
+    ``write_photoset`` validates its arguments before calling this."""
+    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), _S_PHOTOSET])))
+    expressions = np.zeros((len(views), 53), dtype=np.float32)
+    for e in expressions:
+        k = int(rng.integers(2, 5))
+        e[rng.choice(53, k, replace=False)] = rng.uniform(0.1, 0.5, k)
+    cams = Cameras.stack([Cameras.facing_head(yaw, pitch, distance=CAMERA_DISTANCE, fov_deg=PHOTOSET_FOV_DEG, size=int(size)) for yaw, pitch in views])
+    identity = (subject or SyntheticSubject(int(seed))).identity
+    return PhotosetTruth(identity=np.asarray(identity, np.float32).copy(), expressions=expressions, cameras=cams)
 
 
 def write_photoset(folder: str | Path, seed: int, views: Sequence[tuple[float, float]] = PHOTOSET_VIEWS, size: int = 512,
@@ -76,14 +103,11 @@ def write_photoset(folder: str | Path, seed: int, views: Sequence[tuple[float, f
         raise ValueError(f"jpeg_quality must be in 1-100, got {jpeg_quality}")
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    rng = np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), _S_PHOTOSET])))
     subject = SyntheticSubject(int(seed))
+    truth = photoset_truth(int(seed), views, int(size), subject)
     paths = []
     for i, (yaw, pitch) in enumerate(views):
-        e = np.zeros(53, dtype=np.float32)
-        k = int(rng.integers(2, 5))
-        e[rng.choice(53, k, replace=False)] = rng.uniform(0.1, 0.5, k)
-        rgb = subject.render(subject.frame(e), Cameras.facing_head(yaw, pitch, distance=CAMERA_DISTANCE, fov_deg=PHOTOSET_FOV_DEG, size=int(size)))[0].image  # [3, S, S] in [0, 1]
+        rgb = subject.render(subject.frame(truth.expressions[i]), truth.cameras[i : i + 1])[0].image  # [3, S, S] in [0, 1]
         img = (rgb.permute(1, 2, 0).numpy() * 255.0).round().astype(np.uint8)  # [S, S, 3]
         path = folder / photo_name(i, yaw, pitch)
         Image.fromarray(img).save(path, quality=int(jpeg_quality))

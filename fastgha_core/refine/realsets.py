@@ -42,7 +42,10 @@ without the folder the script says so and exits 0.
 ``--synthetic N [--first-seed S]`` runs the same protocol, tracking included, on ``N`` held-out
 synthetic subjects photographed like the real sets (``data/photosets.py``: a frontal, -65, +40 and
 +70 degrees of yaw, 25 degrees pitched up; written to ``--root`` when given, else to a temporary
-folder): people no setting was chosen on, whose pictures may be looked at and published.
+folder): people no setting was chosen on, whose pictures may be looked at and published. With
+``--truth cameras`` (or ``all``) the tracked poses and focal length (and identity and expressions)
+are replaced by the ones the photos were drawn from: the same protocol without tracking's error,
+which splits the leave-one-out's loss between tracking and reconstruction.
 """
 
 from __future__ import annotations
@@ -297,7 +300,7 @@ def aligned_columns(model, avatar, expression: torch.Tensor, camera, target: tor
 
 def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, faces=None, refine_cameras: bool = True, surface: bool = True,
                  photo_align: bool = False, mirror: list[str] | None = None, own_cameras: bool = False, align_left_out: bool = False,
-                 refine_preset: str | None = None) -> dict:
+                 refine_preset: str | None = None, truth=None, truth_parts: str = "cameras") -> dict:
     """Leave-one-out over the photos of ``folder`` (see the module docstring); one row per (photo, steps)
     and mirror variant.
 
@@ -315,7 +318,12 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
     model's config as it is, rows without that key, ``renders`` keyed by steps.
     ``own_cameras``: also the input-view check (``own_camera_rows``), returned as ``own_camera_rows``.
     ``align_left_out``: also the test-view pose alignment diagnostic (``aligned_columns``) in every
-    row, and its render in ``renders`` under ``(key, "aligned")``."""
+    row, and its render in ``renders`` under ``(key, "aligned")``.
+    ``truth``: a synthetic set's ``data.photosets.PhotosetTruth`` (its photos in sorted-name order):
+    after tracking, the tracked poses and intrinsics (``truth_parts="cameras"``), or those and the
+    identity and expressions (``"all"``), are replaced by the true ones and the crops, masks and head
+    surface are made from them (``tracking.pipeline.tracked_photos_from_fit``); rows carry ``"truth"``.
+    Raises ValueError for another ``truth_parts`` or a ``truth`` of another photo count."""
     from ..model.surface import HeadSurface
     from ..refine import RefineConfig, refine_avatar, refine_config_for
     from ..render import render
@@ -324,6 +332,12 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
     from ..tracking.pipeline import TrackConfig
 
     photos, names = _load_photos(folder)
+    if truth is not None:
+        if truth_parts not in TRUTH_PARTS:
+            raise ValueError(f"truth_parts must be one of {', '.join(TRUTH_PARTS)}, got {truth_parts!r}")
+        if len(truth.expressions) != len(names):
+            raise ValueError(f"{folder.name}: the truth describes {len(truth.expressions)} photos, the folder holds {len(names)}")
+        truth_of = dict(zip(names, range(len(names))))  # photo name -> its index in truth (before any photo is dropped)
     t0 = time.perf_counter()
     dropped = []
     while True:  # a photo the tracker cannot handle (e.g. no face found) is dropped and reported
@@ -337,6 +351,8 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
             dropped.append(f"{names[bad[0]]}: {e}")
             log.warning("%s: dropping %s (%s)", folder.name, names[bad[0]], e)
             del photos[bad[0]], names[bad[0]]
+    if truth is not None:
+        tr = _with_truth(tr, photos, names, truth, [truth_of[n] for n in names], truth_parts, size)
     t_track = time.perf_counter() - t0
     crops = torch.from_numpy(tr.crops).permute(0, 3, 1, 2).float() / 255.0  # [V, 3, S, S]
     masks = torch.from_numpy(tr.masks)[:, None].float()  # [V, 1, S, S]
@@ -389,6 +405,8 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
             }
             if mv is not None:
                 row["mirror"] = mv
+            if truth is not None:
+                row["truth"] = truth_parts
             key = steps if mv is None else (mv, steps)
             if align_left_out:
                 with mirror_variant(model.config.gaussians, mv):
@@ -401,6 +419,28 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
     if own_cameras:
         out["own_camera_rows"] = own_rows
     return out
+
+
+TRUTH_PARTS = ("cameras", "all")  # evaluate_set's truth_parts / the CLI's --truth
+
+
+def _with_truth(tr, photos: list[np.ndarray], names: list[str], truth, idx: list[int], parts: str, size: int):
+    """``tr`` (a ``TrackedPhotos``) remade with the true cameras (``parts="cameras"``), or cameras,
+    identity and expressions (``"all"``) of ``truth`` rows ``idx`` (one per photo)."""
+    from ..tracking.camera import cameras_to_pose
+    from ..tracking.fit import LandmarkModel
+    from ..tracking.pipeline import TrackConfig, tracked_photos_from_fit
+
+    cams = truth.cameras.flatten()
+    R, t = cameras_to_pose(cams)
+    fit = dataclasses.replace(tr.fit, rotations=R[idx].astype(np.float64), translations=t[idx].astype(np.float64),
+                              K=cams.K[idx].double().numpy())
+    if parts == "all":
+        fit.identity = np.asarray(truth.identity, np.float64).copy()
+        fit.expressions = np.asarray(truth.expressions[idx], np.float64).copy()
+    cfg = TrackConfig(size=size)
+    model = LandmarkModel.from_head_model(num_identity=cfg.fit.num_identity, layout=tr.layout)
+    return tracked_photos_from_fit(photos, fit, tr.landmarks, model, cfg, names=names)
 
 
 MIRROR_FIELDS = ("mirror_views", "mirror_min_yaw_deg", "mirror_drop_seen_deg", "mirror_midline_m", "mirror_blend_offset_deg")
@@ -596,6 +636,9 @@ def main(argv=None) -> int:
                     "written to --root when given (else a temporary folder) and evaluated the same way, tracking included")
     ap.add_argument("--first-seed", type=int, default=None,
                     help="with --synthetic: the first subject's seed; the sets use seeds S..S+N-1, each held out (1000000-1009999), in folders syn<seed> (default 1000700)")
+    ap.add_argument("--truth", default=None, choices=TRUTH_PARTS,
+                    help="with --synthetic: replace what tracking found by the truth the photos were drawn from, to split the error between "
+                    "tracking and reconstruction: cameras (poses and focal length) or all (also identity and expressions)")
     ap.add_argument("--json", default=None, help="write all rows here")
     ap.add_argument("--grid", default=None, help="write a grid picture here (NOT inside the repository)")
     args = ap.parse_args(argv)
@@ -603,6 +646,8 @@ def main(argv=None) -> int:
         ap.error(f"--synthetic must be >= 0, got {args.synthetic}")
     if args.first_seed is not None and not args.synthetic:
         ap.error("--first-seed needs --synthetic N with N >= 1")
+    if args.truth is not None and not args.synthetic:
+        ap.error("--truth needs --synthetic N with N >= 1: only the synthetic sets' truth is known")
     if args.synthetic:
         from ..data.photosets import PHOTOSET_FIRST_SEED, write_photosets
 
@@ -623,6 +668,15 @@ def main(argv=None) -> int:
             print(f"{args.synthetic} synthetic photo set(s) written to {root}", flush=True)
             return _run(ap, args, root, only=[d.name for d in folders])
     return _run(ap, args, Path(args.root) if args.root else realsets_root())
+
+
+def _truth_of(folder: Path, args: argparse.Namespace):
+    """With ``--truth``: the ``PhotosetTruth`` of the synthetic set ``folder`` (``syn<seed>``, the default views); else None."""
+    if args.truth is None:
+        return None
+    from ..data.photosets import photoset_truth
+
+    return photoset_truth(int(folder.name[3:]))
 
 
 def _run(ap: argparse.ArgumentParser, args: argparse.Namespace, root: Path, only: list[str] | None = None) -> int:
@@ -668,7 +722,7 @@ def _run(ap: argparse.ArgumentParser, args: argparse.Namespace, root: Path, only
         try:
             out = evaluate_set(model, folder, steps_list, args.size, faces, refine_cameras=not args.no_refine_cameras, surface=not args.no_surface,
                                photo_align=args.photo_align, mirror=mirror, own_cameras=args.own_cameras, align_left_out=args.align_left_out,
-                               refine_preset=args.refine_preset)
+                               refine_preset=args.refine_preset, truth=_truth_of(folder, args), truth_parts=args.truth or "cameras")
         except (ValueError, ImportError) as e:
             print(f"{folder.name}: skipped ({e})")
             continue

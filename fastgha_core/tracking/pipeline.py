@@ -16,7 +16,7 @@ from .matting import MattingConfig, head_silhouette, matte_from_head
 from .photoalign import PhotoAlignConfig, PhotoAlignResult, register_photos
 from .silhouette import SilhouetteTarget, person_mask
 
-__all__ = ["TrackConfig", "TrackedPhotos", "track_photos", "track_request", "track_known_cameras", "known_camera_fit_config"]
+__all__ = ["TrackConfig", "TrackedPhotos", "track_photos", "tracked_photos_from_fit", "track_request", "track_known_cameras", "known_camera_fit_config"]
 
 logger = logging.getLogger(__name__)
 
@@ -93,7 +93,6 @@ def track_photos(
     longer side (``fit.default_intrinsics``). Errors (``NoFaceError``, ``SeveralFacesError``,
     ``TinyFaceError``, ``ValueError``) name the photo.
     """
-    from ..data.headmodel import HeadModel
     from .faces import load_face_detector
 
     cfg = config or TrackConfig()
@@ -147,6 +146,44 @@ def track_photos(
             fit.identity = alignment.identity
         fit.rms_px = np.where(np.isfinite(alignment.rms_after), alignment.rms_after, fit.rms_px)
 
+    return tracked_photos_from_fit(photos, fit, lms, model, cfg, masks=masks, names=names, alignment=alignment)
+
+
+def tracked_photos_from_fit(
+    photos: list[np.ndarray],
+    fit: FitResult,
+    landmarks: list[np.ndarray],
+    model: LandmarkModel,
+    config: TrackConfig | None = None,
+    masks: list[np.ndarray | None] | None = None,
+    names: list[str] | None = None,
+    alignment: PhotoAlignResult | None = None,
+) -> TrackedPhotos:
+    """The crops, cameras and masks of ``V`` photos for a given head fit: :func:`track_photos`
+    after its fit, also for a fit made elsewhere (the held-out photo sets' true poses,
+    ``refine/realsets.py --truth``).
+
+    Args:
+        photos: ``V`` x ``[H_i, W_i, 3]`` RGB (uint8, or other dtypes as :func:`track_photos` takes them).
+        fit: the head in each photo (``fit.FitResult``: identity, expressions, ``R``, ``t``, ``K`` per photo).
+        landmarks: ``V`` x ``[N, 2]`` the detected landmarks (photo pixels), in ``model``'s layout.
+        model: the ``LandmarkModel`` of that layout (for the report's residuals).
+        config: ``size``, ``extent_m`` and ``matting`` are used.
+        masks: ``V`` x ``[H_i, W_i]`` alpha or None (matted from the fitted head).
+        names: for error messages. alignment: kept in the result.
+    Raises:
+        ValueError: mismatched lengths, or a mask of another size than its photo.
+    """
+    from ..data.headmodel import HeadModel
+
+    cfg = config or TrackConfig()
+    V = len(photos)
+    names = names or [f"photo {i}" for i in range(V)]
+    masks = list(masks) if masks is not None else [None] * V
+    if not (len(fit.rotations) == len(landmarks) == len(masks) == len(names) == V):
+        raise ValueError(f"got {V} photos, {len(fit.rotations)} poses, {len(landmarks)} landmark sets, {len(masks)} masks and {len(names)} names")
+    photos = [_as_photo(im, i, n) for i, (im, n) in enumerate(zip(photos, names))]
+    lms = landmarks
     head = HeadModel.load()
     faces = head.visible_faces(eyelashes=False)
     bg = background_uint8()
