@@ -181,6 +181,13 @@ class DeformConfig:
     # narrower (held-out mouthSmile response 0.76 -> 0.68, under issue 16's 0.7; docs/model-card.md
     # "Red dots on the cheek")
     cheek_shell: bool = False
+    # with the prior (ict53): the same kind of shell under the face in every avatar (``face_shell``):
+    # "forehead" (the default: the forehead between the brows and the back shell), "upper" (also the
+    # nose, cheekbones and brows, clear of the eyes), "off". Seen from in front, turned photos' pixel
+    # Gaussians leave gaps there, through which the back shell showed as a dark hatched patch; "upper"
+    # also closes the nose's, but on real photos it washed the faces out (leave-one-out identity
+    # 0.446 -> 0.485; docs/model-card.md "A shell under the face")
+    face_shell: str = "forehead"
     # with the prior: relight what an expression moves (model/prior.py, ``shading_basis``): a photo's
     # baked light otherwise stays on a moved surface (no smile creases, an evenly lit dropped lip)
     prior_shading: bool = True
@@ -272,6 +279,7 @@ OFF_HEAD_HULL_MODES = ("off", "entry", "nearest", "middle")
 OFF_HEAD_SMOOTH_AXES = ("vertical", "both")  # = model/surface.py's
 OFF_HEAD_DRAW_MODES = ("off", "behind", "drop", "sharp", "headon_sharp", "cover_sharp", "under")  # = model/surface.py's
 PHOTO_SHAPES_MODES = ("off", "colour_opacity", "colour_opacity_scale")  # = model/surface.py's
+FACE_SHELL_REGIONS = ("off", "forehead", "upper")  # DeformConfig.face_shell (model/prior.py face_shell_vertices)
 MAX_VIEW_BLEND_TAU_DEG = 360.0  # = fastgha_core.commands.MAX_VIEW_BLEND_TAU_DEG (the server's bound on its override)
 
 
@@ -371,6 +379,7 @@ def _validate_deform(d: DeformConfig) -> None:
         raise ValueError(f"deform.prior_fade must be two distances in metres (full weight up to, no weight beyond), got {fade!r}")
     _in_range(w + "prior_fade[0]", fade[0], 0, note="metres from the surface with full prior weight")
     _in_range(w + "prior_fade[1]", fade[1], fade[0], note="metres from the surface with no prior weight, at least prior_fade[0]")
+    _one_of(w + "face_shell", d.face_shell, FACE_SHELL_REGIONS)
 
 
 def _from_dict(cls, data: Any, where: str):

@@ -53,6 +53,7 @@ def server_options(model: Any) -> dict:
             "back_shell": bool(d.prior and d.back_shell),
             "chin_shell": bool(d.prior and d.chin_shell),
             "cheek_shell": bool(d.prior and d.cheek_shell),
+            "face_shell": d.face_shell if d.prior else "off",
             "fade_m": [float(x) for x in d.prior_fade],
         },
     }

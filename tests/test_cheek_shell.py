@@ -11,7 +11,7 @@ from face_avatars import SKIN, face_avatars
 from prior_frames import fast_and_plain
 
 from fastgha_core.data.headmodel import HeadModel
-from fastgha_core.model.prior import CHEEK_SHELL_INNER, CHEEK_SHELL_LIP, back_shell_vertices, cheek_shell_vertices, chin_shell_vertices, load_basis
+from fastgha_core.model.prior import CHEEK_SHELL_INNER, CHEEK_SHELL_LIP, back_shell_vertices, cheek_shell_vertices, chin_shell_vertices, face_shell_vertices, load_basis
 
 
 @pytest.fixture(scope="module")
@@ -61,7 +61,8 @@ def test_cheek_shell_off_is_the_avatar_without_it(opaque):
     k_back, k_chin, k_cheek = (len(f(basis)) for f in (back_shell_vertices, chin_shell_vertices, cheek_shell_vertices))
     assert len(a_on.gaussians) == len(a_off.gaussians) + k_cheek
     assert a_on.num_interior == a_off.num_interior + k_cheek
-    assert m_on._shell_count() == k_back + k_chin + k_cheek and m_off._shell_count() == k_back + k_chin
+    k_face = len(face_shell_vertices(basis, m_on.config.deform.face_shell))  # the face shell follows the cheek shell (test_face_shell)
+    assert m_on._shell_count() == k_back + k_chin + k_cheek + k_face and m_off._shell_count() == k_back + k_chin + k_face
     head = n + k_back + k_chin
     for f in ("means", "colors", "opacities", "scales"):
         a, b = getattr(a_on.gaussians, f), getattr(a_off.gaussians, f)

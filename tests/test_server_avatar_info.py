@@ -140,7 +140,8 @@ def test_tracked_avatar_reports_per_view_data_and_whether_frames_are_blended(mod
     assert prior["enabled"] is True and prior["bound"] == (stored.prior is not None)  # tiny runs the prior
     assert prior["mouth_interior_gaussians"] == stored.num_interior > 0
     d = ctx.model.config.deform
-    assert (prior["shading"], prior["rotate"], prior["back_shell"], prior["chin_shell"], prior["cheek_shell"]) == (d.prior_shading, d.prior_rotate, d.back_shell, d.chin_shell, d.cheek_shell)
+    assert (prior["shading"], prior["rotate"], prior["back_shell"], prior["chin_shell"], prior["cheek_shell"], prior["face_shell"]) == (
+        d.prior_shading, d.prior_rotate, d.back_shell, d.chin_shell, d.cheek_shell, d.face_shell)
     meta = ctx.store.get_meta(job.id)
     assert avatar_options(ctx.model, meta) == {k: job.result[k] for k in ("view_blend", "expression_prior")}
 

@@ -425,7 +425,8 @@ class FastGHA(nn.Module):
         """``build_prior``'s back-of-head shell, chin shell and mouth interior for the (neutralised) ``g``:
         ``(extra Gaussians or None, binding, num_interior)``; ``drawn`` is where ``g`` is drawn at the
         neutral expression."""
-        from .prior import PriorBinding, back_shell, back_shell_vertices, cheek_shell, cheek_shell_vertices, chin_shell, chin_shell_vertices, interior_inset, mouth_interior
+        from .prior import (PriorBinding, back_shell, back_shell_vertices, cheek_shell, cheek_shell_vertices, chin_shell, chin_shell_vertices, face_shell,
+                            face_shell_vertices, interior_inset, mouth_interior)
 
         basis = self.head_basis()
         dev = g.means.device
@@ -446,6 +447,12 @@ class FastGHA(nn.Module):
         if self.config.deform.cheek_shell and len(cheek_shell_vertices(basis)):
             # ungated too, after the chin shell: skin under the cheeks, in front of the mouth interior
             gs, bs = cheek_shell(fit, basis, g.features.shape[1], avatar=g)
+            parts.append(gs.to(dev, g.means.dtype))
+            binding = PriorBinding.concat(binding, bs.to(dev))
+            n_int += len(gs)
+        if len(face_shell_vertices(basis, self.config.deform.face_shell)):
+            # ungated too, after the cheek shell: skin under the face (``_shell_count``)
+            gs, bs = face_shell(fit, basis, g.features.shape[1], avatar=g, region=self.config.deform.face_shell)
             parts.append(gs.to(dev, g.means.dtype))
             binding = PriorBinding.concat(binding, bs.to(dev))
             n_int += len(gs)
@@ -838,13 +845,14 @@ class FastGHA(nn.Module):
 
     def _shell_count(self) -> int:
         """How many ungated shell Gaussians ``_prior_extras`` appends after the reconstructed ones: the
-        back-of-head shell's (``deform.back_shell``), the chin shell's (``deform.chin_shell``) and then the
-        cheek shell's (``deform.cheek_shell``)."""
-        from .prior import back_shell_vertices, cheek_shell_vertices, chin_shell_vertices
+        back-of-head shell's (``deform.back_shell``), the chin shell's (``deform.chin_shell``), the
+        cheek shell's (``deform.cheek_shell``) and then the face shell's (``deform.face_shell``)."""
+        from .prior import back_shell_vertices, cheek_shell_vertices, chin_shell_vertices, face_shell_vertices
 
         basis = self.head_basis()
         d = self.config.deform
-        return len(back_shell_vertices(basis)) * bool(d.back_shell) + len(chin_shell_vertices(basis)) * bool(d.chin_shell) + len(cheek_shell_vertices(basis)) * bool(d.cheek_shell)
+        return (len(back_shell_vertices(basis)) * bool(d.back_shell) + len(chin_shell_vertices(basis)) * bool(d.chin_shell)
+                + len(cheek_shell_vertices(basis)) * bool(d.cheek_shell) + len(face_shell_vertices(basis, d.face_shell)))
 
     def _carve_shell(self, g: Gaussians, n_rec: int, images: Tensor, cameras: Cameras, surface) -> Gaussians:
         """``reconstruct``'s back-of-head and chin shells (the ``_shell_count()`` Gaussians after the

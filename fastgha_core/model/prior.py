@@ -48,6 +48,10 @@ Pieces (all numpy/torch on CPU, no learning):
 - ``chin_shell(fit, basis)``: the same discs under the jaw and on the front of the neck, bound to
   follow the expression prior there (the jaw's underside moves with jawOpen): a pitched-up view sees
   that skin, which no less pitched input does (``DeformConfig.chin_shell``).
+- ``face_shell(fit, basis, region)``: the same discs under the forehead below the back shell (or
+  the whole upper face clear of the eyes), bound to follow the expression prior: seen from in
+  front, the turned photos' pixel Gaussians leave gaps there and the back shell showed through them
+  as a dark hatched patch (``DeformConfig.face_shell``).
 """
 
 from __future__ import annotations
@@ -78,6 +82,8 @@ __all__ = [
     "back_shell_vertices",
     "chin_shell",
     "chin_shell_vertices",
+    "face_shell",
+    "face_shell_vertices",
     "mouth_gate_vector",
     "open_mouth_views",
     "hide_open_lips",
@@ -1284,6 +1290,54 @@ def cheek_shell(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gaus
     that a thinned cheek shows skin, not the mouth interior behind it. Returns ``(gaussians [S],
     binding [S])``."""
     g, b = back_shell(fit, basis, num_features, avatar=avatar, ids=cheek_shell_vertices(basis))
+    return g, PriorBinding(b.vertex_ids, b.bary, torch.ones(len(b)), b.transform, b.identity, b.space, b.group)
+
+
+# Face shell: the same kind of opaque skin under the face. A frontal render of an avatar built from
+# turned photos (the frontal one left out) draws the forehead, brows and nose from pixels those photos
+# saw at an angle: their pixel-sized Gaussians stand apart seen from in front, and the back shell, dark
+# with the hair's colour, showed through the gaps as a hatched patch on the forehead and down the nose
+# (docs/model-card.md, "A shell under the face"). Its discs take the colour of the skin around them,
+# so a gap shows skin.
+FACE_SHELL_EYE = 0.006  # metres: no shell this near an eye landmark (36-47), so the eyes stay the photos'
+FACE_SHELL_BROW = 0.005  # metres above the brows' highest landmark (17-26): the forehead region's lower bound
+FACE_SHELL_TOP = 0.045  # metres above the brows' highest landmark: the back shell's lower bound on the forehead
+
+
+@functools.lru_cache(maxsize=4)
+def _face_shell_cached(key: int, basis: HeadBasis, region: str) -> np.ndarray:
+    v, lm, idx, p = _head_skin(basis)
+    brow = lm[17:27, 1].max()
+    low = brow + FACE_SHELL_BROW if region == "forehead" else lm[33, 1] + CHEEK_SHELL_TOP
+    # in front of the back shell, up to where the back shell begins on the forehead
+    sel = (p[:, 2] >= lm[0, 2] - CHIN_SHELL_FRONT) & (p[:, 1] > low) & (p[:, 1] <= brow + FACE_SHELL_TOP)
+    sel &= np.linalg.norm(p[:, None, :] - lm[None, 36:48], axis=-1).min(1) > FACE_SHELL_EYE
+    sel &= _away_from_ears(p)
+    return _spaced(v, idx[sel])
+
+
+def face_shell_vertices(basis: HeadBasis, region: str = "forehead") -> np.ndarray:
+    """``[S]`` int64 vertex ids of the face shell: ICT-FaceKit head skin in front of the back shell
+    (``CHIN_SHELL_FRONT`` behind landmark 0), up to ``FACE_SHELL_TOP`` above the brows (landmarks
+    17-26), from ``FACE_SHELL_BROW`` above them (``region="forehead"``) or from the cheek shell's top
+    (``CHEEK_SHELL_TOP`` above the nose's base, landmark 33: ``"upper"``, the nose, cheekbones and
+    brows too), farther than ``FACE_SHELL_EYE`` from every eye landmark (36-47) and than
+    ``BACK_SHELL_EAR`` from the ears, no two closer than ``BACK_SHELL_SPACING`` on the neutral head.
+    Empty for ``"off"`` and for other head models. Raises ValueError for another region."""
+    if region not in ("off", "forehead", "upper"):
+        raise ValueError(f"face shell region must be off, forehead or upper, got {region!r}")
+    if basis.space != "ict53" or region == "off":
+        return np.zeros(0, np.int64)
+    return _face_shell_cached(id(basis), basis, region)
+
+
+def face_shell(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gaussians | None" = None, region: str = "forehead") -> tuple["Gaussians", PriorBinding]:  # noqa: F821
+    """Ungated Gaussians under the face (``face_shell_vertices(basis, region)``), made and bound as
+    ``chin_shell``'s (colour from the solid avatar Gaussians within ``BACK_SHELL_RADIUS``; weight 1:
+    they follow the expression prior's displacement, the brows' raise included), so that gaps between
+    the reconstructed Gaussians show skin, not the back of the head. Returns ``(gaussians [S],
+    binding [S])``."""
+    g, b = back_shell(fit, basis, num_features, avatar=avatar, ids=face_shell_vertices(basis, region))
     return g, PriorBinding(b.vertex_ids, b.bary, torch.ones(len(b)), b.transform, b.identity, b.space, b.group)
 
 
