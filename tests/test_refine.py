@@ -478,7 +478,7 @@ def test_refinement_that_thins_backs_the_cheeks_with_the_cheek_shell(sample):
     ``DeformConfig.cheek_shell``; colours-only refinement and ``cheek_shell=False`` leave it out."""
     import dataclasses
 
-    from fastgha_core.model.prior import cheek_shell_vertices
+    from fastgha_core.model.prior import cheek_shell_vertices, face_shell_vertices
     from fastgha_core.refine import REFINE_PRESETS
 
     model, avatar, images, masks, cams, expr = sample
@@ -501,7 +501,9 @@ def test_refinement_that_thins_backs_the_cheeks_with_the_cheek_shell(sample):
     model.config.deform.cheek_shell = True
     try:
         every = model.reconstruct(imgs, in_cams)
-        at_e = every.num_reconstructed + model._shell_count() - k
+        # there the cheek shell sits between the chin shell and the face shell (``_prior_extras``' order)
+        face = len(face_shell_vertices(model.head_basis(), model.config.deform.face_shell))
+        at_e = every.num_reconstructed + model._shell_count() - face - k
         torch.testing.assert_close(out.gaussians.means[run], every.gaussians.means[at_e : at_e + k], atol=1e-6, rtol=0)
     finally:
         model.config.deform.cheek_shell = False
