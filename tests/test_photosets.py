@@ -76,10 +76,13 @@ def test_leave_one_out_runs_end_to_end_on_a_synthetic_set(tmp_path, capsys):
     pytest.importorskip("mediapipe", reason="needs the faces extra (MediaPipe Face Mesh)")
     from fastgha_core.refine.realsets import main
 
-    out = tmp_path / "rows.json"
-    assert main(["--synthetic", "1", "--root", str(tmp_path / "sets"), "--refine-steps", "0", "--no-cnn-faces", "--json", str(out)]) == 0
+    out, grid = tmp_path / "rows.json", tmp_path / "grid.png"
+    assert main(["--synthetic", "1", "--root", str(tmp_path / "sets"), "--refine-steps", "0", "--no-cnn-faces", "--json", str(out), "--grid", str(grid)]) == 0
     printed = capsys.readouterr().out
     assert "1 synthetic photo set(s) written to" in printed
+    assert f"grid written to {grid} (rows: left-out photos; columns: left-out photo, 0 refine steps)" in printed
+    # a band of column titles, then one row of two cells (photo, render) per photo at the tracker's 256²
+    assert np.asarray(Image.open(grid)).shape == (22 + len(PHOTOSET_VIEWS) * 258 + 2, 2 * 258 + 2, 3)
     rows = json.loads(out.read_text())
     assert sorted(r["left_out"] for r in rows) == sorted(photo_name(i, y, p) for i, (y, p) in enumerate(PHOTOSET_VIEWS))
     for r in rows:
@@ -182,3 +185,17 @@ def test_the_truth_replaces_what_tracking_found(tmp_path):
         from fastgha_core.refine.realsets import evaluate_set
 
         evaluate_set(None, tmp_path, [0], truth=truth, truth_parts="poses")
+
+
+def test_grid_labels_follow_the_rows_to_their_columns():
+    """Each left-out photo's row of the ``--grid`` picture: its set and name over the photo, then each
+    render's masked PSNR and identity distance, under the column key its render is filed under."""
+    from fastgha_core.refine.realsets import grid_labels, grid_titles
+
+    rows = [{"set": "s", "left_out": f"{n}.jpg", "steps": st, "mirror": mv, "masked_psnr": 17.0 + st / 10 + n, "identity_distance": None if n else 0.456,
+             "aligned_masked_psnr": 30.0, "aligned_identity_distance": 0.1} for n in (0, 1) for mv in ("off", "on") for st in (0, 30)]
+    cols = [(("on", 30), "aligned"), ("off", 0), ("on", 30)]
+    assert grid_labels(rows, cols) == [["s 0", "30.0 dB, id 0.10", "17.0 dB, id 0.46", "20.0 dB, id 0.46"],
+                                       ["s 1", "30.0 dB, id 0.10", "18.0 dB, id -", "21.0 dB, id -"]]
+    assert grid_titles([0, 30, ("off", 0), ((("on", 30)), "aligned")]) == [
+        "left-out photo", "0 refine steps", "30 refine steps", "mirror off, 0 steps", "mirror on, 30 steps, aligned"]

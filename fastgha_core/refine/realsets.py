@@ -33,7 +33,8 @@ protocol); the aligned ones bound how much of the loss the left-out camera's own
 ``python -m fastgha_core.refine.realsets --refine-steps 0,60 --grid OUT.png`` prints a markdown
 table and writes a grid picture (one row per left-out photo: the photo, then one render per step count; with ``--mirror off,30``
 one per mirrored-view variant and step count, ``model/mirror.py``; with ``--align-left-out`` each
-render is followed by the render at the aligned camera; ``--own-cameras`` adds the
+render is followed by the render at the aligned camera; columns titled, each render labelled with
+its masked PSNR and identity distance, each photo with its set and name; ``--own-cameras`` adds the
 input-view check, the avatar of all of a set's photos at each photo's own camera). The sets are not
 ours to publish: write the grid outside the repository. Sets that fail to track are reported and
 skipped, and a photo the tracker cannot handle is dropped from its set (reported) while at least 3 remain;
@@ -609,6 +610,39 @@ def _from_annotation(r: dict) -> str:
     return f"{r['annot_start_yaw_aligned']:.1f} ({r['annot_start_masked_psnr_start']:.2f} -> {r['annot_start_masked_psnr']:.2f}; {better})"
 
 
+
+def _column_name(c) -> str:
+    """A grid column's title from its key in ``evaluate_set``'s renders: steps, ``(mirror, steps)``, or
+    either followed by ``"aligned"`` (``--align-left-out``)."""
+    if isinstance(c, tuple) and c[-1] == "aligned":
+        return f"{_column_name(c[0])}, aligned"
+    if isinstance(c, tuple):
+        return f"mirror {c[0]}, {c[1]} steps"
+    return f"{c} refine steps"
+
+
+def grid_titles(cols) -> list[str]:
+    """The ``--grid`` picture's column titles: the matted left-out photo, then one per render column."""
+    return ["left-out photo"] + [_column_name(c) for c in cols]
+
+
+def _score_label(psnr, identity) -> str:
+    return f"{psnr:.1f} dB, id " + ("-" if identity is None else f"{identity:.2f}")
+
+
+def grid_labels(rows: list[dict], cols) -> list[list[str]]:
+    """One set's ``--grid`` cell labels, one list per left-out photo (its set and name over the photo;
+    masked PSNR and dlib identity distance over each render, "-" where dlib found no face), matched to
+    ``rows`` by the column keys ``evaluate_set`` files its renders under."""
+    out = {}
+    for r in rows:
+        key = r["steps"] if "mirror" not in r else (r["mirror"], r["steps"])
+        cells = out.setdefault(r["left_out"], {"photo": f"{r['set']} {Path(r['left_out']).stem}"})
+        cells[key] = _score_label(r["masked_psnr"], r["identity_distance"])
+        if "aligned_masked_psnr" in r:
+            cells[(key, "aligned")] = _score_label(r["aligned_masked_psnr"], r["aligned_identity_distance"])
+    return [[cells["photo"]] + [cells.get(c) for c in cols] for cells in out.values()]
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m fastgha_core.refine.realsets",
                                  description="leave-one-out evaluation on photo sets: the real ones, or held-out synthetic ones with --synthetic")
@@ -717,7 +751,7 @@ def _run(ap: argparse.ArgumentParser, args: argparse.Namespace, root: Path, only
     cols = steps_list if mirror is None else [(mv, s) for mv in mirror for s in steps_list]
     if args.align_left_out:  # each render followed by the render at the aligned camera
         cols = [x for c in cols for x in (c, (c, "aligned"))]
-    all_rows, own_rows, grid = [], [], []
+    all_rows, own_rows, grid, labels = [], [], [], []
     for folder in sets:
         try:
             out = evaluate_set(model, folder, steps_list, args.size, faces, refine_cameras=not args.no_refine_cameras, surface=not args.no_surface,
@@ -729,6 +763,7 @@ def _run(ap: argparse.ArgumentParser, args: argparse.Namespace, root: Path, only
         all_rows += out["rows"]
         for k, t in enumerate(out["targets"]):
             grid.append([t] + [out["renders"][c][k] for c in cols])
+        labels += grid_labels(out["rows"], cols)
         print(f"{folder.name}: tracked in {out['track_s']} s; photos dropped (tracking failed): {out['dropped'] or 'none'}", flush=True)
         for r in out["rows"]:
             print(json.dumps(r), flush=True)
@@ -749,7 +784,8 @@ def _run(ap: argparse.ArgumentParser, args: argparse.Namespace, root: Path, only
     if args.grid and grid:
         from ..train.visualize import save_grid
 
-        save_grid(Path(args.grid), grid)
+        save_grid(Path(args.grid), grid, titles=grid_titles(cols), labels=labels)
+        print(f"grid written to {args.grid} (rows: left-out photos; columns: {', '.join(grid_titles(cols))})")
     return 0
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["make_grid", "save_grid", "add_column_titles", "error_map"]
+__all__ = ["make_grid", "save_grid", "add_column_titles", "add_cell_labels", "error_map"]
 
 
 def error_map(pred: Tensor, target: Tensor, max_err: float = 0.25) -> Tensor:
@@ -18,14 +18,27 @@ def error_map(pred: Tensor, target: Tensor, max_err: float = 0.25) -> Tensor:
     return torch.stack([(e * 2).clamp(0, 1), (e * 2 - 1).clamp(0, 1) * 0.9 + 0.1 * e, torch.zeros_like(e)])
 
 
-def make_grid(rows: Sequence[Sequence[Tensor | None]], pad: int = 2, fill: float = 1.0) -> np.ndarray:
-    """Rows of ``[3, H, W]`` images in [0, 1] (None = empty cell) -> ``[H', W', 3]`` uint8; every cell
-    has the size of the largest image, smaller ones are centred."""
+def _cell_size(rows: Sequence[Sequence[Tensor | None]]) -> tuple[int, int]:
+    """``(height, width)`` of ``make_grid``'s cells: the largest image's. Raises ``ValueError`` without images."""
     cells = [t for r in rows for t in r if t is not None]
     if not cells:
         raise ValueError("make_grid needs at least one image")
-    ch = max(int(t.shape[-2]) for t in cells)
-    cw = max(int(t.shape[-1]) for t in cells)
+    return max(int(t.shape[-2]) for t in cells), max(int(t.shape[-1]) for t in cells)
+
+
+def _font(size: int):
+    from PIL import ImageFont
+
+    try:
+        return ImageFont.load_default(size=size)
+    except TypeError:  # Pillow without FreeType: the fixed bitmap font
+        return ImageFont.load_default()
+
+
+def make_grid(rows: Sequence[Sequence[Tensor | None]], pad: int = 2, fill: float = 1.0) -> np.ndarray:
+    """Rows of ``[3, H, W]`` images in [0, 1] (None = empty cell) -> ``[H', W', 3]`` uint8; every cell
+    has the size of the largest image, smaller ones are centred."""
+    ch, cw = _cell_size(rows)
     ncol = max(len(r) for r in rows)
     H = len(rows) * (ch + pad) + pad
     W = ncol * (cw + pad) + pad
@@ -49,7 +62,7 @@ def add_column_titles(grid: np.ndarray, titles: Sequence[str], ncol: int, pad: i
     white band of ``height`` pixels on top holding one centred title per column (black text).
 
     Raises ``ValueError`` when there are more titles than columns."""
-    from PIL import Image, ImageDraw, ImageFont
+    from PIL import Image, ImageDraw
 
     if len(titles) > ncol:
         raise ValueError(f"{len(titles)} titles for {ncol} columns")
@@ -57,10 +70,7 @@ def add_column_titles(grid: np.ndarray, titles: Sequence[str], ncol: int, pad: i
     cw = (w - pad) // ncol - pad
     band = Image.new("RGB", (w, height), (255, 255, 255))
     draw = ImageDraw.Draw(band)
-    try:
-        font = ImageFont.load_default(size=max(8, height - 8))
-    except TypeError:  # Pillow without FreeType: the fixed bitmap font
-        font = ImageFont.load_default()
+    font = _font(max(8, height - 8))
     for j, title in enumerate(titles):
         x0 = pad + j * (cw + pad)
         left, top, right, bottom = draw.textbbox((0, 0), title, font=font)
@@ -71,13 +81,48 @@ def add_column_titles(grid: np.ndarray, titles: Sequence[str], ncol: int, pad: i
     return np.concatenate([np.asarray(band), grid], axis=0)
 
 
-def save_grid(path: str | Path, rows: Sequence[Sequence[Tensor | None]], pad: int = 2, titles: Sequence[str] | None = None) -> Path:
-    """``make_grid(rows)`` saved as a PNG at ``path``; ``titles`` label the columns (``add_column_titles``)."""
+def add_cell_labels(grid: np.ndarray, rows: Sequence[Sequence[Tensor | None]], labels: Sequence[Sequence[str | None]], pad: int = 2,
+                    height: int = 14) -> np.ndarray:
+    """A copy of ``make_grid(rows, pad)``'s ``[H, W, 3]`` uint8 ``grid`` with ``labels[i][j]`` written in
+    black on a white strip of ``height`` pixels across the top of cell ``(i, j)`` (None or "" = none;
+    text too wide for the cell is shortened with "…"). The strip covers the top of the image in that
+    cell, so labels suit renders whose top rows are background (heads framed with headroom).
+
+    Raises ``ValueError`` when a label has no cell: more label rows than ``rows``, or a row with more
+    labels than it has cells."""
+    from PIL import Image, ImageDraw
+
+    if len(labels) > len(rows) or any(len(lab) > len(r) for lab, r in zip(labels, rows)):
+        raise ValueError(f"labels {[len(x) for x in labels]} do not fit the grid's rows {[len(r) for r in rows]}")
+    ch, cw = _cell_size(rows)
+    img = Image.fromarray(grid.copy())
+    draw = ImageDraw.Draw(img)
+    font = _font(max(8, height - 3))
+    for i, lab in enumerate(labels):
+        for j, text in enumerate(lab):
+            if not text:
+                continue
+            x0, y0 = pad + j * (cw + pad), pad + i * (ch + pad)
+            left, top, right, bottom = draw.textbbox((0, 0), text, font=font)
+            while right - left > cw - 2 and len(text) > 2:
+                text = text[:-2] + "…"
+                left, top, right, bottom = draw.textbbox((0, 0), text, font=font)
+            draw.rectangle((x0, y0, x0 + cw - 1, y0 + height - 1), fill=(255, 255, 255))
+            draw.text((x0 + 1 - left, y0 + (height - (bottom - top)) // 2 - top), text, fill=(0, 0, 0), font=font)
+    return np.asarray(img)
+
+
+def save_grid(path: str | Path, rows: Sequence[Sequence[Tensor | None]], pad: int = 2, titles: Sequence[str] | None = None,
+              labels: Sequence[Sequence[str | None]] | None = None) -> Path:
+    """``make_grid(rows)`` saved as a PNG at ``path``; ``titles`` label the columns (``add_column_titles``),
+    ``labels`` the cells (``add_cell_labels``)."""
     from PIL import Image
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     grid = make_grid(rows, pad=pad)
+    if labels:
+        grid = add_cell_labels(grid, rows, labels, pad=pad)
     if titles:
         grid = add_column_titles(grid, titles, max(len(r) for r in rows), pad=pad)
     Image.fromarray(grid).save(path)
