@@ -67,6 +67,33 @@ def test_recovers_a_known_pose_perturbation(scene):
     assert al.rotation_deg[0] == 0.0 and (al.rotation_deg[1:] > 0).all()
 
 
+def test_only_photos_turned_far_enough_are_corrected(scene):
+    """``free_min_yaw_deg``: a photo the given poses turn less than it keeps its pose exactly, one
+    turned further is registered to the others (here both are 3 degrees off the truth)."""
+    from fastgha_core.tracking.fit import head_angles_deg
+
+    sub, ims, R, t, K = scene
+    Rp = R.copy()
+    Rp[1] = rodrigues(np.radians([0.0, -3.0, 0.0])) @ R[1]
+    Rp[2] = rodrigues(np.radians([0.0, -3.0, 0.0])) @ R[2]
+    yaws = [abs(head_angles_deg(r)[0]) for r in Rp]
+    assert yaws[1] > 27.0 and yaws[2] < 23.0, yaws  # the set-up: one photo either side of 25 degrees
+    before = _reprojection_px(sub, Rp, t, K, R, t)
+    al = register_photos(ims, sub.identity, np.zeros((3, 53)), Rp, t, K, PhotoAlignConfig(free_min_yaw_deg=25.0))
+    after = _reprojection_px(sub, al.rotations, al.translations, K, R, t)
+    np.testing.assert_array_equal(al.rotations[[0, 2]], Rp[[0, 2]])
+    np.testing.assert_array_equal(al.translations[[0, 2]], t[[0, 2]])
+    assert al.rotation_deg[2] == 0.0 and al.rotation_deg[1] > 0.5
+    assert after[1] < 0.6 * before[1], (before, after)
+    # no photo turned that far: nothing is computed, nothing moves
+    none = register_photos(ims, sub.identity, np.zeros((3, 53)), Rp, t, K, PhotoAlignConfig(free_min_yaw_deg=40.0))
+    np.testing.assert_array_equal(none.rotations, Rp)
+    assert (none.rotation_deg == 0).all() and np.isnan(none.ncc_before)
+    # with no bound both move
+    both = register_photos(ims, sub.identity, np.zeros((3, 53)), Rp, t, K, FAST)
+    assert both.rotation_deg[1] > 0.5 and both.rotation_deg[2] > 0.5
+
+
 def test_true_poses_stay_close(scene):
     """Started at the truth, the registration must not wander off it."""
     sub, ims, R, t, K = scene
@@ -122,8 +149,9 @@ def test_landmark_guard_holds_the_fit(scene):
 
 
 def test_track_photos_applies_it_only_when_asked(scene):
-    """``TrackConfig.photo_align`` (off by default) replaces the landmark fit's poses by the
-    registered ones, and the crops' cameras and the reported landmark RMS follow them."""
+    """``TrackConfig.photo_align`` replaces the landmark fit's poses by the registered ones, and the
+    crops' cameras and the reported landmark RMS follow them; by default only photos turned beyond
+    ``TURNED_MIN_YAW_DEG`` are corrected (none here, at 0 and +-25 degrees)."""
     try:
         from fastgha_core.tracking.faces import MeshDetector
 
@@ -133,10 +161,17 @@ def test_track_photos_applies_it_only_when_asked(scene):
     from fastgha_core.tracking.pipeline import TrackConfig, track_photos
 
     sub, ims, R, t, K = scene
-    assert TrackConfig().photo_align is False
-    off = track_photos(ims, TrackConfig(size=64), detector=det)
-    on = track_photos(ims, TrackConfig(size=64, photo_align=True), detector=det)
+    from fastgha_core.tracking.pipeline import TURNED_MIN_YAW_DEG
+
+    assert TrackConfig().photo_align and TrackConfig().align.free_min_yaw_deg == TURNED_MIN_YAW_DEG == 55.0
+    off = track_photos(ims, TrackConfig.with_photo_align("off", size=64), detector=det)
+    default = track_photos(ims, TrackConfig(size=64), detector=det)
+    assert default.alignment is not None and (default.alignment.rotation_deg == 0).all()  # no photo turned that far
+    np.testing.assert_allclose(default.fit.rotations, off.fit.rotations)
+    on = track_photos(ims, TrackConfig.with_photo_align("all", size=64), detector=det)
     assert off.alignment is None and on.alignment is not None
+    with pytest.raises(ValueError, match="off, turned, all"):
+        TrackConfig.with_photo_align("some")
     # the same landmark fit before it (the fit measures with the yaw map of its last round, the registration at the final yaw)
     np.testing.assert_allclose(on.alignment.rms_before, off.fit.rms_px, rtol=0.02)
     np.testing.assert_allclose(on.fit.rotations, on.alignment.rotations)

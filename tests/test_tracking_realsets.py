@@ -64,8 +64,11 @@ def test_every_real_photo_tracks_and_turns_the_right_way():
     # median 9.6, max 16.7 (without it 13.0 / 31.8): two photos still miss 15 (docs/tracking.md). With
     # the map's pitch axis (FitConfig.pitch_map) the max is 18.3: studio-4 00 (annotated 55, +-10-15)
     # comes out at 36.7 instead of 38.3, through the identity the set shares with its pitched-up photo;
-    # three photos miss 15 now (phone-5 01 by 0.1)
-    assert np.median(errs) <= 11.0 and max(errs) <= 18.5, errs
+    # three photos missed 15 (phone-5 01 by 0.1). With the turned photos registered (photoalign.py,
+    # the default since 2026-12-05) the phone profile reads 72.3 for +85 and two miss 15; the median
+    # is 11.1 (studio-4 02 moves from -64.6 to -58.9 for -70, an annotation of +-10-15)
+    assert np.median(errs) <= 11.5 and max(errs) <= 18.5, errs
+    assert sum(e > 15.0 for e in errs) <= 2, errs
     for r in rows:
         ann = r["yaw_annotated"]
         if ann is None:

@@ -300,7 +300,7 @@ def aligned_columns(model, avatar, expression: torch.Tensor, camera, target: tor
 
 
 def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, faces=None, refine_cameras: bool = True, surface: bool = True,
-                 photo_align: bool = False, mirror: list[str] | None = None, own_cameras: bool = False, align_left_out: bool = False,
+                 photo_align: str = "turned", mirror: list[str] | None = None, own_cameras: bool = False, align_left_out: bool = False,
                  refine_preset: str | None = None, truth=None, truth_parts: str = "cameras") -> dict:
     """Leave-one-out over the photos of ``folder`` (see the module docstring); one row per (photo, steps)
     and mirror variant.
@@ -309,7 +309,8 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
     ``refine_preset``: refine with ``REFINE_PRESETS[refine_preset]`` (``"auto"``: the one
     ``refine_preset_for`` picks, as the server does; its own camera setting; ``steps`` from
     ``steps_list``) instead of the default settings with ``refine_cameras``.
-    ``photo_align``: register the photos' poses photometrically in tracking (``TrackConfig.photo_align``).
+    ``photo_align``: the photometric registration of the photos' poses in tracking, ``"off"``, ``"turned"``
+    (the default) or ``"all"`` (``TrackConfig.with_photo_align``).
     ``mirror``: variants of the mirrored virtual views (``model/mirror.py``) to compare on the same
     tracking, each ``"off"``, ``"on"`` (the config's thresholds), a yaw threshold in degrees
     (``mirror_min_yaw_deg``), ``"YAW/DROP"`` (and ``mirror_drop_seen_deg``), ``"YAW/DROP/MM"`` (and
@@ -343,7 +344,7 @@ def evaluate_set(model, folder: Path, steps_list: list[int], size: int = 256, fa
     dropped = []
     while True:  # a photo the tracker cannot handle (e.g. no face found) is dropped and reported
         try:
-            tr = track_photos(photos, TrackConfig(size=size, photo_align=photo_align), names=names)
+            tr = track_photos(photos, TrackConfig.with_photo_align(photo_align, size=size), names=names)
             break
         except ValueError as e:
             bad = [i for i, n in enumerate(names) if n in str(e)]
@@ -654,7 +655,8 @@ def main(argv=None) -> int:
     ap.add_argument("--refine-preset", default=None, help="refine with this REFINE_PRESETS entry (e.g. photos: colours only; auto: as the server picks it) "
                     "and its own camera setting, instead of the default settings with camera corrections")
     ap.add_argument("--no-surface", action="store_true", help="use the network's depth instead of the tracked head surface")
-    ap.add_argument("--photo-align", action="store_true", help="track with the photometric registration of the photos (TrackConfig.photo_align, off by default)")
+    ap.add_argument("--photo-align", default="turned", choices=("off", "turned", "all"),
+                    help="the photometric registration of the photos' poses in tracking: off, the photos turned >= 55 degrees (the default) or all (TrackConfig.with_photo_align)")
     ap.add_argument("--no-cnn-faces", action="store_true", help="skip dlib's CNN face detector column (slower than HOG)")
     ap.add_argument("--size", type=int, default=256, help="crop side of the tracked photos and of the renders")
     ap.add_argument("--mirror", default=None,

@@ -15,7 +15,7 @@ are numpy/scipy. See ``docs/tracking.md``.
 - ``video.py``    per-frame expression + pose tracking with One-Euro smoothing
 - ``evaluate.py`` synthetic accuracy figures (``python -m fastgha_core.tracking.evaluate``)
 - ``realsets.py`` yaw on the real photo sets (``python -m fastgha_core.tracking.realsets``)
-- ``photoalign.py`` optional photometric registration of the photos' poses to each other on the fitted face (``TrackConfig.photo_align``)
+- ``photoalign.py`` photometric registration of the photos' poses to each other on the fitted face; by default of the photos turned >= 55 degrees only (``TrackConfig.photo_align``)
 - ``multiview.py`` relative head poses from SIFT features lifted onto the fitted head (a measurement, not in the fit)
 - ``matting_eval.py`` masks against known alpha (synthetic heads on walls) and a leak score on the real sets
 """

@@ -38,10 +38,15 @@ The correction of photo ``v`` is a rotation ``exp([w_v]x)`` about the head's ori
 camera and a shift ``d_v`` (camera axes): ``R_v <- exp([w_v]x) R_v``, ``t_v <- t_v + d_v``. With
 ``identity_modes > 0`` the shared identity's first modes move too (one change for all photos).
 
-Not on by default (``TrackConfig.photo_align``): on the real sets the avatars built from the
-registered photos gain a little identity (and PSNR on two of three sets), but on synthetic renders
-with known cameras the poses turn away from the truth, and tracking takes 4-5x as long (figures
-in ``docs/tracking.md``; per-photo read-out: ``python -m fastgha_core.tracking.photoalign``).
+``PhotoAlignConfig.free_min_yaw_deg`` limits the corrections to the photos that the given poses
+turn at least that far; the others hold their poses (and still serve as references for the
+colours). Tracking uses it by default for the photos turned >= 55 degrees
+(``TrackConfig.photo_align``, ``pipeline.TURNED_MIN_YAW_DEG``), where the landmark fit saturates:
+on held-out synthetic photo sets with known poses it brings the +70-degree photos' rotation error
+from 7.7 to 5.0 degrees on average. Registering every photo turns the less turned ones away from
+the truth on synthetic renders and is an option (``TrackConfig.with_photo_align("all")``). Figures
+in ``docs/tracking.md`` ("Registering the turned photos"); per-photo read-out:
+``python -m fastgha_core.tracking.photoalign``.
 """
 
 from __future__ import annotations
@@ -85,6 +90,7 @@ class PhotoAlignConfig:
     seed: int = 0  # surface sampling
     identity_modes: int = 0  # also move the shared head shape along its first this many ICT identity modes (0: poses only)
     prior_identity: float = 0.5  # Gaussian prior's scale on each identity mode's change (the modes are unit-variance)
+    free_min_yaw_deg: float = 0.0  # only photos the landmark fit turns at least this much (|yaw|, degrees) get a correction; 0: all but the reference
 
 
 @dataclass
@@ -273,9 +279,11 @@ def _pair_ncc(fa: torch.Tensor, fb: torch.Tensor, sel: torch.Tensor) -> torch.Te
 class _Objective:
     """Photometric + landmark + prior objective over the free photos' 6 parameters (degrees, mm)."""
 
-    def __init__(self, views: list[_View], R0: torch.Tensor, t0: torch.Tensor, ref: int, cfg: PhotoAlignConfig):
+    def __init__(self, views: list[_View], R0: torch.Tensor, t0: torch.Tensor, ref: int, cfg: PhotoAlignConfig, free: list[bool] | None = None):
         self.views, self.R0, self.t0, self.ref, self.cfg = views, R0, t0, ref, cfg
         V = len(views)
+        self.keep = torch.tensor([[float(free is None or free[v])] for v in range(V)], dtype=torch.float64)  # [V, 1] 1 = corrected
+        self.keep[ref] = 0.0
         vis = torch.stack([v.visible for v in views])  # [V, N]
         self.pairs = []
         shared = torch.zeros(V, V, dtype=torch.long)
@@ -294,8 +302,7 @@ class _Objective:
         rot = c.max_rot_deg * torch.tanh(p[:, :3] / c.max_rot_deg)
         lat = c.max_shift_mm * torch.tanh(p[:, 3:5] / c.max_shift_mm)
         dep = c.max_depth_mm * torch.tanh(p[:, 5:6] / c.max_depth_mm)
-        keep = torch.ones(len(self.views), 1, dtype=p.dtype)
-        keep[self.ref] = 0.0
+        keep = self.keep.to(p.dtype)
         rot, shift = rot * keep, torch.cat([lat, dep], 1) * keep
         R = axis_angle_to_matrix(torch.deg2rad(rot)) @ self.R0
         return R, self.t0 + shift / 1000.0
@@ -303,8 +310,7 @@ class _Objective:
     def corrections(self, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``(rotation vector in degrees [V, 3], shift in mm [V, 3])`` of ``p`` after the bounds and the gauge."""
         c = self.cfg
-        keep = torch.ones(len(self.views), 1, dtype=p.dtype)
-        keep[self.ref] = 0.0
+        keep = self.keep.to(p.dtype)
         rot = c.max_rot_deg * torch.tanh(p[:, :3] / c.max_rot_deg) * keep
         shift = torch.cat([c.max_shift_mm * torch.tanh(p[:, 3:5] / c.max_shift_mm), c.max_depth_mm * torch.tanh(p[:, 5:6] / c.max_depth_mm)], 1) * keep
         return rot, shift
@@ -409,6 +415,14 @@ def register_photos(
 
     if V < 2:
         return unchanged()
+    free = None
+    if cfg.free_min_yaw_deg > 0:
+        from .fit import head_angles_deg
+
+        free = [abs(head_angles_deg(r)[0]) >= cfg.free_min_yaw_deg and v != ref for v, r in enumerate(rotations)]
+        if not any(free):
+            log.info("photo registration: no photo turned >= %.0f degrees; poses unchanged", cfg.free_min_yaw_deg)
+            return unchanged()
     samples = sample_face_surface(head, cfg.points, cfg.seed)
     mesh_f = head.visible_faces(eyelashes=False)
     views = []
@@ -439,7 +453,7 @@ def register_photos(
         lm_uv0 = _project(lm_X, torch.from_numpy(rotations[v]), torch.from_numpy(translations[v]), torch.from_numpy(K[v]))
         views.append(_View(bands, Kw, size, torch.from_numpy(X), vis, lm_X, lm_uv0, lm_uv, torch.from_numpy(K[v]), face_px, Xb, lmb))
     R0, t0 = torch.from_numpy(rotations), torch.from_numpy(translations)
-    obj = _Objective(views, R0, t0, ref, cfg)
+    obj = _Objective(views, R0, t0, ref, cfg, free)
     shared = obj.shared.numpy()
     linked, grown = {ref}, True
     while grown:  # photos connected to the reference through pairs that share enough points

@@ -16,9 +16,15 @@ from .matting import MattingConfig, head_silhouette, matte_from_head
 from .photoalign import PhotoAlignConfig, PhotoAlignResult, register_photos
 from .silhouette import SilhouetteTarget, person_mask
 
-__all__ = ["TrackConfig", "TrackedPhotos", "track_photos", "tracked_photos_from_fit", "track_request", "track_known_cameras", "known_camera_fit_config"]
+__all__ = ["PHOTO_ALIGN_MODES", "TURNED_MIN_YAW_DEG", "TrackConfig", "TrackedPhotos", "track_photos", "tracked_photos_from_fit", "track_request", "track_known_cameras", "known_camera_fit_config"]
 
 logger = logging.getLogger(__name__)
+
+
+PHOTO_ALIGN_MODES = ("off", "turned", "all")  # TrackConfig.with_photo_align
+# |yaw| (degrees) from which the landmark fit saturates on synthetic renders (FitConfig.yaw_prior_min_deg's
+# 55): the photos the default registration corrects; the others hold their landmark poses
+TURNED_MIN_YAW_DEG = 55.0
 
 
 @dataclass
@@ -30,10 +36,22 @@ class TrackConfig:
     extent_m: float = DEFAULT_EXTENT_M  # crop field at the head's depth (crop.py)
     max_rms: float = 0.06  # refuse a photo whose landmark RMS exceeds this fraction of its face size
     use_silhouette: bool = False  # also fit side views to the person mask's outline (silhouette.py; docs/tracking.md: no gain with Face Mesh landmarks)
-    photo_align: bool = False  # register the photos' poses to each other photometrically after the landmark fit (photoalign.py; docs/tracking.md: measured, not on by default)
+    # register the photos' poses to each other photometrically after the landmark fit (photoalign.py), by default only
+    # those the fit turns beyond where its landmarks saturate (align.free_min_yaw_deg; docs/tracking.md, "Registering the turned photos")
+    photo_align: bool = True
     fit: FitConfig = field(default_factory=FitConfig)
     matting: MattingConfig = field(default_factory=MattingConfig)
-    align: PhotoAlignConfig = field(default_factory=PhotoAlignConfig)
+    align: PhotoAlignConfig = field(default_factory=lambda: PhotoAlignConfig(free_min_yaw_deg=TURNED_MIN_YAW_DEG))
+
+    @classmethod
+    def with_photo_align(cls, mode: str = "turned", **kwargs) -> "TrackConfig":
+        """A config whose photometric registration is ``mode``: ``"off"``, ``"turned"`` (the default:
+        photos turned at least ``TURNED_MIN_YAW_DEG``) or ``"all"`` (every photo but the reference).
+        ``kwargs`` set the other fields. Raises ``ValueError`` for another mode."""
+        if mode not in PHOTO_ALIGN_MODES:
+            raise ValueError(f"photo registration must be one of {', '.join(PHOTO_ALIGN_MODES)}, got {mode!r}")
+        align = PhotoAlignConfig(free_min_yaw_deg=TURNED_MIN_YAW_DEG if mode == "turned" else 0.0)
+        return cls(photo_align=mode != "off", align=align, **kwargs)
 
 
 @dataclass
