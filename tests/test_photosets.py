@@ -68,6 +68,24 @@ def test_the_tracker_reads_the_yaw_the_names_carry(tmp_path):
     assert rows[3]["pitch"] > rows[0]["pitch"] + 10.0  # the pitched-up photo reads nose up
     assert [r["pitch_annotated"] for r in rows] == [0.0, 0.0, 0.0, 25.0]
     assert max(r["pitch_error"] for r in rows) <= 10.0
+    assert all(r["rotation_error"] is None for r in rows)  # not a syn<seed> folder of the default views: no truth
+
+
+def test_the_tracking_report_measures_synthetic_sets_against_their_true_poses(tmp_path):
+    """``tracking.realsets`` on a ``syn<seed>`` folder of the default views: each photo's rotation
+    error against ``photoset_truth``'s cameras (a wrong convention, e.g. a transposed rotation,
+    would put the turned photos at twice their yaw), and the summary lines per annotated yaw."""
+    pytest.importorskip("mediapipe", reason="needs the faces extra (MediaPipe Face Mesh)")
+    from fastgha_core.tracking.realsets import evaluate_realsets, rotation_summary
+
+    write_photoset(tmp_path / "syn1000700", 1_000_700, size=384)
+    rows = evaluate_realsets(tmp_path)
+    errs = {r["yaw_annotated"]: r["rotation_error"] for r in rows if r["pitch_annotated"] == 0.0}
+    assert set(errs) == {0.0, -65.0, 40.0, 70.0}
+    assert errs[0.0] <= 6.0 and errs[40.0] <= 8.0 and max(errs.values()) <= 15.0, rows
+    text = rotation_summary(rows)
+    assert text.splitlines()[0].startswith("5 photos with a known pose: rotation error median")
+    assert "annotated yaw 70: 1 photos" in text and rotation_summary([dict(r, rotation_error=None) for r in rows]) is None
 
 
 def test_leave_one_out_runs_end_to_end_on_a_synthetic_set(tmp_path, capsys):

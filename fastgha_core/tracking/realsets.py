@@ -12,7 +12,11 @@ Each set is tracked jointly (``track_photos``: one identity, one field of view);
 report gives the annotated and estimated yaw, the estimated pitch (beside the annotated one where the
 name carries ``pitch<signed degrees>``, as the synthetic photo sets' do) and roll, the landmark RMS,
 the largest expression weight and the set's tracking time in seconds (``set_seconds``; the
-detector is loaded before the first set).
+detector is loaded before the first set). On the synthetic photo sets that ``python -m
+fastgha_core.refine.realsets --synthetic N --root DIR`` writes (folders ``syn<seed>``, the default
+views), where the true poses are known (``data.photosets.photoset_truth``), each row also carries
+``rotation_error``: the geodesic angle in degrees between the tracked head rotation and the true one
+(yaw, pitch and roll together), and the report prints their median and mean per annotated yaw.
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .evaluate import rotation_error_deg
 from .fit import head_angles_deg  # (yaw, pitch, roll) of a fitted head: the fitter's convention
 
 __all__ = ["realsets_root", "annotated_yaw", "annotated_pitch", "head_angles_deg", "evaluate_realsets"]
@@ -87,6 +92,7 @@ def evaluate_realsets(root: Path | None = None, detector=None, config=None) -> l
         t0 = time.perf_counter()
         res = track_photos(imgs, config or TrackConfig(), names=[f"{d.name}/{p.name}" for p in paths], detector=detector)
         seconds = time.perf_counter() - t0
+        true_R = _true_rotations(d, paths)
         for v, p in enumerate(paths):
             yaw, pitch, roll = head_angles_deg(res.fit.rotations[v])
             ann = annotated_yaw(p.name)
@@ -103,8 +109,34 @@ def evaluate_realsets(root: Path | None = None, detector=None, config=None) -> l
                 "align_deg": None if res.alignment is None else round(float(res.alignment.rotation_deg[v]), 2),
                 "align_mm": None if res.alignment is None else [round(float(x), 1) for x in res.alignment.shift_mm[v]],
                 "rms_px_before_align": None if res.alignment is None else round(float(res.alignment.rms_before[v]), 2),
+                "rotation_error": None if true_R is None else round(rotation_error_deg(res.fit.rotations[v], true_R[v]), 2),
             })  # fmt: skip
     return rows
+
+
+def _true_rotations(folder: Path, paths: list[Path]) -> np.ndarray | None:
+    """``[V, 3, 3]`` true head -> camera rotations of a synthetic photo set (``syn<seed>`` holding
+    exactly ``write_photoset``'s default photos), else None."""
+    from ..data.photosets import PHOTOSET_VIEWS, photo_name, photoset_truth
+
+    m = re.fullmatch(r"syn(\d+)", folder.name)
+    if m is None or [p.name for p in paths] != [photo_name(i, y, q) for i, (y, q) in enumerate(PHOTOSET_VIEWS)]:
+        return None
+    return photoset_truth(int(m.group(1))).cameras.w2c[:, :3, :3].double().numpy()
+
+
+def rotation_summary(rows: list[dict]) -> str | None:
+    """The ``rotation_error`` of the rows that carry one: median and mean overall and per annotated
+    yaw, one line each (None when no row does)."""
+    known = [r for r in rows if r.get("rotation_error") is not None]
+    if not known:
+        return None
+    errs = np.array([r["rotation_error"] for r in known])
+    lines = [f"{len(known)} photos with a known pose: rotation error median {np.median(errs):.2f} deg, mean {errs.mean():.2f} deg"]
+    for yaw in sorted({r["yaw_annotated"] for r in known}, key=lambda y: (y is None, y)):
+        e = np.array([r["rotation_error"] for r in known if r["yaw_annotated"] == yaw])
+        lines.append(f"  annotated yaw {yaw:g}: {len(e)} photos, median {np.median(e):.2f}, mean {e.mean():.2f} deg")
+    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -131,6 +163,9 @@ def main(argv: list[str] | None = None) -> int:
     perrs = [r["pitch_error"] for r in rows if r["pitch_error"] is not None]
     if perrs:  # names with a pitch<degrees> tag (the synthetic photo sets)
         print(f"{len(perrs)} photos with an annotated pitch, pitch error median {np.median(perrs):.1f} deg, max {max(perrs):.1f} deg")
+    rot = rotation_summary(rows)
+    if rot:  # the synthetic photo sets: the truth is known
+        print(rot)
     if a.json:
         Path(a.json).write_text(json.dumps(rows, indent=1))
     return 0
