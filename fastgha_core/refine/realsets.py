@@ -611,7 +611,6 @@ def _from_annotation(r: dict) -> str:
     return f"{r['annot_start_yaw_aligned']:.1f} ({r['annot_start_masked_psnr_start']:.2f} -> {r['annot_start_masked_psnr']:.2f}; {better})"
 
 
-
 def _column_name(c) -> str:
     """A grid column's title from its key in ``evaluate_set``'s renders: steps, ``(mirror, steps)``, or
     either followed by ``"aligned"`` (``--align-left-out``)."""
@@ -644,7 +643,10 @@ def grid_labels(rows: list[dict], cols) -> list[list[str]]:
             cells[(key, "aligned")] = _score_label(r["aligned_masked_psnr"], r["aligned_identity_distance"])
     return [[cells["photo"]] + [cells.get(c) for c in cols] for cells in out.values()]
 
+
 def main(argv=None) -> int:
+    from ..tracking.pipeline import PHOTO_ALIGN_MODES, TURNED_MIN_YAW_DEG
+
     ap = argparse.ArgumentParser(prog="python -m fastgha_core.refine.realsets",
                                  description="leave-one-out evaluation on photo sets: the real ones, or held-out synthetic ones with --synthetic")
     ap.add_argument("--root", default=None, help="folder of sets (default $FASTGHA_REALSETS or ../shared/realsets)")
@@ -655,8 +657,9 @@ def main(argv=None) -> int:
     ap.add_argument("--refine-preset", default=None, help="refine with this REFINE_PRESETS entry (e.g. photos: colours only; auto: as the server picks it) "
                     "and its own camera setting, instead of the default settings with camera corrections")
     ap.add_argument("--no-surface", action="store_true", help="use the network's depth instead of the tracked head surface")
-    ap.add_argument("--photo-align", default="turned", choices=("off", "turned", "all"),
-                    help="the photometric registration of the photos' poses in tracking: off, the photos turned >= 55 degrees (the default) or all (TrackConfig.with_photo_align)")
+    ap.add_argument("--photo-align", default="turned", choices=PHOTO_ALIGN_MODES,
+                    help=f"the photometric registration of the photos' poses in tracking: off, the photos turned >= {TURNED_MIN_YAW_DEG:g} degrees "
+                    "(the default) or all (TrackConfig.with_photo_align)")
     ap.add_argument("--no-cnn-faces", action="store_true", help="skip dlib's CNN face detector column (slower than HOG)")
     ap.add_argument("--size", type=int, default=256, help="crop side of the tracked photos and of the renders")
     ap.add_argument("--mirror", default=None,

@@ -90,7 +90,7 @@ class PhotoAlignConfig:
     seed: int = 0  # surface sampling
     identity_modes: int = 0  # also move the shared head shape along its first this many ICT identity modes (0: poses only)
     prior_identity: float = 0.5  # Gaussian prior's scale on each identity mode's change (the modes are unit-variance)
-    free_min_yaw_deg: float = 0.0  # only photos the landmark fit turns at least this much (|yaw|, degrees) get a correction; 0: all but the reference
+    free_min_yaw_deg: float = 0.0  # only photos the given poses turn at least this much (|yaw|, degrees) get a correction; 0: all but the reference
 
 
 @dataclass

@@ -143,10 +143,12 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m fastgha_core.tracking.realsets", description=__doc__.split("\n")[0])
     p.add_argument("--root", default=None, help="folder of photo sets (default: ../shared/realsets or $FASTGHA_REALSETS)")
     p.add_argument("--json", default=None, help="also write the rows here")
-    p.add_argument("--photo-align", default="turned", choices=("off", "turned", "all"),
-                   help="the photometric registration of the photos' poses: off, the photos turned >= 55 degrees (the default) or all (TrackConfig.with_photo_align)")
+    from .pipeline import PHOTO_ALIGN_MODES, TURNED_MIN_YAW_DEG, TrackConfig
+
+    p.add_argument("--photo-align", default="turned", choices=PHOTO_ALIGN_MODES,
+                   help=f"the photometric registration of the photos' poses: off, the photos turned >= {TURNED_MIN_YAW_DEG:g} degrees (the default) "
+                   "or all (TrackConfig.with_photo_align)")
     a = p.parse_args(argv)
-    from .pipeline import TrackConfig
 
     rows = evaluate_realsets(Path(a.root) if a.root else None, config=TrackConfig.with_photo_align(a.photo_align))
     print("| set | photo | yaw annotated | yaw | error | pitch (annotated) | roll | RMS px | largest expression | registration (deg; mm) | RMS px before it |")

@@ -35,6 +35,15 @@ def _font(size: int):
         return ImageFont.load_default()
 
 
+def _fit_text(draw, text: str, font, width: int) -> tuple[str, tuple[int, int, int, int]]:
+    """``(text, its bounding box)``, the text shortened with "…" until it is at most ``width`` pixels wide."""
+    box = draw.textbbox((0, 0), text, font=font)
+    while box[2] - box[0] > width and len(text) > 2:
+        text = text[:-2] + "…"
+        box = draw.textbbox((0, 0), text, font=font)
+    return text, box
+
+
 def make_grid(rows: Sequence[Sequence[Tensor | None]], pad: int = 2, fill: float = 1.0) -> np.ndarray:
     """Rows of ``[3, H, W]`` images in [0, 1] (None = empty cell) -> ``[H', W', 3]`` uint8; every cell
     has the size of the largest image, smaller ones are centred."""
@@ -73,10 +82,7 @@ def add_column_titles(grid: np.ndarray, titles: Sequence[str], ncol: int, pad: i
     font = _font(max(8, height - 8))
     for j, title in enumerate(titles):
         x0 = pad + j * (cw + pad)
-        left, top, right, bottom = draw.textbbox((0, 0), title, font=font)
-        while right - left > cw and len(title) > 2:  # too wide for the cell: shorten
-            title = title[:-2] + "…"
-            left, top, right, bottom = draw.textbbox((0, 0), title, font=font)
+        title, (left, top, right, bottom) = _fit_text(draw, title, font, cw)
         draw.text((x0 + (cw - (right - left)) // 2 - left, (height - (bottom - top)) // 2 - top), title, fill=(0, 0, 0), font=font)
     return np.concatenate([np.asarray(band), grid], axis=0)
 
@@ -103,10 +109,7 @@ def add_cell_labels(grid: np.ndarray, rows: Sequence[Sequence[Tensor | None]], l
             if not text:
                 continue
             x0, y0 = pad + j * (cw + pad), pad + i * (ch + pad)
-            left, top, right, bottom = draw.textbbox((0, 0), text, font=font)
-            while right - left > cw - 2 and len(text) > 2:
-                text = text[:-2] + "…"
-                left, top, right, bottom = draw.textbbox((0, 0), text, font=font)
+            text, (left, top, right, bottom) = _fit_text(draw, text, font, cw - 2)
             draw.rectangle((x0, y0, x0 + cw - 1, y0 + height - 1), fill=(255, 255, 255))
             draw.text((x0 + 1 - left, y0 + (height - (bottom - top)) // 2 - top), text, fill=(0, 0, 0), font=font)
     return np.asarray(img)
