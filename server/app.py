@@ -35,7 +35,7 @@ from .context import ServerContext, StreamRegistry
 from .errors import ApiError, CloseCode, error_body
 from .frames import FrameRenderer
 from .identity import IdentityChecker
-from .jobs import CreationRequest, JobQueue, Photo, extra_stages_for, probe_request, safe_filename
+from .jobs import CreationRequest, JobQueue, Photo, created_fields, extra_stages_for, probe_request, safe_filename
 from .logs import install_token_redaction
 from .metrics import CONTENT_TYPE_LATEST
 from .protocol import ProtocolError, parse_cameras_json, parse_head_json
@@ -577,9 +577,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return avatar_options(ctx.model, facts)
 
     async def _stored_status(ctx: ServerContext, meta: dict) -> dict:
-        keys = ("avatar_id", "num_gaussians", "reconstruction_ms", "expression_space", "tracking_ms", "same_person")
         # the job's own clock is gone with the job: elapsed_ms is null, but the key is there as in every status
-        avatar = {**{k: meta[k] for k in keys if k in meta}, **await _options(ctx, meta)}
+        avatar = {**created_fields(meta), **await _options(ctx, meta)}  # the 201 body without the token
         return {"avatar_id": meta["avatar_id"], "status": "ready", "stage": "ready", "stage_progress": 1.0, "progress": 1.0,
                 "queue_position": None, "elapsed_ms": None, "avatar": avatar}  # fmt: skip
 

@@ -815,15 +815,27 @@ class JobQueue:
             raise JobCancelled()
         log.info("created avatar %s: %d Gaussians from %d images in %.0f ms (job %.0f ms)", job.id, n, len(names), recon_ms,
                  1e3 * (time.perf_counter() - t0))  # fmt: skip
-        out = {k: meta[k] for k in ("avatar_id", "num_gaussians", "reconstruction_ms", "expression_space")}
-        for k in ("tracking_ms", *state.timings_ms):
-            if k in meta:
-                out[k] = meta[k]
         from .avatar_info import avatar_options
 
-        out["same_person"] = same_person
+        out = created_fields(meta)
         out.update(avatar_options(model, meta))  # view_blend, expression_prior
         return out
+
+
+CREATED_KEYS = ("avatar_id", "num_gaussians", "reconstruction_ms", "expression_space")
+
+
+def created_fields(meta: dict) -> dict:
+    """The ``201`` body's fields that an avatar's stored metadata holds (docs/protocol.md): the
+    ``CREATED_KEYS``, every stage's time (``tracking_ms``, ``refining_ms``, ...: the metadata's other
+    ``*_ms`` keys) and ``same_person``. The creation job returns them (with ``avatar_options``), and
+    the ready status rebuilds them from the stored metadata once the job has left memory, so the two
+    never differ."""
+    out = {k: meta[k] for k in CREATED_KEYS if k in meta}
+    out.update({k: v for k, v in meta.items() if k.endswith("_ms") and k not in out})
+    if "same_person" in meta:
+        out["same_person"] = meta["same_person"]
+    return out
 
 
 def _check_head(n: int, settings) -> None:

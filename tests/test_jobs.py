@@ -441,10 +441,24 @@ def test_a_job_reported_ready_survives_kill_9(model_dir, samples, tmp_path):
         after = _status(srv, job)  # no job in memory any more: the status comes from the stored avatar
         assert after["status"] == "ready" and after["avatar"]["num_gaussians"] == st["avatar"]["num_gaussians"]
         assert set(after) == set(st) and after["elapsed_ms"] is None  # same fields; the job's clock died with it
+        assert after["avatar"] == st["avatar"]  # the 201 body without the token, from the stored metadata
         with connect(f"{srv.ws_base}/v1/avatars/{job['avatar_id']}/stream?token={job['token']}") as ws:
             assert json.loads(ws.recv(timeout=60))["type"] == "ready"
     finally:
         srv.stop()
+
+
+def test_created_fields_keep_every_stage_time_of_the_stored_metadata():
+    """The ready status rebuilt from an avatar's stored metadata (the job gone from memory) carries
+    what the 201 body carried: every stage's time, refining_ms included, and same_person; not the
+    token's hash or the storage-only keys."""
+    from server.jobs import created_fields
+
+    meta = {"avatar_id": "a", "token_sha256": "x", "model": "tiny", "expression_space": "ict53", "num_gaussians": 10,
+            "num_images": 4, "reconstruction_ms": 1.5, "created_at": 0.0, "tracking_ms": 2.5, "refining_ms": 3547.9,
+            "same_person": {"checked": False}, "view_blend_views": 4}  # fmt: skip
+    assert created_fields(meta) == {"avatar_id": "a", "num_gaussians": 10, "reconstruction_ms": 1.5, "expression_space": "ict53",
+                                    "tracking_ms": 2.5, "refining_ms": 3547.9, "same_person": {"checked": False}}  # fmt: skip
 
 
 # ---------------------------------------------------------------- memory (issue 18 item 1)
