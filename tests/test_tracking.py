@@ -231,7 +231,7 @@ def test_cli_rejects_non_image(tmp_path, capsys):
 
 
 @needs_faces
-def test_cli_writes_a_request_folder(tmp_path):
+def test_cli_writes_a_request_folder(tmp_path, capsys):
     import json
 
     from PIL import Image
@@ -243,6 +243,7 @@ def test_cli_writes_a_request_folder(tmp_path):
     Image.fromarray(_grace_hopper()).save(p)
     rc = main(["track", "--images", str(p), "--out", str(tmp_path / "req"), "--size", "96", "--json", str(tmp_path / "reports" / "r.json")])
     assert rc == 0
+    assert f"wrote the tracking report to {tmp_path / 'reports' / 'r.json'}" in capsys.readouterr().out  # the user is told where
     images, cams = load_request_folder(tmp_path / "req")
     assert len(images) == 1 and cams[0].width == 96
     assert Image.open(images[0]).size == (96, 96)

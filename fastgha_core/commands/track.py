@@ -188,4 +188,6 @@ def run(args) -> int:
         Path(args.json).write_text(json.dumps(report, indent=1))
     log.info("tracked %d photo(s)", len(names))
     print(f"wrote {out}: {len(names)} crop(s) {args.size}x{args.size} + masks, cameras.json, expressions.json, head.json")
+    if args.json:
+        print(f"wrote the tracking report to {args.json}")
     return 0

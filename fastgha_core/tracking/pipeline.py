@@ -163,6 +163,9 @@ def track_photos(
         if cfg.align.identity_modes > 0:
             fit.identity = alignment.identity
         fit.rms_px = np.where(np.isfinite(alignment.rms_after), alignment.rms_after, fit.rms_px)
+        for v, name in enumerate(names):  # the report's RMS is this one: say so for the photos the registration moved
+            if np.isfinite(alignment.rms_after[v]) and alignment.rms_after[v] != alignment.rms_before[v]:
+                logger.info("%s: registered to the other photos: landmark RMS %.2f px (was %.2f)", name, alignment.rms_after[v], alignment.rms_before[v])
 
     return tracked_photos_from_fit(photos, fit, lms, model, cfg, masks=masks, names=names, alignment=alignment)
 
