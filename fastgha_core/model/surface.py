@@ -1395,3 +1395,123 @@ def smooth_off_head_depth(sd: SurfaceDepth, foreground: Tensor, length: float, f
         avg = torch.nn.functional.conv2d(x * valid, kernel, padding=1) * inv
         x = torch.where(free, avg, x)
     return SurfaceDepth(x[:, 0].to(sd.t.device, sd.t.dtype), sd.hit, sd.beyond_face, sd.face_hit)
+
+
+EXTRUDE_STEP_M = 0.006  # off_head_extrusion: the copies' spacing along their ray (metres)
+EXTRUDE_NEAR_M = 0.05  # ... copies no farther than this from the view's fitted head (metres)
+EXTRUDE_RAY_SLACK_M = 0.2  # ... copies are tried up to depth_m + this far along the ray (metres; an oblique ray from in front of the ears needs more than depth_m)
+EXTRUDE_HAIR_TOL = 0.3  # ... source pixels within this RGB distance (0..1 channels) of the view's hair colour, and nearer it than the skin's
+
+
+def off_head_extrusion(sd: SurfaceDepth, surface: HeadSurface, cameras: Cameras, foreground: Tensor, images: Tensor, views: int,
+                       depth_m: float = 0.10, step_m: float = EXTRUDE_STEP_M, near_m: float = EXTRUDE_NEAR_M,
+                       hair_tol: float = EXTRUDE_HAIR_TOL, lateral_m: float = BESIDE_FACE_LATERAL_M,
+                       max_angle_deg: float = BESIDE_FACE_MAX_ANGLE_DEG, dilate_px: int = 2, mirror: bool = True) -> tuple[Tensor, Tensor]:
+    """Copies of the hair pixels beside the head further back along their rays: the depth of long hair
+    that a frontal photo sees only as a strip beside the face.
+
+    Why (issue 17, studio-4's leave-one-out render at +55 degrees): a frontal photo's long hair
+    hanging beside the cheeks lies on one surface (``off_head_behind_ears``: the ears' plane), so a
+    view from the side finds nothing behind the ear where the hair hangs down to the shoulder: 6.3 %
+    of that photo's matte was left uncovered (``docs/model-card.md`` "Long hair behind the ears").
+
+    Which pixels: the off-head pixels (``SurfaceDepth.off_head``) of the first ``views`` views (the
+    real photos) that look at the face within ``max_angle_deg`` of the head's front-back axis, whose
+    point lies more than ``lateral_m`` to the side of the midline and below the mean height of the
+    brows (head frame of the tracked head, ``docs/conventions.md``), and whose colour is the hair's:
+    within ``hair_tol`` (RGB distance, channels in [0, 1]) of the median colour of the view's head
+    pixels above the brows (2 cm up, off the bare face) and nearer it than the median colour of the
+    bare face's pixels (``SurfaceDepth.face_hit``): ears, neck and skin stay single (extruded, a
+    short-haired head's ears stood as fins behind it). A view without 10 pixels of either keeps its
+    pixels single.
+
+    Each such pixel gets copies at ``t + k step_m`` (k = 1, 2, ...) along its unit ray while the copy
+    lies no more than ``depth_m`` behind the ears' coronal plane (head frame ``z >= -depth_m``), within
+    ``near_m`` of the view's fitted head vertices, and projects onto the matte (dilated by
+    ``dilate_px``) of every other real view that sees it, not in front of the head surface that view
+    sees there (``_matte_votes`` with ``beyond`` and the views' head pixels as ``solid``); with
+    ``mirror``, its mirror image about the head's midline (``midline_reflection``) must pass the same
+    test in every real view (the side of the head that no remaining photo sees, as
+    ``hair_carve_fractions(mirror=True)``: a short-haired head's other side photo rules the copies
+    out). A pixel's copies stop at its first copy that fails.
+
+    Args:
+        sd: ``surface_ray_depth`` (after ``off_head_behind_ears``) of ``V`` views, ``W x H``
+            (mirrored virtual views after the real ones).
+        surface: the real views' tracked head (``HeadSurface``, at least ``views`` views).
+        cameras: ``Cameras [V]`` (world = ``surface``'s world).
+        foreground: ``[V, H, W]`` in [0, 1] (``gaussian_head.foreground_weight``).
+        images: ``[V, 3, H, W]`` the matted inputs, RGB in [0, 1].
+        views: how many leading views are real photos (mirrored virtual views after them neither
+            give copies nor judge).
+        depth_m, step_m, near_m: metres, > 0.
+    Returns:
+        ``(source, points)``: ``long [M]`` each copy's pixel as the flat index ``i * H * W + y * W + x``
+        and ``float32 [M, 3]`` its world position (metres).
+    Raises:
+        ValueError: on mismatched shapes, ``views`` outside ``[1, V]`` or a non-positive length.
+    """
+    from scipy.spatial import cKDTree
+
+    from ..data.headmodel import HeadModel
+
+    cams = cameras.flatten().to("cpu", torch.float32)
+    v, h, w = sd.t.shape
+    if len(cams.K) != v or (cams.width, cams.height) != (w, h):
+        raise ValueError(f"off_head_extrusion: {v} depth maps of {w}x{h} and {len(cams.K)} cameras of {cams.width}x{cams.height}")
+    if tuple(foreground.shape) != (v, h, w) or tuple(images.shape) != (v, 3, h, w):
+        raise ValueError(f"off_head_extrusion: foreground must be [{v}, {h}, {w}] and images [{v}, 3, {h}, {w}], got {list(foreground.shape)} and {list(images.shape)}")
+    if not 1 <= views <= v:
+        raise ValueError(f"off_head_extrusion: views must be in [1, {v}], got {views}")
+    if len(surface) < views:
+        raise ValueError(f"off_head_extrusion: the surface holds {len(surface)} views, fewer than the {views} real ones")
+    if not (depth_m > 0 and step_m > 0 and near_m > 0):
+        raise ValueError(f"off_head_extrusion: depth_m, step_m and near_m must be > 0, got {depth_m}, {step_m}, {near_m}")
+    head = HeadModel.load()
+    brows = surface.points([int(j) for j in head.landmarks68[17:27]], head)  # [V, 10, 3] world
+    h2w = np.eye(4) if surface.head_to_world is None else np.asarray(surface.head_to_world, dtype=np.float64)
+    h2w_t, w2h = torch.from_numpy(h2w).float(), torch.from_numpy(np.linalg.inv(h2w)).float()
+    origins, dirs = cams.pixel_rays()  # [V, H, W, 3] world, unit directions
+    fg = foreground.detach().float().cpu() > 0.5
+    off = sd.off_head(foreground)
+    mattes = _mattes(foreground[:views].detach().float().cpu(), dilate_px)
+    solid, solid_t = sd.hit[:views].cpu() & fg[:views], sd.t[:views].float().cpu()
+    refl = midline_reflection(surface.head_to_world) if mirror else None
+    k = torch.arange(1, int(np.floor((depth_m + EXTRUDE_RAY_SLACK_M) / step_m)) + 1, dtype=torch.float32) * step_m  # [K] candidate steps along the ray
+    sources, points = [], []
+    for i in range(views):
+        o = origins[i] @ w2h[:3, :3].T + w2h[:3, 3]  # head frame
+        d = dirs[i] @ w2h[:3, :3].T
+        t0 = sd.t[i].float().cpu()
+        p = o + t0[..., None] * d  # [H, W, 3]
+        brow = float((torch.from_numpy(brows[i]).float() @ w2h[:3, :3].T + w2h[:3, 3])[:, 1].mean())
+        im = images[i].detach().float().cpu()
+        face = (sd.face_hit[i].cpu() if sd.face_hit is not None else sd.hit[i].cpu()) & fg[i]
+        scalp = sd.hit[i].cpu() & fg[i] & ~face & (p[..., 1] > brow + 0.02)
+        if int(face.sum()) < 10 or int(scalp.sum()) < 10:
+            continue
+        skin, hair = im[:, face].median(dim=1).values, im[:, scalp].median(dim=1).values  # [3] each
+        d_skin, d_hair = (im - skin[:, None, None]).norm(dim=0), (im - hair[:, None, None]).norm(dim=0)
+        take = (off[i] & (p[..., 0].abs() > lateral_m) & (p[..., 1] < brow) & (-d[..., 2] >= np.cos(np.radians(max_angle_deg)))
+                & (d_hair < d_skin) & (d_hair < hair_tol))
+        idx = take.reshape(-1).nonzero()[:, 0]
+        if len(idx) == 0:
+            continue
+        tt = t0.reshape(-1)[idx][:, None] + k[None]  # [P, K]
+        ph = o.reshape(-1, 3)[idx][:, None] + tt[..., None] * d.reshape(-1, 3)[idx][:, None]  # [P, K, 3] head frame
+        pw = ph.reshape(-1, 3) @ h2w_t[:3, :3].T + h2w_t[:3, 3]
+        ok = ph[..., 2].reshape(-1) >= -depth_m
+        others = [r for r in range(views) if r != i]
+        if others:
+            ok &= _matte_votes(pw, cams[others], mattes[others], None, True, solid[others], solid_t[others])[0]
+        if refl is not None:
+            ok &= _matte_votes(_mirrored(pw, refl), cams[:views], mattes, None, True, solid, solid_t)[0]
+        dist, _ = cKDTree(surface.vertices(i, head)).query(pw.numpy(), distance_upper_bound=near_m)
+        ok &= torch.from_numpy(np.isfinite(dist))
+        ok = ok.reshape(len(idx), len(k)).int().cumprod(1).bool()  # each pixel's copies stop at the first that fails
+        pi, ki = ok.nonzero(as_tuple=True)
+        sources.append(i * h * w + idx[pi])
+        points.append(pw.reshape(len(idx), len(k), 3)[pi, ki])
+    if not sources:
+        return torch.zeros(0, dtype=torch.long), torch.zeros(0, 3)
+    return torch.cat(sources), torch.cat(points)
