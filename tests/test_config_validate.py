@@ -57,6 +57,8 @@ BAD = [
     ("gaussians", "off_head_smooth", -0.1, "in [0, 1]"),
     ("gaussians", "off_head_smooth_axis", "horizontal", "one of ['vertical', 'both']"),
     ("gaussians", "off_head_smooth_hold", 1.5, "in [0, 1]"),
+    ("gaussians", "off_head_extrude_m", -0.05, "in [0, 0.3]"),
+    ("gaussians", "off_head_extrude_m", 0.5, "in [0, 0.3]"),
     ("deform", "hidden_size", 0, ">= 1"),
     ("deform", "num_layers", 0, ">= 1"),
     ("deform", "pe_freqs", -1, ">= 0"),

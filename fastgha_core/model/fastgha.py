@@ -574,7 +574,10 @@ class FastGHA(nn.Module):
         off-head pixels' distances, the nearest head pixel's, are relaxed along image columns between
         the head's (``surface.smooth_off_head_depth``: their steps opened slits through long hair in other
         views), the pixels ``off_head_behind_ears`` placed and those beside the head's outline
-        (``off_head_smooth_hold``) held; with
+        (``off_head_smooth_hold``) held; with ``config.gaussians.off_head_extrude_m > 0`` (0.10 by
+        default) the hair-coloured ones beside the head also get copies further back along their rays,
+        inside the other inputs' mattes (``surface.off_head_extrusion``), appended after the
+        pixel-aligned Gaussians and drawn under the others; with
         ``config.gaussians.off_head_draw="under"`` (the default) the off-head pixels' Gaussians are
         recorded (``ViewBlend.under``) and drawn under the others in every frame
         (``viewblend.push_under``; other modes: ``surface.off_head_draw_flags``); with
@@ -756,6 +759,9 @@ class FastGHA(nn.Module):
             from .mirror import thin_mirrored
 
             g, dropped = thin_mirrored(g, v_real, images, cameras, sd.t, self.config.gaussians, surface.head_to_world)
+        n_ext = 0  # copies of long hair further back, appended after the pixel-aligned Gaussians (model/surface.py off_head_extrusion)
+        if surface is not None and surface_mode == "replace" and self.config.gaussians.off_head_extrude_m > 0:
+            g, view_index, n_ext = self._extrude_off_head(g, view_index, images, cameras, sd, surface, v_real)
         blend_data = None
         if v <= MAX_BLEND_VIEWS and (surface is not None or not self.config.gaussians.view_blend_surface_only):  # each view's depth, before pruning, for which views see each Gaussian (model/viewblend.py)
             from .gaussian_head import foreground_weight
@@ -764,7 +770,8 @@ class FastGHA(nn.Module):
             fg = foreground_weight(images.to(dev, torch.float32))
             if dropped is not None:  # a mirrored view covers only where it kept its Gaussians (else real ones would fade into a hole)
                 fg = fg * (~dropped).to(fg.dtype)
-            depth = view_depth_maps(g.means, c32, (g.opacities >= max(thr, 1e-6)) & (fg.reshape(-1) > 0.5))
+            n_px = len(g) - n_ext  # the pixel-aligned Gaussians
+            depth = view_depth_maps(g.means[:n_px], c32, (g.opacities[:n_px] >= max(thr, 1e-6)) & (fg.reshape(-1) > 0.5))
             blend_data = (c32, fg, depth)
         if thr > 0:
             keep = g.opacities >= thr
@@ -783,7 +790,8 @@ class FastGHA(nn.Module):
                     gain_deg=self.config.gaussians.head_on_gain_deg, colour_tol=tol,
                 )  # fmt: skip
             if off_sharp is not None:  # off-head Gaussians drawn near their own camera only (off_head_draw)
-                os_ = off_sharp.reshape(-1).to(dev)[keep] if thr > 0 else off_sharp.reshape(-1).to(dev)
+                os_ = torch.cat([off_sharp.reshape(-1).to(dev), torch.ones(n_ext, dtype=torch.bool, device=dev)])  # the copies are off-head too
+                os_ = os_[keep] if thr > 0 else os_
                 if self.config.gaussians.off_head_draw == "headon_sharp" and v_real > 1:  # ... only where a covering real view sees their point more head-on
                     from .viewblend import contradicted_by_head_on_view
 
@@ -814,6 +822,28 @@ class FastGHA(nn.Module):
         avatar = CanonicalAvatar(g, self.config.name, self.config.expression_space, prior, n_int, blend)
         self._deform_partial(avatar)
         return avatar
+
+    def _extrude_off_head(self, g: Gaussians, view_index: Tensor, images: Tensor, cameras: Cameras, sd, surface, v_real: int):
+        """``reconstruct``'s copies of long hair further back along the rays (``surface.off_head_extrusion``,
+        ``gaussians.off_head_extrude_m``): each copy takes its pixel's Gaussian's colour, opacity,
+        features and view, with isotropic scales of the larger of the Gaussian's largest scale and half
+        the copies' spacing, and is appended after ``g`` (``V * S * S`` pixel-aligned Gaussians,
+        view-major). Returns ``(gaussians, view_index, copies)``."""
+        from .gaussian_head import foreground_weight
+        from .surface import EXTRUDE_STEP_M, off_head_extrusion
+
+        dev = self.device
+        src, pts = off_head_extrusion(sd, surface, cameras, foreground_weight(images.float()), images, v_real, depth_m=self.config.gaussians.off_head_extrude_m)
+        if len(src) == 0:
+            return g, view_index, 0
+        src = src.to(dev)
+        r = torch.clamp(g.scales[src].max(-1).values, min=0.5 * EXTRUDE_STEP_M)
+        quats = torch.zeros(len(src), 4, dtype=g.quats.dtype, device=dev)
+        quats[:, 0] = 1.0
+        copies = Gaussians(pts.to(dev, g.means.dtype), quats, r[:, None].expand(-1, 3).contiguous(), g.opacities[src], g.colors[src],
+                           None if g.features is None else g.features[src])
+        log.info("reconstruct: %d copies of long hair further back (off_head_extrude_m)", len(src))
+        return Gaussians.concat([g, copies]), torch.cat([view_index, view_index[src]]), len(src)
 
     def _stereo_depth(self, images: Tensor, cameras: Cameras, sd):
         """``reconstruct``'s surface depth ``sd`` with its hit pixels moved along their rays, within
