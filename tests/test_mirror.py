@@ -195,11 +195,11 @@ def _with(model, **changes):
 
 def test_reconstruct_adds_mirrored_gaussians_only_for_turned_views(tiny):
     imgs, cams, head = _inputs(tiny, [0.0, 60.0, -10.0])
-    with _with(tiny, mirror_views=False):
+    with _with(tiny, off_head_extrude_m=0.0, mirror_views=False):
         off = tiny.reconstruct(imgs, cams, surface=head)
-    with _with(tiny, mirror_views=True, mirror_min_yaw_deg=30.0):
+    with _with(tiny, off_head_extrude_m=0.0, mirror_views=True, mirror_min_yaw_deg=30.0):
         on = tiny.reconstruct(imgs, cams, surface=head)
-    with _with(tiny, mirror_views=True, mirror_min_yaw_deg=80.0):
+    with _with(tiny, off_head_extrude_m=0.0, mirror_views=True, mirror_min_yaw_deg=80.0):
         none_turned = tiny.reconstruct(imgs, cams, surface=head)
     assert torch.equal(none_turned.gaussians.means, off.gaussians.means) and torch.equal(none_turned.gaussians.opacities, off.gaussians.opacities)
     vb_off, vb = off.view_blend, on.view_blend
@@ -284,9 +284,9 @@ def test_seen_by_views_needs_the_matte_no_occlusion_and_a_low_incidence():
 
 def test_mirrored_gaussians_a_real_view_sees_well_are_dropped(tiny):
     imgs, cams, head = _inputs(tiny, [0.0, 60.0, -10.0])
-    with _with(tiny, mirror_views=True, mirror_min_yaw_deg=30.0, mirror_drop_seen_deg=0.0):
+    with _with(tiny, off_head_extrude_m=0.0, mirror_views=True, mirror_min_yaw_deg=30.0, mirror_drop_seen_deg=0.0):
         keep = tiny.reconstruct(imgs, cams, surface=head)
-    with _with(tiny, mirror_views=True, mirror_min_yaw_deg=30.0, mirror_drop_seen_deg=60.0):
+    with _with(tiny, off_head_extrude_m=0.0, mirror_views=True, mirror_min_yaw_deg=30.0, mirror_drop_seen_deg=60.0):
         drop = tiny.reconstruct(imgs, cams, surface=head)
     k, d = (a.view_blend.source_view.long() == 3 for a in (keep, drop))
     assert 0 < int(d.sum()) < int(k.sum())

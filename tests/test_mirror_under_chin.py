@@ -60,15 +60,15 @@ def test_reconstruct_draws_only_the_mirrored_gaussians_below_the_chin_under(head
     gc = model.config.gaussians
     assert gc.mirror_views and gc.off_head_draw == "under"
     imgs = test_surface_hull.head_case_photos(fg, s)
-    saved = gc.coverage_target, gc.prune_opacity, gc.hair_fit, gc.mirror_under_below_chin
-    gc.coverage_target, gc.prune_opacity, gc.hair_fit = 0.0, 0.0, False  # one Gaussian per pixel
+    saved = gc.coverage_target, gc.prune_opacity, gc.hair_fit, gc.mirror_under_below_chin, gc.off_head_extrude_m
+    gc.coverage_target, gc.prune_opacity, gc.hair_fit, gc.off_head_extrude_m = 0.0, 0.0, False, 0.0  # one Gaussian per pixel
     try:
         gc.mirror_under_below_chin = False
         off = model.reconstruct(imgs, cams, surface=surface)
         gc.mirror_under_below_chin = True
         on = model.reconstruct(imgs, cams, surface=surface)
     finally:
-        gc.coverage_target, gc.prune_opacity, gc.hair_fit, gc.mirror_under_below_chin = saved
+        gc.coverage_target, gc.prune_opacity, gc.hair_fit, gc.mirror_under_below_chin, gc.off_head_extrude_m = saved
     vb0, vb1 = off.view_blend, on.view_blend
     n = len(vb0)
     assert n == 5 * s * s  # 3 real views and the mirrors of the two turned ones

@@ -111,9 +111,9 @@ def test_reconstruct_drops_or_sharpens_only_the_off_head_gaussians_in_front_of_a
     assert gc.off_head_draw == "under"  # the default (docs/model-card.md)
     default = gc.off_head_draw
     imgs = test_surface_hull.head_case_photos(fg, s)
-    saved = gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.head_on_colour_tol, gc.off_head_behind_ears, gc.off_head_smooth
+    saved = gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.head_on_colour_tol, gc.off_head_behind_ears, gc.off_head_smooth, gc.off_head_extrude_m
     # one Gaussian per pixel, at the nearest head pixel's distance (the fixture's sd)
-    gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.head_on_colour_tol, gc.off_head_behind_ears, gc.off_head_smooth = 0.0, False, 0.0, False, 0.0, False, 0.0
+    gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.head_on_colour_tol, gc.off_head_behind_ears, gc.off_head_smooth, gc.off_head_extrude_m = 0.0, False, 0.0, False, 0.0, False, 0.0, 0.0
     out = {}
     try:
         for mode in ("off", "drop", "cover_sharp", "behind", "headon_sharp"):
@@ -124,7 +124,7 @@ def test_reconstruct_drops_or_sharpens_only_the_off_head_gaussians_in_front_of_a
             model.reconstruct(imgs, cams, surface=surface)
     finally:
         gc.off_head_draw = default
-        gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.head_on_colour_tol, gc.off_head_behind_ears, gc.off_head_smooth = saved
+        gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.head_on_colour_tol, gc.off_head_behind_ears, gc.off_head_smooth, gc.off_head_extrude_m = saved
     n = 3 * s * s
     fw = foreground_weight(imgs)
     off = ~sd.hit & ~sd.beyond_face & (fw > 0.5)
@@ -205,8 +205,8 @@ def test_under_is_recorded_saved_and_applied_per_frame(head_case, tmp_path):
     s = model.config.input_size
     gc = model.config.gaussians
     imgs = test_surface_hull.head_case_photos(fg, s)
-    saved = gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit
-    gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit = 0.0, False, 0.0, False
+    saved = gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.off_head_extrude_m
+    gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.off_head_extrude_m = 0.0, False, 0.0, False, 0.0
     default = gc.off_head_draw
     try:
         gc.off_head_draw = "off"
@@ -215,7 +215,7 @@ def test_under_is_recorded_saved_and_applied_per_frame(head_case, tmp_path):
         on = model.reconstruct(imgs, cams, surface=surface)
     finally:
         gc.off_head_draw = default
-        gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit = saved
+        gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.off_head_extrude_m = saved
     n = 3 * s * s
     want = (~sd.hit & ~sd.beyond_face & (foreground_weight(imgs) > 0.5)).reshape(-1)
     assert off.view_blend.under is None and torch.equal(on.view_blend.under, want)

@@ -192,16 +192,17 @@ def test_reconstruct_moves_only_the_hit_pixels_along_their_rays_when_asked(monke
 
     monkeypatch.setattr(stereo, "stereo_ray_depth", fake)
     gc = model.config.gaussians
-    saved = (gc.mirror_views, gc.prune_opacity, model.config.deform.prior, gc.stereo_depth_mm)
+    saved = (gc.mirror_views, gc.prune_opacity, model.config.deform.prior, gc.stereo_depth_mm, gc.off_head_extrude_m)
     try:
         gc.mirror_views = False  # the photos' own Gaussians only
+        gc.off_head_extrude_m = 0.0  # ... one per pixel (no copies of long hair further back)
         gc.prune_opacity, model.config.deform.prior = 0.0, False  # keep every pixel's Gaussian, in order
         off = model.reconstruct(imgs, cams, surface=head).gaussians
         assert not seen  # off by default: not called
         gc.stereo_depth_mm = 8.0
         on = model.reconstruct(imgs, cams, surface=head).gaussians
     finally:
-        gc.mirror_views, gc.prune_opacity, model.config.deform.prior, gc.stereo_depth_mm = saved
+        gc.mirror_views, gc.prune_opacity, model.config.deform.prior, gc.stereo_depth_mm, gc.off_head_extrude_m = saved
     assert seen["range"] == pytest.approx(0.008)
     hit = seen["hit"].reshape(-1)
     o, d = cams.pixel_rays()

@@ -127,6 +127,7 @@ def test_reconstruct_moves_only_those_gaussians():
     gc = model.config.gaussians
     assert gc.off_head_behind_ears  # the default
     gc.mirror_views = False  # the photos' own Gaussians only (a fresh model: nothing to restore)
+    gc.off_head_extrude_m = 0.0  # ... one per pixel (no copies of long hair further back)
     gc.prune_opacity, model.config.deform.prior = 0.0, False  # keep every pixel's Gaussian, in order
     gc.off_head_smooth = 0.0  # the moved pixels alone (the relaxation of the others depends on which moved: test_surface_smooth.py)
     on = model.reconstruct(imgs, cams, surface=head).gaussians

@@ -127,6 +127,7 @@ def test_reconstruct_lengthens_grazing_gaussians_away_from_the_face_features():
     gc = model.config.gaussians
     assert gc.grazing_stretch > 0 and gc.grazing_edge_px == 0 and gc.grazing_keep_features_mm > 0  # the defaults
     gc.mirror_views = False  # the photos' own Gaussians only (a fresh model: nothing to restore)
+    gc.off_head_extrude_m = 0.0  # ... one per pixel (no copies of long hair further back)
     gc.prune_opacity, model.config.deform.prior = 0.0, False  # keep every pixel's Gaussian, in order
     gc.off_head_behind_ears, gc.off_head_smooth = False, 0.0  # the off-head pixels where surface_ray_depth puts them (the edges below are found on its depth)
 

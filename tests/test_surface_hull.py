@@ -271,8 +271,8 @@ def test_reconstruct_with_the_hull_moves_only_off_head_gaussians(head_case):
     gc = model.config.gaussians
     assert gc.off_head_hull == "off"  # off by default (docs/model-card.md)
     imgs = head_case_photos(fg, s)
-    saved = gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit
-    gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit = 0.0, False, 0.0, False  # one Gaussian per pixel, on the bald head
+    saved = gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.off_head_extrude_m
+    gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.off_head_extrude_m = 0.0, False, 0.0, False, 0.0  # one Gaussian per pixel, on the bald head
     try:
         off = model.reconstruct(imgs, cams, surface=surface)
         gc.off_head_hull = "entry"
@@ -282,7 +282,7 @@ def test_reconstruct_with_the_hull_moves_only_off_head_gaussians(head_case):
             model.reconstruct(imgs, cams, surface=surface)
     finally:
         gc.off_head_hull = "off"
-        gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit = saved
+        gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.off_head_extrude_m = saved
     n = on.num_reconstructed
     assert n == off.num_reconstructed == 3 * s * s
     diff = (on.gaussians.means[:n] - off.gaussians.means[:n]).norm(dim=-1).reshape(3, s, s)
