@@ -23,6 +23,16 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 
+def _value(text: str):
+    """A command-line value: JSON where it parses (``0.1``, ``true``, ``"name"``), else the bare text (``forehead``)."""
+    import json
+
+    try:
+        return json.loads(text)
+    except ValueError:
+        return text.strip()
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", default="tiny")
@@ -33,8 +43,6 @@ def main(argv=None) -> int:
     ap.add_argument("--warmup", type=int, default=5)
     args = ap.parse_args(argv)
     sys.path.insert(0, str(REPO))
-    import json
-
     import fastgha_core  # noqa: F401  (OpenMP defaults before torch)
     import torch
 
@@ -53,7 +61,7 @@ def main(argv=None) -> int:
     raw = args.values.split(",")
     if len(raw) != 2:
         ap.error(f"--values needs two comma-separated values, got {args.values!r}")
-    values = [json.loads(v) if v.strip()[:1] in "-0123456789tfn[{\"" else v.strip() for v in raw]
+    values = [_value(v) for v in raw]
     if not 0 <= args.warmup < args.rounds:
         ap.error("--warmup must be at least 0 and below --rounds")
     root = realsets_root()
