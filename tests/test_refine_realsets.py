@@ -7,11 +7,12 @@ import torch
 from fastgha_core.refine.realsets import beyond_mask, error_split, list_sets, summary_table
 
 
-def _row(left_out, psnr, render, photo, ident=0.5, steps=0, s="a", cnn=(None, None), split=(None, None, None), beyond=None):
+def _row(left_out, psnr, render, photo, ident=0.5, steps=0, s="a", cnn=(None, None), split=(None, None, None), beyond=None, outline=None):
     return {"set": s, "left_out": left_out, "steps": steps, "masked_psnr": psnr, "masked_ssim": 0.8,
             "identity_distance": ident, "faces_in_render": render, "faces_in_photo": photo, "refine_s": 0.0,
             "cnn_faces_in_render": cnn[0], "cnn_faces_in_photo": cnn[1],
-            "uncovered_frac": split[0], "psnr_uncovered_only": split[1], "psnr_covered_only": split[2], "beyond_mask_frac": beyond}
+            "uncovered_frac": split[0], "psnr_uncovered_only": split[1], "psnr_covered_only": split[2], "beyond_mask_frac": beyond,
+            "outline_error_share": outline}
 
 
 def test_summary_counts_faces_in_renders_and_in_the_left_out_photos():
@@ -22,7 +23,7 @@ def test_summary_counts_faces_in_renders_and_in_the_left_out_photos():
         _row("00", 20.0, 1, 1, s="b"),
     ]
     lines = summary_table(rows).strip().splitlines()
-    assert lines[0].count("|") == lines[1].count("|") == 15
+    assert lines[0].count("|") == lines[1].count("|") == 16
     a = [c.strip() for c in lines[2].strip("|").split("|")]
     assert a[0] == "a" and a[2] == "3"
     assert a[3] == "12.00"  # mean PSNR over the three left-out photos
@@ -35,17 +36,17 @@ def test_summary_counts_faces_in_renders_and_in_the_left_out_photos():
 def test_summary_without_a_face_detector_says_n_a():
     rows = [_row("00", 10.0, None, None, ident=None)]
     cells = [c.strip() for c in summary_table(rows).strip().splitlines()[2].strip("|").split("|")]
-    assert cells[5:] == ["n/a"] * 9
+    assert cells[5:] == ["n/a"] * 10
 
 
 def test_summary_gives_the_cnn_counts_and_the_error_split():
     rows = [
-        _row("00", 10.0, 0, 0, cnn=(1, 1), split=(0.10, 12.0, 20.0), beyond=0.25),  # a profile HOG misses, the CNN finds
-        _row("01", 14.0, 1, 1, cnn=(2, 1), split=(0.02, 24.0, 16.0), beyond=0.05),  # a doubled face by the CNN
+        _row("00", 10.0, 0, 0, cnn=(1, 1), split=(0.10, 12.0, 20.0), beyond=0.25, outline=0.5),  # a profile HOG misses, the CNN finds
+        _row("01", 14.0, 1, 1, cnn=(2, 1), split=(0.02, 24.0, 16.0), beyond=0.05, outline=0.2),  # a doubled face by the CNN
     ]
     cells = [c.strip() for c in summary_table(rows).strip().splitlines()[2].strip("|").split("|")]
     assert cells[6:10] == ["1/2", "1/2", "1/2", "2/2"]
-    assert cells[10:] == ["6.0%", "18.00", "18.00", "15.0%"]
+    assert cells[10:] == ["6.0%", "18.00", "18.00", "35.0%", "15.0%"]
 
 
 def test_error_split_adds_up_to_the_masked_error():
@@ -66,6 +67,25 @@ def test_error_split_adds_up_to_the_masked_error():
     assert float(-10 * torch.log10(torch.tensor(total))) == pytest.approx(float(-10 * torch.log10(se[m].sum() / n3)), abs=1e-4)
     with pytest.raises(ValueError, match="mask is empty"):
         error_split(pred, target, torch.zeros(20, 20), alpha)
+
+
+def test_error_split_gives_the_outlines_share_of_the_error():
+    mask = torch.zeros(1, 20, 20)
+    mask[:, 4:16, 4:16] = 1  # a 12 x 12 square: its outline is the outer ring of one pixel
+    target = torch.zeros(3, 20, 20)
+    alpha = torch.ones(1, 20, 20)
+    ring = torch.zeros(20, 20, dtype=torch.bool)
+    ring[4:16, 4:16] = True
+    ring[5:15, 5:15] = False
+    pred = target.clone()
+    pred[:, ring] = 0.5  # error only on the outline
+    assert error_split(pred, target, mask, alpha)["outline_error_share"] == pytest.approx(1.0)
+    pred = target.clone()
+    pred[:, 5:15, 5:15] = 0.5  # error only inside it
+    assert error_split(pred, target, mask, alpha)["outline_error_share"] == pytest.approx(0.0)
+    pred[:, ring] = 0.5  # equal error on every pixel: the ring's share of the pixels
+    assert error_split(pred, target, mask, alpha)["outline_error_share"] == pytest.approx(44 / 144)
+    assert error_split(target.clone(), target, mask, alpha)["outline_error_share"] is None  # no error at all
 
 
 def test_list_sets_keeps_folders_with_two_photos(tmp_path):
