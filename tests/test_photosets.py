@@ -95,19 +95,27 @@ def test_leave_one_out_runs_end_to_end_on_a_synthetic_set(tmp_path, capsys):
     from fastgha_core.refine.realsets import main
 
     out, grid = tmp_path / "rows.json", tmp_path / "grid.png"
-    assert main(["--synthetic", "1", "--root", str(tmp_path / "sets"), "--refine-steps", "0", "--no-cnn-faces", "--json", str(out), "--grid", str(grid)]) == 0
+    assert main(["--synthetic", "1", "--root", str(tmp_path / "sets"), "--refine-steps", "0", "--no-cnn-faces", "--own-cameras", "--json", str(out), "--grid", str(grid)]) == 0
     printed = capsys.readouterr().out
     assert "1 synthetic photo set(s) written to" in printed
     assert f"grid written to {grid} (rows: left-out photos; columns: left-out photo, 0 refine steps)" in printed
     # a band of column titles, then one row of two cells (photo, render) per photo at the tracker's 256²
     assert np.asarray(Image.open(grid)).shape == (22 + len(PHOTOSET_VIEWS) * 258 + 2, 2 * 258 + 2, 3)
     rows = json.loads(out.read_text())
+    own = [r for r in rows if r.get("check") == "own_camera"]
+    rows = [r for r in rows if r.get("check") != "own_camera"]
+    # the input-view check: the avatar of all photos at each photo's own camera, scored as the leave-one-out renders
+    assert sorted(r["photo"] for r in own) == sorted(photo_name(i, y, p) for i, (y, p) in enumerate(PHOTOSET_VIEWS))
+    for r in own:
+        assert r["uncovered_frac"] < 0.05 and 0.0 <= r["outline_error_share"] <= 1.0 and r["beyond_mask_frac"] >= 0.0, r
+    assert "syn1000700: avatar of all photos at their own cameras" in printed and "error on the mask's outline" in printed
     assert sorted(r["left_out"] for r in rows) == sorted(photo_name(i, y, p) for i, (y, p) in enumerate(PHOTOSET_VIEWS))
     for r in rows:
         assert r["set"] == "syn1000700" and r["steps"] == 0
         assert r["uncovered_frac"] < 0.1, r  # the avatar is drawn where the left-out photo's head is
     # the set's mean: synthetic sets measure 17-20 dB (docs/model-card.md), a white render 3-7 dB
     assert 15.0 < np.mean([r["masked_psnr"] for r in rows]) < 40.0
+    assert np.mean([r["masked_psnr"] for r in own]) > np.mean([r["masked_psnr"] for r in rows])  # its own photos are matched better than left-out ones
     from fastgha_core.train.faces import load_face_metrics
 
     if load_face_metrics() is not None:  # dlib's face descriptor: each scored render is the same person as its photo

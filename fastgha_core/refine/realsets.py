@@ -488,7 +488,8 @@ def mirror_variant(gcfg, mv: str | None):
 def own_camera_rows(model, set_name: str, tr, matted, masks, names, faces, variants, surface: bool = True) -> list[dict]:
     """The input-view check: the avatar of all of a set's photos (at most ``max_views``), rendered
     at each of those photos' own tracked camera with its tracked expression, per mirror variant;
-    one row per (variant, photo) with ``masked_psnr`` and ``identity_distance`` (as the leave-one-out rows)."""
+    one row per (variant, photo) with the leave-one-out rows' scores (``_score``: ``masked_psnr``,
+    ``identity_distance``, ``error_split``'s terms, ``beyond_mask_frac``, ...)."""
     from ..model.surface import HeadSurface
     from ..render import render
     from ..train.faces import to_uint8_hwc
@@ -497,21 +498,16 @@ def own_camera_rows(model, set_name: str, tr, matted, masks, names, faces, varia
     keep = list(range(len(names)))[: model.config.max_views]
     imgs, in_cams = model.prepare(matted[keep], cams[keep])
     head = HeadSurface.from_tracking(tr).subset(keep) if surface else None
+    padding = HeadSurface.from_tracking(tr).padding(matted.shape[-1], matted.shape[-2])
     rows = []
     for mv in variants:
         with mirror_variant(model.config.gaussians, mv):
             av = model.reconstruct(imgs, in_cams, expressions=expr[keep], surface=head)
         for k in keep:
-            pred = render(model.animate(av, expr[k], camera=cams[k : k + 1]), cams[k : k + 1], background=BACKGROUND_RGB).rgb.clamp(0, 1)
+            ro = render(model.animate(av, expr[k], camera=cams[k : k + 1]), cams[k : k + 1], background=BACKGROUND_RGB)
             m, target = (masks[k : k + 1] > 0.5).float(), matted[k : k + 1]
-            mse = ((pred - target) ** 2 * m).sum() / (3 * m.sum()).clamp_min(1)
-            row = {"set": set_name, "photo": names[k], "mirror": mv, "masked_psnr": float(-10 * torch.log10(mse.clamp_min(1e-10))), "identity_distance": None}
-            if faces is not None:
-                t_desc, _, box = _identity(faces, to_uint8_hwc(target[0]))
-                p_desc, _, _ = _identity(faces, to_uint8_hwc(pred[0]), box)
-                if t_desc is not None and p_desc is not None:
-                    row["identity_distance"] = float(np.linalg.norm(p_desc - t_desc))
-            rows.append(row)
+            t_desc, _, t_box = _identity(faces, to_uint8_hwc(target[0])) if faces is not None else (None, None, None)
+            rows.append({"set": set_name, "photo": names[k], "mirror": mv, **_score(ro.rgb.clamp(0, 1), ro.alpha, target, m, faces, t_desc, t_box, ~padding[k])})
     return rows
 
 
@@ -792,7 +788,9 @@ def _run(ap: argparse.ArgumentParser, args: argparse.Namespace, root: Path, only
             rs = [r for r in out["own_camera_rows"] if r["mirror"] == mv]
             idd = _mean([r["identity_distance"] for r in rs])
             print(f"{folder.name}: avatar of all photos at their own cameras, mirror {mv or 'as configured'}: masked PSNR {_mean([r['masked_psnr'] for r in rs]):.2f} dB "
-                  f"({' / '.join(format(r['masked_psnr'], '.2f') for r in rs)}), identity {_fmt(idd, '.3f')}", flush=True)
+                  f"({' / '.join(format(r['masked_psnr'], '.2f') for r in rs)}), identity {_fmt(idd, '.3f')}, "
+                  f"error on the mask's outline {' / '.join(_pct(r['outline_error_share']) for r in rs)}, "
+                  f"beyond the mask {' / '.join(_pct(r['beyond_mask_frac']) for r in rs)}", flush=True)
         own_rows += out.get("own_camera_rows", [])
     print(summary_table(all_rows))
     if args.align_left_out:
