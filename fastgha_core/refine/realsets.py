@@ -497,8 +497,10 @@ def own_camera_rows(model, set_name: str, tr, matted, masks, names, faces, varia
     cams, expr = tr.cameras, torch.from_numpy(tr.expressions).float()
     keep = list(range(len(names)))[: model.config.max_views]
     imgs, in_cams = model.prepare(matted[keep], cams[keep])
-    head = HeadSurface.from_tracking(tr).subset(keep) if surface else None
-    padding = HeadSurface.from_tracking(tr).padding(matted.shape[-1], matted.shape[-2])
+    tracked = HeadSurface.from_tracking(tr)
+    head = tracked.subset(keep) if surface else None
+    padding = tracked.padding(matted.shape[-1], matted.shape[-2])
+    photo_faces = {k: _identity(faces, to_uint8_hwc(matted[k])) if faces is not None else (None, None, None) for k in keep}  # each photo's descriptor, once for all variants
     rows = []
     for mv in variants:
         with mirror_variant(model.config.gaussians, mv):
@@ -506,7 +508,7 @@ def own_camera_rows(model, set_name: str, tr, matted, masks, names, faces, varia
         for k in keep:
             ro = render(model.animate(av, expr[k], camera=cams[k : k + 1]), cams[k : k + 1], background=BACKGROUND_RGB)
             m, target = (masks[k : k + 1] > 0.5).float(), matted[k : k + 1]
-            t_desc, _, t_box = _identity(faces, to_uint8_hwc(target[0])) if faces is not None else (None, None, None)
+            t_desc, _, t_box = photo_faces[k]
             rows.append({"set": set_name, "photo": names[k], "mirror": mv, **_score(ro.rgb.clamp(0, 1), ro.alpha, target, m, faces, t_desc, t_box, ~padding[k])})
     return rows
 
