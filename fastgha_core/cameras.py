@@ -436,10 +436,11 @@ def load_request_folder(folder: str | Path) -> tuple[list[Path], list[Cameras]]:
         raise ValueError(f"request folder {folder} does not exist")
     cam_file = folder / "cameras.json"
     if not cam_file.exists():
-        # track into ANOTHER folder: `track` refuses an --out that holds the photos (reconstruct would take both as views)
+        # track into ANOTHER folder: `track` refuses an --out that holds the photos (reconstruct would take both as views);
+        # under out/ of the working directory (as the README's commands), since the photos' own folder may be read-only
         found = sorted({p.suffix for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.stem.endswith("_mask")})
         photos = " ".join(f"{folder}/*{x}" for x in found) or "PHOTO..."
-        tracked = f"{str(folder).rstrip('/')}-tracked"
+        tracked = f"out/{folder.resolve().name or 'photos'}-tracked"
         raise ValueError(
             f"request folder {folder} has no cameras.json; for photos without cameras, run "
             f"`fastgha track --images {photos} --out {tracked}` first (it writes the crops, masks, cameras.json and "

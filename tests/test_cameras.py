@@ -195,7 +195,7 @@ def test_json_round_trip_and_errors(tmp_path):
     (tmp_path / "cameras.json").unlink()  # photos alone: the message says how to get cameras
     # the suggested command takes the folder's own photo globs and a NEW folder (track refuses to write
     # into a folder of other photos), which --input then names
-    tracked = re.escape(f"{tmp_path}-tracked")
+    tracked = re.escape(f"out/{tmp_path.name}-tracked")
     with pytest.raises(ValueError, match=rf"has no cameras\.json; .*`fastgha track --images {re.escape(str(tmp_path))}/\*\.png --out {tracked}`.* --input {tracked}$"):
         load_request_folder(tmp_path)
 

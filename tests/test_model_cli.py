@@ -131,13 +131,14 @@ def test_reconstruct_of_untracked_photos_suggests_a_track_command_that_works(tmp
         Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(photos / n, format="JPEG")
     assert main(["reconstruct", "--input", str(photos), "--model", str(model_dir), "--out", str(tmp_path / "a.safetensors")]) == 2
     err = capsys.readouterr().err
-    assert f"`fastgha track --images {photos}/*.JPG {photos}/*.jpg --out {photos}-tracked`" in err, err
-    assert f"then use --input {photos}-tracked" in err
+    assert f"`fastgha track --images {photos}/*.JPG {photos}/*.jpg --out out/me-tracked`" in err, err
+    assert "then use --input out/me-tracked" in err
     from fastgha_core.commands.track import _earlier_run_files
 
     from fastgha_core.cli import CLIError
 
-    assert not _earlier_run_files(Path(f"{photos}-tracked"), sorted(photos.iterdir()))  # no refusal of that --out
+    monkeypatch.chdir(tmp_path)  # out/ of the working directory, not beside the photos (their folder may be read-only)
+    assert not _earlier_run_files(Path("out/me-tracked"), sorted(photos.iterdir()))  # no refusal of that --out
     with pytest.raises(CLIError, match="already holds photos"):  # what the old advice (--out the photos' folder) ran into
         _earlier_run_files(photos, sorted(photos.iterdir()))
 
@@ -260,3 +261,28 @@ def test_animate_keeps_the_aspect_of_a_non_square_camera():
     assert float(K[0, 0] / K[1, 1]) == pytest.approx(float(K0[0, 0] / K0[1, 1]))  # aspect kept
     assert float(K[0, 0]) == pytest.approx(float(K0[0, 0]) * 0.5)  # uniform scale 32 / 64
     assert (float(K[0, 2]), float(K[1, 2])) == pytest.approx((16.0, 16.0))  # centred, padded above and below
+
+
+def test_first_run_says_the_rasterizer_kernels_compile(tmp_path, model_dir, capsys, monkeypatch):
+    """A cold numba cache (the first run after installing) makes animate say why it pauses; a filled
+    cache (after any render) keeps it silent, and so does a CUDA device."""
+    from fastgha_core.commands import note_first_compilation, rasterizer_cache_cold
+    from fastgha_core.render import cpu_kernels
+
+    req = _request(tmp_path / "req", masks=True)
+    out = tmp_path / "avatar.safetensors"
+    assert main(["reconstruct", "--input", str(req), "--model", str(model_dir), "--out", str(out)]) == 0
+    np.save(tmp_path / "seq.npy", np.zeros((1, 53), np.float32))
+    args = ["animate", "--avatar", str(out), "--model", str(model_dir), "--expressions", str(tmp_path / "seq.npy"),
+            "--size", "24", "--out", str(tmp_path / "frames")]
+    assert main(args) == 0  # renders: numba has compiled (or loaded) the kernels and keeps them on disk
+    capsys.readouterr()
+    assert not rasterizer_cache_cold()
+    assert main(args) == 0
+    assert "numba compiles" not in capsys.readouterr().err
+    monkeypatch.setattr(cpu_kernels.raster_forward_fast._cache._cache_file, "_index_path", str(tmp_path / "none.nbi"))
+    assert rasterizer_cache_cold()
+    assert main(args) == 0
+    assert "first run: numba compiles the CPU rasterizer's kernels once" in capsys.readouterr().err
+    note_first_compilation("cuda:0")
+    assert capsys.readouterr().err == ""

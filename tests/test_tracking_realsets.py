@@ -133,6 +133,14 @@ def test_exif_orientations_track_to_the_upright_pose(tmp_path):
         ang = np.degrees(np.arccos(np.clip((np.trace(R @ ref.T) - 1) / 2, -1, 1)))
         assert ang <= 1.0, (o, ang)
         assert len(rep["landmark_residuals_px"]) > 68 and rep["landmark_rms_px"] < 6.0
+    # `track --help` names WebP among the formats it reads: the same photo as lossless WebP, same pose
+    from PIL import Image
+
+    Image.fromarray(img).save(tmp_path / "astronaut.webp", lossless=True)
+    rc = main(["track", "--images", str(tmp_path / "astronaut.webp"), "--out", str(tmp_path / "reqw"), "--size", "64", "--json", str(tmp_path / "rw.json")])
+    assert rc == 0
+    R = np.array(json.loads((tmp_path / "rw.json").read_text())["photos"][0]["head_rotation"])
+    assert np.degrees(np.arccos(np.clip((np.trace(R @ ref.T) - 1) / 2, -1, 1))) <= 1.0
 
 
 @needs_mediapipe

@@ -9,6 +9,34 @@ def loading(model: str) -> None:
     print(f"loading model {str(model)!r} ...", file=sys.stderr, flush=True)
 
 
+def rasterizer_cache_cold() -> bool:
+    """True when numba's on-disk cache holds no compiled copy of the CPU rasterizer's main kernel
+    (``render/cpu_kernels.py``, ``cache=True``: compiled on first use, then loaded from the index file
+    numba keeps beside the module or in ``NUMBA_CACHE_DIR``). False when it is there, or when this numba
+    does not expose where (its cache object is numba's internal ``FunctionCache``)."""
+    import os
+
+    from ..render import cpu_kernels
+
+    try:
+        index = cpu_kernels.raster_forward_fast._cache._cache_file._index_path
+    except AttributeError:
+        return False
+    return not os.path.exists(index)
+
+
+def note_first_compilation(device: str) -> None:
+    """Say on stderr that this run compiles the CPU rasterizer's kernels (the first run after an
+    installation: 10-30 s more on 2 cores, once; later runs load them from numba's cache), so that the
+    pause is explained. Silent on CUDA devices (gsplat) and when the cache is filled."""
+    import sys
+
+    if str(device).startswith("cuda") or not rasterizer_cache_cold():
+        return
+    print("first run: numba compiles the CPU rasterizer's kernels once (10-30 s; later runs load them from its cache) ...",
+          file=sys.stderr, flush=True)
+
+
 def check_model_has_weights(spec: str) -> None:
     """Refuse a preset name without shipped weights (``paper``): it would build a randomly initialised
     network (minutes and gigabytes for ``paper``) only to reconstruct or render noise. Model folders

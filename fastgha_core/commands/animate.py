@@ -129,7 +129,7 @@ def run(args) -> int:
     from ..constants import BACKGROUND_RGB
     from ..model.avatar import CanonicalAvatar
     from ..model.fastgha import load_model
-    from . import check_model_has_weights, loading
+    from . import check_model_has_weights, loading, note_first_compilation
     from ..render import render
 
     if args.size <= 0 or args.fps <= 0:
@@ -155,6 +155,7 @@ def run(args) -> int:
     check_device(args.device)
     check_model_has_weights(args.model or avatar.model_name)
     loading(args.model or avatar.model_name)
+    note_first_compilation(args.device)
     model = load_model(args.model or avatar.model_name, device=args.device)
     if (model.config.name, model.config.expression_space) != (avatar.model_name, avatar.expression_space):
         raise ValueError(  # as the server's avatar_model_mismatch: the MLP reads the reconstructing model's features

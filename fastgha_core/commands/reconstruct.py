@@ -156,7 +156,7 @@ def run(args) -> int:
     from ..cameras import load_request_folder
     from ..cli import CLIError, check_device
     from ..model.fastgha import load_model
-    from . import check_model_has_weights, loading
+    from . import check_model_has_weights, loading, note_first_compilation
 
     if args.refine_steps < 0:
         raise CLIError(f"--refine-steps must be >= 0, got {args.refine_steps}")
@@ -203,6 +203,8 @@ def run(args) -> int:
         surface = _fit_surface(images, cams, masks)
         mode = args.surface_fit
     expressions = expr_ict53 if expr_ict53 is not None and model.config.expression_space == "ict53" else None
+    if surface is not None or args.refine_steps > 0:  # both render the inputs (the network's depth alone does not)
+        note_first_compilation(args.device)
     t0 = time.perf_counter()
     avatar = model.reconstruct(
         imgs, cameras, expressions=None if expressions is None else torch.from_numpy(expressions), surface=surface, surface_mode=mode

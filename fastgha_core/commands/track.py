@@ -4,7 +4,7 @@ QUIET_NATIVE_LOGS = True  # MediaPipe's C++ start-up lines are dropped from stde
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--images", nargs="+", required=True, help="photos of ONE person (PNG/JPEG); a mask <stem>_mask.png beside a photo is used")
+    parser.add_argument("--images", nargs="+", required=True, help="photos of ONE person (JPEG, PNG or any other format Pillow reads, e.g. WebP; the server takes JPEG and PNG); a mask <stem>_mask.png beside a photo is used")
     parser.add_argument("--out", required=True, help="request folder to write (created; the crops of an earlier track run into it are replaced; a folder holding other photos is refused)")
     parser.add_argument("--size", type=int, default=256, help="side of the square crops in pixels (default 256; the model's prepare() resizes)")
     parser.add_argument("--fov", type=float, default=30.0, help="assumed field of view across the longer photo side, degrees (default 30; "
