@@ -115,6 +115,7 @@ def test_exif_orientations_track_to_the_upright_pose(tmp_path):
     import skimage.data
 
     from fastgha_core.cli import main
+    from fastgha_core.tracking.evaluate import rotation_error_deg
 
     img = skimage.data.astronaut()
     paths = []
@@ -129,8 +130,7 @@ def test_exif_orientations_track_to_the_upright_pose(tmp_path):
         rc = main(["track", "--images", p, "--out", str(tmp_path / f"req{o}"), "--size", "64", "--json", str(tmp_path / f"r{o}.json")])
         assert rc == 0
         rep = json.loads((tmp_path / f"r{o}.json").read_text())["photos"][0]
-        R = np.array(rep["head_rotation"])
-        ang = np.degrees(np.arccos(np.clip((np.trace(R @ ref.T) - 1) / 2, -1, 1)))
+        ang = rotation_error_deg(np.array(rep["head_rotation"]), ref)
         assert ang <= 1.0, (o, ang)
         assert len(rep["landmark_residuals_px"]) > 68 and rep["landmark_rms_px"] < 6.0
     # `track --help` names WebP among the formats it reads: the same photo as lossless WebP, same pose
@@ -139,8 +139,7 @@ def test_exif_orientations_track_to_the_upright_pose(tmp_path):
     Image.fromarray(img).save(tmp_path / "astronaut.webp", lossless=True)
     rc = main(["track", "--images", str(tmp_path / "astronaut.webp"), "--out", str(tmp_path / "reqw"), "--size", "64", "--json", str(tmp_path / "rw.json")])
     assert rc == 0
-    R = np.array(json.loads((tmp_path / "rw.json").read_text())["photos"][0]["head_rotation"])
-    assert np.degrees(np.arccos(np.clip((np.trace(R @ ref.T) - 1) / 2, -1, 1))) <= 1.0
+    assert rotation_error_deg(np.array(json.loads((tmp_path / "rw.json").read_text())["photos"][0]["head_rotation"]), ref) <= 1.0
 
 
 @needs_mediapipe
