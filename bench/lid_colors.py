@@ -9,7 +9,7 @@ luma ratio truth lid / sampled skin: over all lid points, and per band of how fa
 a point (``BANDS``: the crease, <= 6 mm; 6-8 mm; the lower part over the eye), and the head
 model's own Lambert ratio (``prior._brightness`` at the closed lid over that at the sampled skin,
 ``SHADE_LIGHT``) for the same points. A closed-lid colour factor from these figures (with the lashes
-lifted 1.5 mm) was tried and not kept: docs/model-card.md, "The closed lid's shade and the lash band".
+lifted 1.5 mm) was tried and not kept: docs/model-card-log.md, "The closed lid's shade and the lash band".
 
     python bench/lid_colors.py --subjects 30
 """

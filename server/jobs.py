@@ -266,7 +266,7 @@ def extra_stages_for(ctx) -> list[ExtraStage]:
     The refinement compares each photo with the avatar animated to the photo's own expression: the
     tracked ones, or for photos with cameras the ones ``state.fit_expressions`` fits through the
     cameras (none without the ``faces`` extra). ``fn`` replaces ``state.avatar`` and reports its steps
-    as the stage's fraction in [0, 1]. The figures behind ``auto``: docs/model-card.md, "Colours-only
+    as the stage's fraction in [0, 1]. The figures behind ``auto``: docs/model-card-log.md, "Colours-only
     refinement on real photos" and "Photos with cameras: refined by the server too"."""
     setting = ctx.settings.refine_steps
     if setting == 0:

@@ -1,4 +1,4 @@
-"""``bench/mirror_frame.py`` (cost of the mirrored views, ``docs/model-card.md``): without the real
+"""``bench/mirror_frame.py`` (cost of the mirrored views, ``docs/model-card-log.md``): without the real
 photo sets it skips cleanly, but a ``--set`` that is not among the sets present (a typo such as
 ``phone5``) is an error naming the sets, not a silent "nothing to measure" with exit status 0."""
 

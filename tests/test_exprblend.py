@@ -206,7 +206,7 @@ def test_blend_views_applies_it_per_frame_and_old_files_draw_as_before(recon, tm
 def test_an_open_mouth_frame_keeps_the_lips_of_the_views_the_mouth_gate_does_not_hide(recon):
     """The open-mouthed view's lips fade as the mouth opens (``prior.hide_open_lips``): for a frame
     with its expression they must not count as the best view, or the other views' lips fade too and
-    the mouth shows a hole (the synthetic check in docs/model-card.md before this was handled)."""
+    the mouth shows a hole (the synthetic check in docs/model-card-log.md before this was handled)."""
     from fastgha_core.model.prior import LIP_RADIUS
 
     model, av, cams, expr = recon

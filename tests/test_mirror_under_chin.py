@@ -1,6 +1,6 @@
 """The mirrored views' Gaussians below the tracked chin drawn under the others
 (``GaussianHeadConfig.mirror_under_below_chin``, ``model/surface.py`` ``below_chin``;
-docs/model-card.md "Skin and off-colour smears over the shoulders")."""
+docs/model-card-log.md "Skin and off-colour smears over the shoulders")."""
 
 from __future__ import annotations
 

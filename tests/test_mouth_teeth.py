@@ -1,4 +1,4 @@
-"""The mouth interior's teeth on an open mouth (issue 16; docs/model-card.md "Teeth on real avatars").
+"""The mouth interior's teeth on an open mouth (issue 16; docs/model-card-log.md "Teeth on real avatars").
 
 On real-photo avatars the open mouth showed a dark hole with 3-5 grey-green dots where the lower
 teeth are and no row of teeth: every 2nd teeth vertex carried a 1.2 mm Gaussian, so most of a row

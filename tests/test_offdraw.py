@@ -108,7 +108,7 @@ def test_reconstruct_drops_or_sharpens_only_the_off_head_gaussians_in_front_of_a
     model = load_model("tiny")
     s = model.config.input_size
     gc = model.config.gaussians
-    assert gc.off_head_draw == "under"  # the default (docs/model-card.md)
+    assert gc.off_head_draw == "under"  # the default (docs/model-card-log.md)
     default = gc.off_head_draw
     imgs = test_surface_hull.head_case_photos(fg, s)
     saved = gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.head_on_colour_tol, gc.off_head_behind_ears, gc.off_head_smooth, gc.off_head_extrude_m

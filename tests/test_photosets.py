@@ -113,7 +113,7 @@ def test_leave_one_out_runs_end_to_end_on_a_synthetic_set(tmp_path, capsys):
     for r in rows:
         assert r["set"] == "syn1000700" and r["steps"] == 0
         assert r["uncovered_frac"] < 0.1, r  # the avatar is drawn where the left-out photo's head is
-    # the set's mean: synthetic sets measure 17-20 dB (docs/model-card.md), a white render 3-7 dB
+    # the set's mean: synthetic sets measure 17-20 dB (docs/model-card-log.md), a white render 3-7 dB
     assert 15.0 < np.mean([r["masked_psnr"] for r in rows]) < 40.0
     assert np.mean([r["masked_psnr"] for r in own]) > np.mean([r["masked_psnr"] for r in rows])  # its own photos are matched better than left-out ones
     from fastgha_core.train.faces import load_face_metrics

@@ -711,7 +711,7 @@ def test_the_whole_closed_lid_is_skin_coloured_not_the_open_lids_dark_line():
 def test_truth_closed_lid_darkens_towards_the_lash_line_on_training_subjects():
     """``bench/lid_colors.py``: the ground-truth renderer shows a closed lid darker than the skin the
     prior colours it from, most where it turns down towards the lash line (training subjects; the
-    figures of the model card's closed-lid shade section), and refuses held-out seeds."""
+    figures of the closed-lid shade section of docs/model-card-log.md), and refuses held-out seeds."""
     import importlib.util
 
     spec = importlib.util.spec_from_file_location("lid_colors", Path(__file__).resolve().parents[1] / "bench" / "lid_colors.py")

@@ -269,7 +269,7 @@ def test_reconstruct_with_the_hull_moves_only_off_head_gaussians(head_case):
     s = model.config.input_size
     assert (cams.width, s) == (128, 128)
     gc = model.config.gaussians
-    assert gc.off_head_hull == "off"  # off by default (docs/model-card.md)
+    assert gc.off_head_hull == "off"  # off by default (docs/model-card-log.md)
     imgs = head_case_photos(fg, s)
     saved = gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.off_head_extrude_m
     gc.coverage_target, gc.mirror_views, gc.prune_opacity, gc.hair_fit, gc.off_head_extrude_m = 0.0, False, 0.0, False, 0.0  # one Gaussian per pixel, on the bald head

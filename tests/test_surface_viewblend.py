@@ -265,7 +265,7 @@ def test_refinement_renders_each_input_as_the_frame_drawn_at_its_camera(tiny, mo
     corrections yet) is the frame ``animate(..., camera=)`` draws there, view blending and the
     off-head Gaussians pushed under included; the frame drawn without the camera (what refinement
     rendered before) differs. Without the blending, refinement fitted colours to a mix of views that
-    frames never show, and real-photo avatars came out speckled in novel views (docs/model-card.md,
+    frames never show, and real-photo avatars came out speckled in novel views (docs/model-card-log.md,
     test-time refinement)."""
     from test_refine import record_renders
 

@@ -49,7 +49,7 @@ log = logging.getLogger(__name__)
 HAIR_CARVE_DILATE_PX = 1  # reconstruct(): the hair layer is carved by the inputs' mattes dilated by this many pixels (model/surface.py hair_carve_fractions)
 HAIR_CARVE_MAX_UP = 0.5  # ... only vertices whose outward normal's up component is at most this (the top of the head, normals within 60 deg of up, keeps its fitted thickness: carved by all views, phone-5's pitch-down photo left out lost 12.28 -> 10.85 dB; mattes cut fine hair on top)
 SHELL_CARVE_DILATE_PX = -2  # reconstruct(): the back-of-head shell is carved into the inputs' mattes eroded by 2 pixels: its discs (5.5 mm) reach beyond their centres (model/surface.py carve_into_mattes; video-6 at its own cameras: dilated by 1 23.89 dB, eroded by 1 23.98, by 2 24.02, the bald shell 24.03)
-MIRROR_UNDER_CHIN_MARGIN_M = 0.0  # reconstruct(), gaussians.mirror_under_below_chin: the mirrored Gaussians at least this far below the tracked chin are drawn under the others (docs/model-card.md "Skin and off-colour smears over the shoulders")
+MIRROR_UNDER_CHIN_MARGIN_M = 0.0  # reconstruct(), gaussians.mirror_under_below_chin: the mirrored Gaussians at least this far below the tracked chin are drawn under the others (docs/model-card-log.md "Skin and off-colour smears over the shoulders")
 OFF_HEAD_HULL_COLLAR = False  # reconstruct() with gaussians.off_head_hull: also move the mesh's own pixels below its neck ring whose point is outside the other views' hull (model/surface.py off_head_on_hull)
 OFF_HEAD_HULL_DILATE_PX = 2  # ... the other views' mattes dilated by this many pixels
 OFF_HEAD_HULL_FREE_TOL_M = None  # ... and, when set (metres), the space in front of the head each other view sees is empty (up to this tolerance)
@@ -976,7 +976,7 @@ class FastGHA(nn.Module):
         Why: the MLP was trained on the network's depth, where its expression-independent part (2-4 mm
         median) corrects that depth; on the tracked surface the Gaussians already lie on their pixels'
         rays, and that part moved them off (about 1 cm at the nose), opening the gaps beside the nose
-        through which the back-of-head shell showed as a dark blot (docs/model-card.md). Cached on the
+        through which the back-of-head shell showed as a dark blot (docs/model-card-log.md). Cached on the
         avatar with the MLP's first-layer term (``_deform_partial``). View expressions of another shape
         than ``[V, E]`` (a malformed file, which loads: ``view.expr``) give None, with a warning."""
         vb = avatar.view_blend

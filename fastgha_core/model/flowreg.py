@@ -1,6 +1,6 @@
 """Non-rigid registration of the input views' textures to each other by dense optical flow (issue 17).
 
-Why (measured on the real photo sets, ``docs/model-card.md`` "Is the blur input resolution?"): on
+Why (measured on the real photo sets, ``docs/model-card-log.md`` "Is the blur input resolution?"): on
 the tracked-surface path every pixel of every input view puts a Gaussian on the one tracked head
 (``model/surface.py``), coloured from that pixel. Tracking leaves the photos a few millimetres off
 each other on that head (landmark residuals ~2 px of a 256² crop on frontal photos, 3-4 px on
@@ -31,7 +31,7 @@ unchanged. ``FastGHA.reconstruct`` calls this on the real views before the netwo
 (``GaussianHeadConfig.flow_register``), so the mirrored views are built from registered images.
 Frames are untouched (the avatar is just built from other colours).
 
-Measured on the real photo sets (``docs/model-card.md`` "Registering the views' textures by optical
+Measured on the real photo sets (``docs/model-card-log.md`` "Registering the views' textures by optical
 flow"): the flows on the face are ~1 pixel of a 256² crop (median; p90 ~4), and registering them
 leaves the leave-one-out identity where it was (mean 0.529) and lowers PSNR by up to 0.1 dB: the
 frontal renders gain a little, the turned ones lose. A single photo's own avatar at its own camera

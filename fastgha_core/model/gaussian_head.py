@@ -160,7 +160,7 @@ def row_parity(depth: Tensor, mask: Tensor | None = None, sigma: float = 2.0) ->
     linear ``s``), averaged by a normalised Gaussian blur of ``sigma`` pixels (both axes) over the
     pixels whose row and both vertical neighbours lie in ``mask`` (bool or [0, 1] ``[..., H, W]``;
     everything when None); the first and last rows count as outside. Units are those of ``depth``.
-    Why: the shipped decoder's depth maps alternate row by row (docs/model-card.md, "The
+    Why: the shipped decoder's depth maps alternate row by row (docs/model-card-log.md, "The
     row-alternating depth"). Raises ``ValueError`` for fewer than 2 dims, a mask of another shape or ``sigma <= 0``.
     """
     if depth.ndim < 2:
@@ -283,7 +283,7 @@ class GaussianHead:
         dist = cams.centers.norm(dim=-1)[..., None, None, None]  # [B, V, 1, 1, 1]
         if ray_depth is None or callable(ray_depth):
             t = dist + self.cfg.depth_range * torch.tanh(x[..., lay.depth])  # [B, V, H, W, 1]
-            if self.cfg.depth_parity_sigma > 0:  # the decoder's row alternation taken out (docs/model-card.md)
+            if self.cfg.depth_parity_sigma > 0:  # the decoder's row alternation taken out (docs/model-card-log.md)
                 fg = None if images is None or tuple(images.shape) != (b, v, 3, h, w) else foreground_weight(images.float())
                 t = remove_row_parity(t[..., 0], fg, self.cfg.depth_parity_sigma)[..., None]
             if ray_depth is not None:  # a function of the predicted depth (model/surface.py: blend)

@@ -40,7 +40,7 @@ Real photos keep precedence near their own cameras: the blending counts every mi
 exp(-48.5 / 20) ~ 0.09 instead of ~0.65 (without it, phone-5's -70-degree photo was reproduced at its
 own camera 1.2 dB worse than without mirroring; with it 0.1 dB), while a side no photo sees still
 gets its mirrored view in full. Two other ways were measured and are off by default
-(``docs/model-card.md``: each cost identity on some set): ``mirror_drop_seen_deg > 0`` drops the
+(``docs/model-card-log.md``: each cost identity on some set): ``mirror_drop_seen_deg > 0`` drops the
 mirrored Gaussians whose point a real view sees well (inside its matte, not occluded, at an incidence
 below that angle: ``seen_by_views``), and ``mirror_midline_m > 0`` those near the sagittal plane
 (``near_midline``; both in ``thin_mirrored``).

@@ -121,7 +121,7 @@ TEETH_SCALE = 0.0012  # metres, the teeth Gaussians' scale (gums and socket: 0.9
 # lights), not the bare albedo: its mean luma over that of the bare colours, ict53 vertices at
 # jawOpen = 1, 30 training subjects (``bench/interior_colors.py``). Unlit, the interior rendered
 # 1.5-1.9x too bright: a pale red opening whose edge against the lips dlib placed inside the opening,
-# reading the held-out jawOpen lip gap at 0.60-0.85 of the truth's (issue 16; docs/model-card.md).
+# reading the held-out jawOpen lip gap at 0.60-0.85 of the truth's (issue 16; docs/model-card-log.md).
 INTERIOR_SHADE = (0.65, 0.69, 0.53)
 # The lower teeth's colour where they meet the lips (their front; deeper teeth darken as before, ``1 - 0.7 *
 # depth``): TEETH_FRONT_LUMA, the mean luma of the brightest 30% of the teeth's pixels that the
@@ -130,7 +130,7 @@ INTERIOR_SHADE = (0.65, 0.69, 0.53)
 # the real sets' photos that show them (studio-4 and phone-5's smiles: 1.15 / 0.96 / 0.81 and
 # 1.13 / 0.96 / 0.86). Until 2026-12-01 the front teeth were INTERIOR_SHADE[0] * (0.86, 0.83, 0.75):
 # luma 0.54 and a near-neutral grey, which next to the red mouth and warm skin of real photos read as
-# a teal cast ("greenish teeth"; docs/model-card.md "Teeth on real avatars").
+# a teal cast ("greenish teeth"; docs/model-card-log.md "Teeth on real avatars").
 TEETH_FRONT_LUMA = 0.65
 TEETH_CHROMA = (1.14, 0.96, 0.83)
 # Every TEETH_STEP-th lower-row teeth vertex of ICT-FaceKit carries a Gaussian (1: all 2204, about 1 mm
@@ -144,7 +144,7 @@ TEETH_STEP = 1
 # thin upper lip, and dlib put the inner upper lip below it: with the upper row like the lower (every
 # vertex, luma 0.65; 2026-12-01) draw B's held-out jawOpen response at 512² fell 0.764 -> 0.660 (bar
 # 0.70). Sparser and darker: 0.738 (every 2nd vertex at 0.65: 0.709; every vertex at 0.35: 0.724). Not
-# the lower row: it alone at luma 0.54 read 0.663 (docs/model-card.md "Teeth on real avatars",
+# the lower row: it alone at luma 0.54 read 0.663 (docs/model-card-log.md "Teeth on real avatars",
 # 2026-12-01 night). Real avatars' upper teeth stay hidden under their upper lip either way.
 TEETH_UPPER_STEP = 2
 TEETH_UPPER_LUMA = 0.45
@@ -171,7 +171,7 @@ SHADE_RANGE = (0.5, 1.5)  # the per-Gaussian colour factor is clamped to this
 # colour factor of one blendshape at weight 1 is ratio ** (1 / SHADE_GAMMA). Applied to the sRGB
 # colours unconverted, the ratio relit 2.2x too strongly (in log): a jawOpen brightened the far jaw's
 # underside to the clamp and darkened the chin, and on training subjects the per-vertex error against
-# the synthetic renderer's own colour ratio was above that of no shading at all (docs/model-card.md).
+# the synthetic renderer's own colour ratio was above that of no shading at all (docs/model-card-log.md).
 SHADE_GAMMA = 2.2
 # The avatar's own light (``estimate_light``): from at least LIGHT_MIN_POINTS skin Gaussians, the
 # LIGHT_KEEP best-fitting share of them, a directional part of at least LIGHT_MIN_CONTRAST of the
@@ -1297,7 +1297,7 @@ def cheek_shell(fit: HeadFit, basis: HeadBasis, num_features: int, avatar: "Gaus
 # turned photos (the frontal one left out) draws the forehead, brows and nose from pixels those photos
 # saw at an angle: their pixel-sized Gaussians stand apart seen from in front, and the back shell, dark
 # with the hair's colour, showed through the gaps as a hatched patch on the forehead and down the nose
-# (docs/model-card.md, "A shell under the face"). Its discs take the colour of the skin around them,
+# (docs/model-card-log.md, "A shell under the face"). Its discs take the colour of the skin around them,
 # so a gap shows skin.
 FACE_SHELL_EYE = 0.006  # metres: no shell this near an eye landmark (36-47), so the eyes stay the photos'
 FACE_SHELL_BROW = 0.005  # metres above the brows' highest landmark (17-26): the forehead region's lower bound

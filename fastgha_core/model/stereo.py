@@ -41,7 +41,7 @@ the surface. Units: metres along each pixel's unit ray (``Cameras.pixel_rays``, 
 ``FastGHA.reconstruct`` applies it to the real views' hit pixels when
 ``GaussianHeadConfig.stereo_depth_mm > 0``. Off by default: on held-out synthetic subjects it
 brings the bare face's depth closer to the truth (mean error 3.70 -> 3.16 mm), but on the real photo
-sets it neither sharpens the eyes nor raises a leave-one-out mean (docs/model-card.md, "Photo-
+sets it neither sharpens the eyes nor raises a leave-one-out mean (docs/model-card-log.md, "Photo-
 consistency depth of the on-head pixels").
 """
 

@@ -24,25 +24,25 @@ Per pixel of each input view (``surface_ray_depth``):
 - by default (``GaussianHeadConfig.off_head_behind_ears``), off-head pixels beside the face between
   the chin and the brows, seen by a roughly frontal view, move back to the ears' plane by up to 15 cm
   (``off_head_behind_ears``): a frontal photo's hair beside the cheeks, placed at the cheek outline's
-  distance, otherwise stands in the air in front of the mouth of side views (``docs/model-card.md``,
+  distance, otherwise stands in the air in front of the mouth of side views (``docs/model-card-log.md``,
   "Hair beside the face");
 - optionally (``neck``, ``GaussianHeadConfig.neck_cylinder``, off by default), pixels below the
   chin whose ray enters the tracked neck continued as a cylinder (``neck_cylinder_depth``) lie there
   instead; tried against phone-5's shoulder smears, it lowered the real-photo means and left the
-  smear: that photo's neck lies on the mesh's own neck and collar, not off it (``docs/model-card.md``).
+  smear: that photo's neck lies on the mesh's own neck and collar, not off it (``docs/model-card-log.md``).
 - optionally (``GaussianHeadConfig.off_head_hull``, off by default), the off-head pixels inside their
   view's matte move onto the visual hull of the other views' mattes (``off_head_on_hull``,
   ``hull_ray_depth``): where the ray enters it, or only where the nearest-hit placement falls
   outside it. Measured on the real photo sets, no variant raised the leave-one-out means: from a
   few photos the hull is loose, and the nearest-hit placement already lies inside it for nine in ten
-  of those pixels (``docs/model-card.md``).
+  of those pixels (``docs/model-card-log.md``).
 
 The head model is bald. ``surface_ray_depth(..., hair_m=...)`` pushes its scalp (``hair_vertex_weight``)
 out along the mesh's normals by a hair thickness, which ``FastGHA.reconstruct`` chooses per avatar
 from the inputs' mattes (``fit_hair_thickness``: the thickness whose head best fills the mattes
 above the brows): without it, hair seen from above lies on the skull and the fringe's rays end on
 the forehead, so a frontal render shows hair on the forehead and the top of the head cut off
-(measured on the real photo sets, ``docs/model-card.md``).
+(measured on the real photo sets, ``docs/model-card-log.md``).
 
 Distances are along the pixel ray from the camera centre (``Cameras.pixel_rays``), in metres: the
 quantity ``GaussianHead`` calls ``t``. The head frame is the tracker's: metres, +x the subject's
@@ -51,7 +51,7 @@ world frame of the tracked cameras (``tracking/camera.py``: ``w2c = [R | t]`` of
 ``blend_network_depth`` (``FastGHA.reconstruct(..., surface_mode="blend")``) uses the surface on the
 bare face only (``SurfaceDepth.face_hit``) and the network's depth elsewhere, joined to the face by a
 fading offset: the head model has no hair volume, and on held-out synthetic subjects replacing the
-hair's depth too lost 1.5 dB (``docs/model-card.md``).
+hair's depth too lost 1.5 dB (``docs/model-card-log.md``).
 
 Just behind an occluding edge of the head as a view sees it (the far side of the nose ridge in a
 turned view) the view meets the surface at a grazing angle: each pixel's patch of skin is several
@@ -61,7 +61,7 @@ the head showed a dark hatched streak down the nose of frontal renders (real pho
 ``behind_occluding_edges``, ``stretch_to_patches``; ``GaussianHeadConfig.grazing_stretch``). Since
 2026-12-03 it does so wherever a view sees the head at a grazing angle except on the brows, eyes,
 nose and mouth (``away_from_face_features``): a frontal photo's cheek columns left the same gaps,
-seen from the side as stripes (``docs/model-card.md``, "The cheek stripes of side views").
+seen from the side as stripes (``docs/model-card-log.md``, "The cheek stripes of side views").
 
 Photos that come with their own cameras (held-out synthetic renders, a request's ``cameras.json``)
 have a world of their own: ``tracking.pipeline.track_known_cameras`` fits the head through those
@@ -329,7 +329,7 @@ def blend_network_depth(sd: SurfaceDepth, t_net: Tensor, falloff_px: float = 8.0
     side of 256, scaled with the image). So the face, where views must agree exactly (eyes, nose,
     mouth), lies on the one fitted head and joins the rest without a step, while hair, ears and
     shoulders keep the network's depth (the head model has no hair volume; moving them with the
-    face lowered held-out PSNR by 1.5 dB, docs/model-card.md). Views without a bare-face pixel keep
+    face lowered held-out PSNR by 1.5 dB, docs/model-card-log.md). Views without a bare-face pixel keep
     the network's depth. ``falloff_px <= 0``: no fading (the whole view shifted).
     """
     from scipy.ndimage import distance_transform_edt, gaussian_filter
@@ -499,7 +499,7 @@ def surface_ray_depth(surface: HeadSurface, cameras: Cameras, hair_m=0.0, neck: 
             (``neck_cylinder_depth``: the tracked neck ring continued along the head's up axis) below
             the chin take that distance instead of the nearest hit pixel's; ``"below_ring"``: so do
             the pixels hitting the mesh below the neck ring (ICT's collar, which flares out towards
-            the shoulders) (``GaussianHeadConfig.neck_cylinder``; docs/model-card.md).
+            the shoulders) (``GaussianHeadConfig.neck_cylinder``; docs/model-card-log.md).
     Returns:
         ``SurfaceDepth``: ``t [V, H, W]`` (hit pixels get their own ray's distance, the others the
         nearest hit pixel's), ``hit`` and ``beyond_face`` (module doc).
@@ -686,7 +686,7 @@ def away_from_face_features(t: Tensor, cameras: Cameras, surface: "HeadSurface",
     eye and mouth landmark of the tracked head (``FACE_FEATURE_LANDMARKS``, in each of the surface's
     expressions).
 
-    Why (issue 17, the real sets' side views, ``docs/model-card.md`` "The cheek stripes of side
+    Why (issue 17, the real sets' side views, ``docs/model-card-log.md`` "The cheek stripes of side
     views"): lengthening grazing pixels' Gaussians along the surface (``stretch_to_patches``) closes
     the gaps between a frontal photo's pixel columns on the cheek and the side of the head, which a
     side view showed as stripes; on the features themselves it blurred what identity rests on (the
@@ -719,7 +719,7 @@ def away_from_face_features(t: Tensor, cameras: Cameras, surface: "HeadSurface",
 def sample_photo_colours(points: Tensor, cameras: Cameras, photos: Tensor, view_index: Tensor) -> Tensor:
     """Each point's colour in its own source photo: bilinear at the point's projection.
 
-    Why (issue 17, measured on the real photo sets, ``docs/model-card.md``): the tiny model's
+    Why (issue 17, measured on the real photo sets, ``docs/model-card-log.md``): the tiny model's
     Gaussians take their colour from the 128-pixel input (``rgb_residual``: the input pixel's logit
     plus the network's residual). Sampling the photo at a higher resolution where each Gaussian
     projects is the oracle that asks how much of the leave-one-out blur is colour resolution.
@@ -763,7 +763,7 @@ def photo_pixel_shapes(g, images: Tensor, mode: str, scale: float = PHOTO_SHAPES
     """The input pixels' Gaussians ``g`` with their colour, opacity and (optionally) size taken from
     the photo instead of the decoder (``GaussianHeadConfig.photo_shapes``).
 
-    Why (issue 17, ``docs/model-card.md`` "Where a photo's own avatar loses identity"): on a tracked
+    Why (issue 17, ``docs/model-card-log.md`` "Where a photo's own avatar loses identity"): on a tracked
     head surface each pixel's Gaussian already lies on its own pixel, and the single-view
     decomposition found that the decoder's colour residual, its sub-1 opacities on the matte and its
     scales (up to 16 pixel footprints) soften a photo's own avatar at its own camera; all three
@@ -771,7 +771,7 @@ def photo_pixel_shapes(g, images: Tensor, mode: str, scale: float = PHOTO_SHAPES
     distance 0.376 -> 0.320, each alone little. Off by default: in real-photo leave-one-out (with the
     anchored residual) "colour_opacity_scale" lowers mean identity 0.512 -> 0.498 but costs phone-5 /
     studio-4 0.13 / 0.28 dB and shows the 128² grid of smaller splats as a stipple at novel cameras
-    (docs/model-card.md "The Gaussians' shapes on real photos, and expression-aware blending, after the anchor").
+    (docs/model-card-log.md "The Gaussians' shapes on real photos, and expression-aware blending, after the anchor").
 
     Args:
         g: ``Gaussians`` of ``V*H*W`` points, view-major (``FastGHA.forward_gaussians``' order).
@@ -1024,7 +1024,7 @@ def hull_ray_depth(cameras: Cameras, foreground: Tensor, take: Tensor, centre: T
 
     Why (issue 17, the real photo sets): pixels that miss the tracked head (long hair beside the
     face, neck, shoulders) took the nearest head pixel's distance, which the other photos' mattes
-    contradict; the visual hull of the photos is where such a point can be (``docs/model-card.md``
+    contradict; the visual hull of the photos is where such a point can be (``docs/model-card-log.md``
     "Off-head pixels on the photos' visual hull").
 
     Args:
@@ -1106,7 +1106,7 @@ def off_head_on_hull(sd: SurfaceDepth, surface: HeadSurface, cameras: Cameras, f
     (the collar's pixels then take, as with ``"nearest"``, the hull sample nearest the mesh's point). A pixel whose ray no other view judges, or that
     no sample of its ray puts in the hull, keeps its distance.
 
-    Measured on the real photo sets (``docs/model-card.md`` "Off-head pixels on the photos' visual
+    Measured on the real photo sets (``docs/model-card-log.md`` "Off-head pixels on the photos' visual
     hull"): no mode raised the leave-one-out means of all three sets; ``GaussianHeadConfig.off_head_hull``
     is off by default.
 
@@ -1168,7 +1168,7 @@ def off_head_draw_flags(sd: SurfaceDepth, cameras: Cameras, foreground: Tensor, 
     The off-head pixels are those of each view's matte (``foreground > 0.5``) whose ray misses the
     head (``~sd.hit``, not ``beyond_face``): ``surface_ray_depth`` lays them at the nearest head
     pixel's distance, and seen from another input camera some of them lie across that view's face
-    (``docs/model-card.md`` "Off-head pixels on the photos' visual hull"). ``mode``:
+    (``docs/model-card-log.md`` "Off-head pixels on the photos' visual hull"). ``mode``:
 
     - ``"off"``: unchanged (``sd``, None).
     - ``"behind"``: their distance along their own ray grows by ``behind_m`` metres: their own view
@@ -1223,7 +1223,7 @@ def below_chin(points: Tensor, surface: HeadSurface, margin_m: float = 0.0) -> T
     (``docs/conventions.md``), both moved into the world by ``surface.head_to_world`` when set.
     ``margin_m`` may be negative (then points up to that far above the chin count too).
 
-    Why (issue 17, the real photo sets' leave-one-out renders, ``docs/model-card.md`` "Mirrored
+    Why (issue 17, the real photo sets' leave-one-out renders, ``docs/model-card-log.md`` "Mirrored
     views below the chin"): a mirrored view (``model/mirror.py``) is the mirror image of a turned
     photo, a guess at the unseen side of a head that is left-right symmetric; below the chin the
     photo shows the neck, the collar and the shoulders, which are not: the torso is turned less than
@@ -1267,9 +1267,9 @@ def off_head_behind_ears(sd: SurfaceDepth, surface: HeadSurface, cameras: Camera
     Above the brows nothing moves: hair above the temples of phone-5's frontal and pitched photos,
     moved back, drew spikes above its head in other views. The hair beside the cheeks needs 6-15 cm
     (a 6 cm limit, shipped before the brow limit, left the blot below in place; measured,
-    ``docs/model-card.md``).
+    ``docs/model-card-log.md``).
 
-    Why (issue 17, studio-4's leave-one-out render at -70 degrees, ``docs/model-card.md`` "Hair beside
+    Why (issue 17, studio-4's leave-one-out render at -70 degrees, ``docs/model-card-log.md`` "Hair beside
     the face"): a frontal photo's long hair hanging beside the cheeks misses the bald head model, so
     ``surface_ray_depth`` gives it the distance of the nearest head pixel, the cheek's outline: 3-5 cm
     in front of where hair falls from the scalp. Seen from the side, those Gaussians stand in the air
@@ -1337,7 +1337,7 @@ def smooth_off_head_depth(sd: SurfaceDepth, foreground: Tensor, length: float, f
     neighbouring pixels jump by centimetres where their nearest hit points differ (on studio-4's
     frontal photo, 57 neighbour steps above 3 cm in its long hair). Seen from another camera, the two
     sides of such a step move apart and a slit of background opens through the hair (the white
-    streaks across the hair tips of studio-4's pitched-up leave-one-out render; ``docs/model-card.md``
+    streaks across the hair tips of studio-4's pitched-up leave-one-out render; ``docs/model-card-log.md``
     "Slits through long hair"). Here the off-head pixels inside their view's matte (``~sd.hit``,
     ``foreground > 0.5``, not ``fixed``) take, by Jacobi iterations from the nearest-hit values, the
     mean of their neighbours inside the matte or on the head: the hit (and ``fixed``) pixels hold their
@@ -1413,7 +1413,7 @@ def off_head_extrusion(sd: SurfaceDepth, surface: HeadSurface, cameras: Cameras,
     Why (issue 17, studio-4's leave-one-out render at +55 degrees): a frontal photo's long hair
     hanging beside the cheeks lies on one surface (``off_head_behind_ears``: the ears' plane), so a
     view from the side finds nothing behind the ear where the hair hangs down to the shoulder: 6.3 %
-    of that photo's matte was left uncovered (``docs/model-card.md`` "Long hair behind the ears").
+    of that photo's matte was left uncovered (``docs/model-card-log.md`` "Long hair behind the ears").
 
     Which pixels: the off-head pixels (``SurfaceDepth.off_head``) of the first ``views`` views (the
     real photos) that look at the face within ``max_angle_deg`` of the head's front-back axis, whose

@@ -136,15 +136,15 @@ class RefineConfig:
             from a side the mouth interior then shows through them as red dots.
     """
 
-    steps: int = 60  # the measured setting (docs/model-card.md, test-time refinement)
+    steps: int = 60  # the measured setting (docs/model-card-log.md, test-time refinement)
     resolution: int = 256
     coarse_resolution: int = 128
     # 0 (was 0.75): the 128² steps cannot fit what the 256² photos show beyond the 128² inputs, and a
-    # fine phase of 15 of 60 steps all fell in the step-size decay (docs/model-card.md, test-time refinement)
+    # fine phase of 15 of 60 steps all fell in the step-size decay (docs/model-card-log.md, test-time refinement)
     coarse_fraction: float = 0.0
     # 0 (was 1.5e-3): on held-out synthetic subjects the ray-depth corrections cost novel-view PSNR
     # (40 steps: 20.26 vs 21.49 dB on seeds 1000200-1000203, 20.55 vs 20.89 on 1000000-1000003,
-    # docs/model-card.md); colour and opacity corrections alone gain
+    # docs/model-card-log.md); colour and opacity corrections alone gain
     lr_depth: float = 0.0
     lr_opacity: float = 0.3  # was 0.08 (with views_per_step=2: 26.99 vs 24.92 dB on the sample's inputs)
     lr_color: float = 0.3
@@ -158,7 +158,7 @@ class RefineConfig:
     w_reg_opacity: float = 1e-4
     # 0.01 (was 1e-4, 2026-12-02): semi-transparent Gaussians that matter little at their own camera no
     # longer drift to orange blotches seen from elsewhere (1,334 -> 53 on the demo sample); held-out
-    # 21.70 / 21.88 -> 21.73 / 22.03 dB, the sample's inputs 29.33 -> 28.78 dB (docs/model-card.md)
+    # 21.70 / 21.88 -> 21.73 / 22.03 dB, the sample's inputs 29.33 -> 28.78 dB (docs/model-card-log.md)
     w_reg_color: float = 0.01
     w_reg_camera: float = 1e-2
     rot_sigma: float = 0.05
@@ -166,7 +166,7 @@ class RefineConfig:
     optimize_cameras: bool = False
     realign: bool = False
     # 0 (off): 6 mm gave 29.46 against 29.33 dB on the sample's inputs but lowered held-out PSNR
-    # (21.47 / 21.84 against 21.74 / 22.15 dB; docs/model-card.md, test-time refinement)
+    # (21.47 / 21.84 against 21.74 / 22.15 dB; docs/model-card-log.md, test-time refinement)
     realign_cap: float = 0.0
     noise_floor: float = 0.0  # was 1.0, and smooth_grid 32: both held the per-Gaussian colours to the 128² detail
     smooth_grid: int = 0
@@ -174,12 +174,12 @@ class RefineConfig:
     phase_schedule: bool = False
     views_per_step: int = 2  # was all: half the cost per step, more steps in the same time
     # 0: free 3D offsets lowered the sample's inputs (60 steps: 25.59 dB at 2e-4 m, 28.03 at 5e-5 with
-    # scale corrections against 29.16 without; docs/model-card.md, test-time refinement)
+    # scale corrections against 29.16 without; docs/model-card-log.md, test-time refinement)
     lr_xyz: float = 0.0
     xyz_sigma: float = 0.002
     w_reg_xyz: float = 1e-3
     # was 0 (no scale corrections): 60 steps on the sample's inputs 26.80 -> 29.33 dB, held-out
-    # (docs/model-card.md, test-time refinement); 0.03 / 0.1: 29.21 / 29.40 dB on the inputs
+    # (docs/model-card-log.md, test-time refinement); 0.03 / 0.1: 29.21 / 29.40 dB on the inputs
     lr_scale: float = 0.05
     w_reg_scale: float = 1e-3
     photo_in_mask: bool = False
@@ -187,7 +187,7 @@ class RefineConfig:
     # was a refit: the refit binding moved some neck Gaussians in view 1 of the sample, which showed as
     # coloured splats the refinement never saw (29.16 -> 29.21 dB kept)
     keep_binding: bool = True
-    # after opacity / scale corrections (docs/model-card.md, "Red dots on the cheek"): the demo's red dots
+    # after opacity / scale corrections (docs/model-card-log.md, "Red dots on the cheek"): the demo's red dots
     # gone; in every avatar it cost the smile response of avatars that are never refined
     cheek_shell: bool = True
 
@@ -220,14 +220,14 @@ REFINE_PRESETS: dict[str, RefineConfig] = {
     "thorough": RefineConfig(steps=100),
     # the defaults before 2026-11-30 (night): smooth 32x32 correction grids, 75% of the steps at 128²,
     # every view every step; lower on synthetic inputs and novel views, a little higher on real photos
-    # (docs/model-card.md, test-time refinement)
+    # (docs/model-card-log.md, test-time refinement)
     "smooth": RefineConfig(steps=60, coarse_fraction=0.75, smooth_grid=32, lr_color=0.08, lr_opacity=0.08, noise_floor=1.0, views_per_step=0, lr_scale=0.0, match_animation=False, keep_binding=False, w_reg_color=1e-4),
     # the defaults of 2026-11-30 (night) before the scale corrections: colour and opacity only, the
     # network's Gaussians without the prior's shading, the head refitted to the result
     "colour": RefineConfig(steps=60, lr_scale=0.0, match_animation=False, keep_binding=False, w_reg_color=1e-4),
     # real photos (tracked cameras): colours only, inside the photos' masks, held near the network's
     # colours (w_reg_color 0.1; 0.03 moved identity as much but cost 0.1-0.25 dB on two sets); opacity
-    # and scale corrections opened holes on real photos (docs/model-card.md, "Colours-only refinement
+    # and scale corrections opened holes on real photos (docs/model-card-log.md, "Colours-only refinement
     # on real photos")
     # on the leave-one-out sets 30 steps scored as 60 (the colours settle near the regulariser's pull);
     # noise_floor 1 (2026-12-02): Adam's first steps no longer move the colours whose gradient is
@@ -275,7 +275,7 @@ def refine_preset_for(avatar: CanonicalAvatar, preset: str = "auto") -> str:
     for ``"auto"`` the one measured best for the avatar's kind: ``"photos"`` (colours only, inside the
     masks) for avatars on a tracked head surface (``avatar.view_blend`` set: real photos, tracked
     cameras), ``"default"`` for avatars on the network's depth (known cameras, the synthetic
-    protocol). The figures behind the choice: docs/model-card.md, "Colours-only refinement on real
+    protocol). The figures behind the choice: docs/model-card-log.md, "Colours-only refinement on real
     photos" and "Scale corrections".
 
     Raises:

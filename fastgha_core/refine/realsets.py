@@ -117,7 +117,7 @@ def error_split(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, al
         ``outline_error_share``: the share of the masked squared error on the mask's outline, its
         pixels within ``OUTLINE_PX`` of a pixel outside it (Euclidean, pixel centres; ``None`` for a
         render without error). On the real sets this ring of ~3 % of the pixels holds 19-44 % of the
-        error per set, 9-57 % per photo (``docs/model-card.md``, "The outline's share of the error").
+        error per set, 9-57 % per photo (``docs/model-card-log.md``, "The outline's share of the error").
     Raises:
         ValueError: when the shapes do not match or the mask is empty.
     """

@@ -76,7 +76,7 @@ class EvalConfig:
     refine_cameras: bool = False  # let the refinement correct the (exact) input cameras
     # "tracked": every input pixel's Gaussian goes on the head fitted to the input photos through
     # their known cameras (tracking.pipeline.track_known_cameras; model/surface.py); "blend": that
-    # head on the face only; "none" (default: it measured best, docs/model-card.md): the network's
+    # head on the face only; "none" (default: it measured best, docs/model-card-log.md): the network's
     # per-pixel depth. The fitted modes fall back to "none" per subject when no input photo gives
     # landmarks (or the faces extra is missing) and the report counts it.
     surface: str = "none"

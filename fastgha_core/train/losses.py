@@ -15,7 +15,7 @@ Default weights are the paper's: λ_SSIM 1, λ_perc 0.5, λ_sil 1, λ_geo 0.5.
 Not in the paper, off by default, on each *input view's* depth map (the depth along each pixel's
 ray of its Gaussian, ``FastGHAOutput.view_depth``). Why: the shipped decoder learned depth maps
 that alternate row by row, which draws bands on forehead and hair in novel views
-(docs/model-card.md, "The row-alternating depth"):
+(docs/model-card-log.md, "The row-alternating depth"):
 
 - ``L_dparity`` (``w_depth_parity``): the mean (Huber) amplitude of the row- and column-alternating
   parts (``depth_parity_loss``); nothing else of the map is penalised;
