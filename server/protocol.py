@@ -64,7 +64,7 @@ MAX_SEQ = 2**32 - 1
 MAX_ABS_EXPRESSION = 100.0  # expression values are coefficients/weights of order 1; larger is a client bug
 F32_MAX = float(np.finfo(np.float32).max)  # every JSON number must fit float32 (3.4028235e38)
 _F32_MAX_DIGITS = len(str(int(F32_MAX)))  # 39: longer integer literals overflow without being converted
-# Bounds of a camera the renderer can use (docs/protocol.md, "Cameras"); the binary form carries uint16 sizes.
+# Bounds of a camera the renderer can use (docs/protocol.md, "Camera objects"); the binary form carries uint16 sizes.
 MAX_CAMERA_SIZE = 65535  # pixels, width and height
 MAX_CAMERA_TRANSLATION = 1000.0  # metres: |w2c translation| (a head is ~0.25 m; 1 km is far beyond any use)
 FOCAL_RANGE = (1e-2, 1e6)  # pixels, fx and fy

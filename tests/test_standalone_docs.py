@@ -58,3 +58,42 @@ def test_docs_links_resolve():
             if not (ROOT / "docs" / name).exists():
                 missing.append(f"{path.relative_to(ROOT)} -> docs/{name}")
     assert not missing, missing
+
+
+# `docs/<name>.md`, "Section name" (a heading or a paragraph's bold title of that file); line breaks
+# inside the name (comment markers included) read as spaces, a hyphen broken across lines as a hyphen.
+CITATION = re.compile(r'docs/([\w.-]+\.md)`?\)?,?\s*(?:section\s*)?"([A-Za-z][^"(){}\[\]=]{2,150})"')
+
+
+def _flatten(text: str) -> str:
+    text = re.sub(r"-\n\s*(?:#|//|\*)?\s*", "-", text)
+    return re.sub(r"\s+", " ", re.sub(r"\n\s*(?:#|//|\*)?\s*", " ", text))
+
+
+def test_citation_pattern_reads_what_it_should():
+    found = CITATION.findall(_flatten('see docs/model-card-log.md, "Hair beside\n    # the face") and `docs/tracking.md` "Pitched heads"'))
+    assert found == [("model-card-log.md", "Hair beside the face"), ("tracking.md", "Pitched heads")]
+    assert CITATION.findall(_flatten('docs/model-card-log.md, "Photo-\n# consistency depth"')) == [("model-card-log.md", "Photo-consistency depth")]
+    assert not CITATION.findall('help="docs/model-card.md)", parser.add_argument("--x"')
+
+
+def test_cited_sections_exist():
+    """A section cited by name (`docs/X.md`, "Name") is found in that file: renaming or moving a
+    section must move its citations with it (the model card's measurements moved to
+    docs/model-card-log.md on 2026-12-06 under their old names)."""
+    docs = {}
+    stale = []
+    for path in _files():
+        try:
+            text = _flatten(path.read_text(encoding="utf-8"))
+        except UnicodeDecodeError:
+            continue
+        for name, section in CITATION.findall(text):
+            doc = ROOT / "docs" / name
+            if not doc.exists():
+                continue  # test_docs_links_resolve reports missing files
+            if name not in docs:
+                docs[name] = _flatten(doc.read_text(encoding="utf-8"))
+            if section.strip() not in docs[name]:
+                stale.append(f'{path.relative_to(ROOT)} -> docs/{name} "{section}"')
+    assert not stale, "cited sections not found in the cited file:\n" + "\n".join(stale)
