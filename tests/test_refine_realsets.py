@@ -88,6 +88,26 @@ def test_error_split_gives_the_outlines_share_of_the_error():
     assert error_split(target.clone(), target, mask, alpha)["outline_error_share"] is None  # no error at all
 
 
+def test_error_split_gives_the_gain_matched_psnr_and_the_bottom_rows_share():
+    g = torch.Generator().manual_seed(1)
+    target = 0.2 + 0.6 * torch.rand(3, 20, 20, generator=g)
+    mask = torch.ones(1, 20, 20)
+    alpha = torch.ones(1, 20, 20)
+    darker = target * torch.tensor([0.8, 0.9, 1.1]).view(3, 1, 1)  # the photo under another exposure and white balance
+    out = error_split(darker, target, mask, alpha)
+    assert out["psnr_gain_matched"] > 80  # one gain per channel undoes it: no error left (float rounding only)
+    noisy = darker + 0.05 * torch.randn(3, 20, 20, generator=g)
+    out = error_split(noisy, target, mask, alpha)
+    se = ((noisy - target) ** 2).sum(0)
+    assert out["psnr_gain_matched"] > float(-10 * torch.log10(se.sum() / (3 * 400))) + 3
+    pred = target.clone()
+    pred[:, 14:] += 0.1  # error only in the bottom 30 % of the rows (rows 14-19 of 20)
+    assert error_split(pred, target, mask, alpha)["bottom_error_share"] == pytest.approx(1.0)
+    pred = target.clone()
+    pred[:, :14] += 0.1
+    assert error_split(pred, target, mask, alpha)["bottom_error_share"] == pytest.approx(0.0)
+
+
 def test_list_sets_keeps_folders_with_two_photos(tmp_path):
     (tmp_path / "one").mkdir()
     (tmp_path / "one" / "a.jpg").write_bytes(b"x")

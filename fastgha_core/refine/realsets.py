@@ -98,6 +98,7 @@ def _load_photos(folder: Path) -> tuple[list[np.ndarray], list[str]]:
 
 
 OUTLINE_PX = 1.5  # error_split: the mask's pixels within this distance (pixels, centre to centre) of a pixel outside it form its outline
+BOTTOM_ROWS = 0.3  # error_split: the bottom share of the image's rows whose error bottom_error_share gives (shoulders and torso)
 
 
 def error_split(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, alpha: torch.Tensor, thresh: float = 0.5) -> dict:
@@ -118,6 +119,10 @@ def error_split(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, al
         pixels within ``OUTLINE_PX`` of a pixel outside it (Euclidean, pixel centres; ``None`` for a
         render without error). On the real sets this ring of ~3 % of the pixels holds 19-44 % of the
         error per set, 9-57 % per photo (``docs/model-card-log.md``, "The outline's share of the error").
+        ``psnr_gain_matched``: the masked PSNR with the covered pixels' colours multiplied by one gain
+        per channel, fitted to the photo by least squares over those pixels (what exposure and white
+        balance could explain); ``bottom_error_share``: the share of the masked squared error in the
+        image's bottom ``BOTTOM_ROWS`` of rows (``None`` for a render without error).
     Raises:
         ValueError: when the shapes do not match or the mask is empty.
     """
@@ -139,6 +144,15 @@ def error_split(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, al
     ring = m & torch.from_numpy(ndimage.distance_transform_edt(m.cpu().numpy()) <= OUTLINE_PX).to(m.device)
     total = float(se[m].sum())
     out["outline_error_share"] = float(se[ring].sum()) / total if total > 0 else None
+    cov = m & ~unc
+    p, q = pred[:, cov], target[:, cov]  # [3, n_covered]
+    gain = (p * q).sum(1) / (p * p).sum(1).clamp_min(1e-12)  # [3]
+    matched = pred.clone()
+    matched[:, cov] = p * gain[:, None]
+    sse = float(((matched - target) ** 2).sum(0)[m].sum())
+    out["psnr_gain_matched"] = float(-10 * np.log10(sse / (3 * n))) if sse > 0 else None
+    y0 = int(round((1 - BOTTOM_ROWS) * se.shape[0]))
+    out["bottom_error_share"] = float(se[y0:][m[y0:]].sum()) / total if total > 0 else None
     return out
 
 
