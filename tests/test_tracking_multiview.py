@@ -1,5 +1,5 @@
 """Relative head poses from SIFT features lifted onto the head (tracking/multiview.py), on synthetic
-renders with known cameras: the measurement behind docs/tracking.md's "multi-view features" figures."""
+renders with known cameras: the measurement behind docs/tracking-log.md's "Multi-view features" figures."""
 
 from __future__ import annotations
 

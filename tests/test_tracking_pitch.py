@@ -5,7 +5,7 @@
   at is clipped to ``[pitch_map_min_deg, pitch_map_max_deg]`` (0 without ``pitch_map``).
 - Through the detector: a synthetic neutral head pitched up by 30 degrees (camera below the face,
   held-out subjects) comes out with small codes and close to its pitch; with the pitch-0 map it gets
-  mouthStretch and reads 5-11 degrees short (docs/tracking.md, "Pitched heads").
+  mouthStretch and reads 5-11 degrees short (docs/tracking-log.md, "Pitched heads").
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ def test_shipped_pose_table_layout():
     assert (tab["vertex"][q0, YAW_BINS.index(0.0)] >= 0).all()
     assert tab["vertex"].max() < 11248
     # the pitched rows differ from the frontal row where the points slide: the face outline (jaw line,
-    # MP68 0-16) moves ~1.5 cm along the surface at +30 degrees, the eye corners ~1.5 mm (docs/tracking.md)
+    # MP68 0-16) moves ~1.5 cm along the surface at +30 degrees, the eye corners ~1.5 mm (docs/tracking-log.md)
     from fastgha_core.data.headmodel import HeadModel
 
     X = HeadModel.load().neutral.astype(np.float64)

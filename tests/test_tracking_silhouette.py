@@ -49,7 +49,7 @@ def test_outline_pulls_a_biased_side_view_towards_the_true_yaw():
     """Landmarks of a side view squeezed like a detector that under-turns (those of a 45-degree
     head, while the head is at 70) plus the true outline: the fit moves towards 70 degrees, and the
     outline ends within ~1 px. (Only part of the way: the face band's outline of a 55-degree head
-    with adjusted shape and distance is nearly that of a 70-degree one; docs/tracking.md.)"""
+    with adjusted shape and distance is nearly that of a 70-degree one; docs/tracking-log.md.)"""
     from fastgha_core.data.meshraster import render_mesh
 
     head = HeadModel.load()

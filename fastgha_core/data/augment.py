@@ -198,7 +198,7 @@ class InputMatting:
     and matted by ``matte_from_head`` from a head that misses like a fit: the true head at the view's
     expression, turned about its centre by ``N(0, head_yaw_std_deg)`` of yaw and scaled by
     ``1 + |N(0, head_scale_std)|`` (fits make the skull too large rather than too small,
-    ``docs/tracking.md``); its 68 landmarks give the face region and the mouth row. Supervision images
+    ``docs/tracking-log.md``, "Why the face only"); its 68 landmarks give the face region and the mouth row. Supervision images
     and masks stay exact. Only for ``--data synthetic`` (the head mesh is needed). Off by default.
     """
 

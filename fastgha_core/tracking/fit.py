@@ -69,7 +69,7 @@ class FitConfig:
     identity_weight: float = 0.3  # prior weight on |beta|^2 (modes ~ N(0, 1))
     # ridge weights on |e|^2 per photo. 10 / 40 (was 1 / 20 with dlib): on calm real photos the
     # differences between the detector's landmark definitions and the model's vertices otherwise come
-    # out as saturated shapes (browDown 0.7, mouthLeft 0.8); docs/tracking.md has the trade-off figures
+    # out as saturated shapes (browDown 0.7, mouthLeft 0.8); docs/tracking-log.md has the trade-off figures
     expression_weight: float = 10.0
     weak_expression_weight: float = 40.0  # ridge weight of the shapes in WEAKLY_OBSERVED
     landmark_sigma: float = 0.01  # landmark noise, as a fraction of the face-box diagonal
@@ -85,12 +85,12 @@ class FitConfig:
     yaw_map: bool = True  # Face Mesh layout: tie points to vertices by the head's pose (meshmap.build_pose_table; its pitch axis: pitch_map)
     yaw_map_rounds: int = 3  # re-chosen this many times as the yaw (and pitch) moves
     # the map's pitch axis too (meshmap.build_pose_table): the Face Mesh's lip, chin and nose points slide
-    # on pitched heads; with the pitch-0 map, heads pitched up read short and grow mouthStretch (docs/tracking.md)
+    # on pitched heads; with the pitch-0 map, heads pitched up read short and grow mouthStretch (docs/tracking-log.md, "Pitched heads")
     pitch_map: bool = True
     # the pitch range over which the map follows the head (degrees, + = nose up); beyond it, the map of the
     # nearest end. Pitched-down rows are shipped but not used by default: on renders they help as much as the
     # pitched-up ones, on the real sets they read the pitched-down photo at -43 and frontal photos 4-5 degrees
-    # lower, and the avatars from those cameras lose 0.3-1.4 dB (docs/tracking.md, "Pitched heads")
+    # lower, and the avatars from those cameras lose 0.3-1.4 dB (docs/tracking-log.md, "Pitched heads")
     pitch_map_min_deg: float = 0.0
     pitch_map_max_deg: float = 45.0
     # Face Mesh layout: beyond ~60 degrees the landmark fit saturates; a regression from the 2D layout

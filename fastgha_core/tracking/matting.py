@@ -15,7 +15,7 @@ and one of three classifiers for the rest (``MattingConfig.method``):
 Why the face only: on real photos the fitted ICT head's back of the skull and neck often lie over
 the wall (side views; a skull longer than the person's; a few degrees of yaw error: about 5 cm on a
 phone profile). When the whole eroded silhouette was sure foreground, that wall and the person's
-shadow on it were kept (pale blobs behind the head and beside the neck; docs/tracking.md).
+shadow on it were kept (pale blobs behind the head and beside the neck; docs/tracking-log.md, "Why the face only").
 
 Steps:
 

@@ -204,7 +204,7 @@ def build_pose_table(seeds=CALIBRATION_SEEDS, size: int = 512, fov_deg: float = 
     ICT head with known cameras, a 75-degree head fitted with the frontal map comes out at ~57.
     Pitch does the same to the lips, chin and nose: the points slide along the surface, so with the
     pitch-0 map a head pitched by -30 / +30 degrees comes out at about -15 / +25 and the codes
-    absorb the rest (mouthStretch on heads pitched up; docs/tracking.md, "Pitched heads").
+    absorb the rest (mouthStretch on heads pitched up; docs/tracking-log.md, "Pitched heads").
     For each (pitch, yaw) in ``pitch_bins x yaw_bins`` and each synthetic subject
     (``data/synthetic.py``, neutral expression, camera at 1 m looking at the head origin from
     azimuth ``-yaw`` and elevation ``-pitch``, ``fov_deg``; pitch + = nose up = camera below, as
@@ -215,7 +215,7 @@ def build_pose_table(seeds=CALIBRATION_SEEDS, size: int = 512, fov_deg: float = 
 
     ``occlusion_mm`` (None, the shipped table): cast the points only onto vertices the render shows,
     at most this many millimetres behind its depth buffer (a variant tried and not kept,
-    docs/tracking.md "Pitched heads").
+    docs/tracking-log.md "Pitched heads").
 
     Returns ``{"yaw": [B] degrees, "pitch": [P] degrees, "vertex": [P, B, 468] int16 ICT vertex id
     (-1 = no hit in at least half of the renders), "hits": [P, B, 468] int16}``.

@@ -1,6 +1,6 @@
 """Relative head poses between photos of one person from image features (a measurement, not in the fit).
 
-Landmarks alone saturate beyond ~60 degrees of yaw (docs/tracking.md); features matched between
+Landmarks alone saturate beyond ~60 degrees of yaw (docs/tracking-log.md); features matched between
 two photos of the same head are independent multi-view evidence. This module measures how much
 of it real photo sets hold:
 
@@ -23,7 +23,7 @@ On synthetic renders with known cameras (true geometry for ``a``) 20-25 degrees 
 neighbouring frames of the white-background video give 22-69 inliers, but the wide pairs (55-85
 degrees apart: the photos the landmark fit gets wrong) give 0-8 inliers among 14-46 putative
 matches, and the poses they imply scatter over +-150 degrees: too little evidence to correct the
-wide yaws, so it is not a residual of the fit (docs/tracking.md).
+wide yaws, so it is not a residual of the fit (docs/tracking-log.md).
 """
 
 from __future__ import annotations

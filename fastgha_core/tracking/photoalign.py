@@ -45,7 +45,7 @@ colours). Tracking uses it by default for the photos turned >= 55 degrees
 on held-out synthetic photo sets with known poses it brings the +70-degree photos' rotation error
 from 7.7 to 5.0 degrees on average. Registering every photo turns the less turned ones away from
 the truth on synthetic renders and is an option (``TrackConfig.with_photo_align("all")``). Figures
-in ``docs/tracking.md`` ("Registering the turned photos"); per-photo read-out:
+in ``docs/tracking-log.md`` ("Registering the turned photos"); per-photo read-out:
 ``python -m fastgha_core.tracking.photoalign``.
 """
 

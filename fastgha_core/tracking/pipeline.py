@@ -35,9 +35,9 @@ class TrackConfig:
     fov_deg: float = 30.0  # assumed field of view across the longer photo side (fit.default_intrinsics)
     extent_m: float = DEFAULT_EXTENT_M  # crop field at the head's depth (crop.py)
     max_rms: float = 0.06  # refuse a photo whose landmark RMS exceeds this fraction of its face size
-    use_silhouette: bool = False  # also fit side views to the person mask's outline (silhouette.py; docs/tracking.md: no gain with Face Mesh landmarks)
+    use_silhouette: bool = False  # also fit side views to the person mask's outline (silhouette.py; docs/tracking-log.md: no gain with Face Mesh landmarks)
     # register the photos' poses to each other photometrically after the landmark fit (photoalign.py), by default only
-    # those the fit turns beyond where its landmarks saturate (align.free_min_yaw_deg; docs/tracking.md, "Registering the turned photos")
+    # those the fit turns beyond where its landmarks saturate (align.free_min_yaw_deg; docs/tracking-log.md, "Registering the turned photos")
     photo_align: bool = True
     fit: FitConfig = field(default_factory=FitConfig)
     matting: MattingConfig = field(default_factory=MattingConfig)

@@ -1,7 +1,7 @@
 """Yaw of a wide-turned head read off the Face Mesh's 2D layout (a regression learned on synthetic renders).
 
 Beyond ~60 degrees the Face Mesh squeezes the far half of the face onto the visible half, and a
-landmark fit of the head model saturates at 55-60 degrees (docs/tracking.md). The 2D layout of
+landmark fit of the head model saturates at 55-60 degrees (docs/tracking-log.md). The 2D layout of
 the 468 points still changes with the yaw (the nose tip moves against the face outline, the
 visible half widens), so a linear regression from the layout to the yaw, learned on synthetic
 renders with known cameras, reads wide yaws better than the fit. The fitter uses it as a prior on

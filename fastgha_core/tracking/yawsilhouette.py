@@ -1,10 +1,10 @@
 """Yaw read off the head's silhouette relative to the Face Mesh (a measurement, not in the fit).
 
-Beyond ~60 degrees the Face Mesh layout saturates (``yawprior.py``, docs/tracking.md), but the
+Beyond ~60 degrees the Face Mesh layout saturates (``yawprior.py``, docs/tracking-log.md), but the
 outline of the matted head keeps changing: the back of the head moves away from the nose tip and
 the near side of the face covers more of the head's width. This module measures whether that
 evidence, learned on synthetic renders as the layout regression is, transfers to real photos.
-It did not (docs/tracking.md, "Tried for the wide yaws and not kept"), so nothing here is used by
+It did not (docs/tracking-log.md, "Tried for the wide yaws and not kept"), so nothing here is used by
 the tracker; ``python -m fastgha_core.tracking.yawsilhouette`` reproduces the figures.
 
 Features (:func:`silhouette_edges`): the face axis of ``yawprior.layout_features`` (forehead point
