@@ -3,7 +3,7 @@
 On AVX2 (sixteen 256-bit registers, no vector int64 -> float conversion) LLVM sized the row loops'
 vectors by a 64-bit lane in them (the column index converted to float, a stop mask built with
 ``1 << q``) and took 4 float lanes, leaving the gradient row mostly scalar: 2.5x slower than the
-AVX-512 build on the same core (docs/benchmarks.md, "Traced and fixed the next morning";
+AVX-512 build on the same core (docs/benchmarks-log.md, "Traced and fixed the next morning";
 ``fastgha_core/render/cpu_kernels.py``). This compiles both kernels, in a fresh process, for
 ``x86-64-v3`` with every AVX-512 feature off (``bench/_bench_cli.py`` ``avx2_env``, the environment
 ``--isa avx2`` gives whole benchmarks) and reads their optimised LLVM IR: float vectors 8 lanes wide (4-lane ones

@@ -135,7 +135,7 @@ def test_gated_out_gaussians_between_drawn_ones_leave_the_image_unchanged(model_
     """A blink with closed lips: the mouth interior is gated out (opacity below ``ALPHA_MIN``) but sits
     between drawn Gaussians (the shell before it, the closed lids after), so ``animate`` keeps it in
     the list; the rasterizer skips it, and culling it gives the same image bit for bit (why the frame
-    path does not gather the kept Gaussians: ``docs/benchmarks.md``)."""
+    path does not gather the kept Gaussians: ``docs/benchmarks-log.md``, "Where the extra frame time goes")."""
     from fastgha_core.cameras import Cameras
     from fastgha_core.model.avatar import CanonicalAvatar
     from fastgha_core.render import render
