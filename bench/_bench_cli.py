@@ -24,8 +24,8 @@ AVX2_CPU = "x86-64-v3"
 
 
 def parser(doc: str) -> argparse.ArgumentParser:
-    """An ``ArgumentParser`` described by the first line of the script's docstring ``doc``."""
-    return argparse.ArgumentParser(description=doc.splitlines()[0])
+    """An ``ArgumentParser`` described by the first paragraph of the script's docstring ``doc`` (argparse rewraps it)."""
+    return argparse.ArgumentParser(description=doc.split("\n\n")[0])
 
 
 def training_subjects_args(doc: str, argv: list[str] | None) -> argparse.Namespace:

@@ -141,7 +141,7 @@ def render_row(model, sample, label: str):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", action="append", default=None, help="preset name or model folder (repeatable; default tiny)")
     ap.add_argument("--sample", default="synth_1000000", help="shipped sample subject (default: the demo's)")
     ap.add_argument("--picture", default=None, help="write the renders here (PNG) and the crops next to it")

@@ -25,7 +25,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", default="tiny", help="preset name or model folder (default: tiny)")
     ap.add_argument("--sigmas", default="0,8", help="comma-separated view_blend_expr_mm values in millimetres, 0 = off (default 0,8)")
     ap.add_argument("--subjects", type=int, default=4, help="held-out synthetic subjects, seeds from 1000000 (default 4)")

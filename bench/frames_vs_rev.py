@@ -63,7 +63,7 @@ def frames(repo: Path, out: Path) -> None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("rev", nargs="?", help="git revision to compare with")
     ap.add_argument("--render-into", nargs=2, metavar=("REPO", "OUT"), help=argparse.SUPPRESS)  # the subprocess
     args = ap.parse_args(argv)

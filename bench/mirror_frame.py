@@ -24,7 +24,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", default="tiny", help="preset name or model folder (default: tiny)")
     ap.add_argument("--set", default="phone-5", help="real photo set to build the avatar from (default: phone-5)")
     ap.add_argument("--frames", type=int, default=60, help="timed frames per setting (default 60; 2 more warm up)")

@@ -94,7 +94,7 @@ def lip_gap_change_mm() -> dict[str, float]:
 def main() -> None:
     from fastgha_core.model.prior import _MOUTH_OPENING
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--subjects", type=int, default=4)
     ap.add_argument("--resolution", type=int, default=512)
     ap.add_argument("--json", type=Path, default=None)

@@ -101,7 +101,7 @@ def backward_ab(kernels, rev, rec, offsets, ids, tw, res, nch, repeats):
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("rev", help="git revision holding the other kernel")
     p.add_argument("--repeats", type=int, default=15)
     p.add_argument("--pass", dest="which", choices=("forward", "backward"), default="forward")

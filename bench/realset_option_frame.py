@@ -34,7 +34,7 @@ def _value(text: str):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", default="tiny")
     ap.add_argument("--sets", default="", help="comma-separated set names (default: every set)")
     ap.add_argument("--option", default="off_head_extrude_m", help="a GaussianHeadConfig field")

@@ -209,7 +209,7 @@ def _table(rows, key):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", default="tiny", help="preset name or model folder (default: tiny)")
     ap.add_argument("--sets", default=None, help="comma-separated set names (default: all)")
     ap.add_argument(

@@ -193,7 +193,7 @@ def measure_frames(frames: dict, det, set_name: str, pictures: Path | None) -> d
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", default="tiny")
     ap.add_argument("--size", type=int, default=512, help="render side (default 512)")
     ap.add_argument("--sizes", default=None, help="also measure at these render sides (comma-separated, e.g. 448,512,576) and their mean: dlib's jitter")

@@ -1,7 +1,7 @@
 """Test-time refinement cost, side by side in one process (timings on a shared machine are noisy:
 compare the ratios, and prefer the CPU-time columns).
 
-    python bench/refine_timing.py [--repeats 5] [--steps 40] [--skip-raster] [--previous] [--against PRESET] [--isa avx2]
+    python bench/refine_timing.py [--repeats 5] [--steps 60] [--skip-raster] [--previous] [--against PRESET] [--isa avx2]
 
 1. Rasterizer forward+backward of ``fastgha bench render``'s 65,536-Gaussian head scene at 256²
    (loss on rgb, alpha and depth): the float64 kernels (``FASTGHA_RASTER_FAST=0``, the path before
@@ -35,9 +35,9 @@ def _time(fn):
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser()
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--steps", type=int, default=40)
+    ap.add_argument("--steps", type=int, default=60, help="refinement steps (default %(default)s: RefineConfig.steps, as the figures in docs/benchmarks.md used)")
     ap.add_argument("--skip-raster", action="store_true")
     ap.add_argument("--previous", action="store_true", help="also time the defaults before 2026-11-30 night (REFINE_PRESETS['smooth']), interleaved")
     ap.add_argument("--against", default=None, help="also time REFINE_PRESETS[PRESET], interleaved, and print the ratio")

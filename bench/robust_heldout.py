@@ -43,7 +43,7 @@ class _NoisyInputs:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", action="append", required=True, help="model name or folder (repeatable)")
     ap.add_argument("--levels", default="0,1,2", help="comma-separated multiples of the default noise")
     ap.add_argument("--subjects", type=int, default=4)

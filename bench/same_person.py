@@ -110,7 +110,7 @@ def creation_times(folder: Path, reps: int) -> dict:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--set", default="studio-4", help="the real set whose creation is timed (default studio-4)")
     ap.add_argument("--reps", type=int, default=4, help="timed creations per arm (default 4)")
     ap.add_argument("--json", default=None, help="also write the figures here")

@@ -27,7 +27,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", default="tiny", help="preset name or model folder (default: tiny)")
     ap.add_argument("--frames", type=int, default=60, help="timed frames per setting (default 60; 2 more warm up)")
     ap.add_argument("--tau", type=float, default=20.0, help="view_blend_tau_deg of the 'on' frames, degrees (default 20, the shipped value)")

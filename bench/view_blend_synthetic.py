@@ -19,7 +19,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", default="tiny", help="preset name or model folder (default: tiny)")
     ap.add_argument("--subjects", type=int, default=4, help="held-out synthetic subjects (default 4)")
     ap.add_argument("--resolution", type=int, default=256, help="render resolution in pixels (default 256)")

@@ -30,7 +30,17 @@ def test_shared_parser_keeps_each_command_line(name):
     got = {a.option_strings[-1]: a.default for a in p._actions if a.option_strings and a.option_strings[-1] != "--help"}
     assert got == EXPECTED[name]
     assert list(got) == list(EXPECTED[name])  # same order in --help
-    assert p.description and "\n" not in p.description  # the first line of the script's docstring
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in (ROOT / "bench").glob("*.py") if not p.stem.startswith("_")))
+def test_help_describes_the_script_in_whole_sentences(name):
+    """``--help`` opens with the docstring's whole first paragraph, not its first line cut mid-sentence
+    (``prior_frame_ab.py`` printed "... with and without it," until 2026-12-06)."""
+    p = _bench_parser(name)
+    if p is None:
+        pytest.skip(f"bench/{name}.py has no main() with a parser")
+    assert p.description, f"bench/{name}.py --help has no description"
+    assert p.description.rstrip().endswith((".", ")")), p.description
 
 
 def test_write_json_makes_the_folder_and_skips_without_a_path(tmp_path, monkeypatch):
