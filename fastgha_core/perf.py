@@ -6,7 +6,7 @@ the rasterizer (numba) every frame holds two OpenMP thread pools on the same cor
 default wait policy each pool's idle threads spin after a parallel region, and the two pools
 take turns starving each other: measured on the shared 2-core machine under load, one 256²
 frame of the tiny avatar took 560-1170 ms with the default spin (300 000 iterations) and
-68-150 ms with ``OMP_WAIT_POLICY=PASSIVE`` (same work; docs/benchmarks.md "Machine and thread settings").
+130-151 ms with ``OMP_WAIT_POLICY=PASSIVE`` (same work; docs/benchmarks.md "Machine and thread settings").
 Sleeping at once costs the MLP a wake-up per small op (deform 18 ms instead of 9-10 ms), so
 the default here is a short bounded spin, ``GOMP_SPINCOUNT=10000``: deform 8-10 ms, render
 unaffected, no starvation seen.
