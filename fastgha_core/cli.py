@@ -11,7 +11,9 @@ A module may also set ``QUIET_NATIVE_LOGS = True`` when it runs MediaPipe: its C
 then dropped from stderr (``commands/_stderr.py``; ``-v`` keeps them).
 
 Modules are discovered, so adding a command touches no other file. A ``CLIError`` (or a
-``ValueError``/``FileNotFoundError`` from the library) prints one clear line and exits 2.
+``ValueError``/``OSError`` from the library: a missing file, a full disk, a path that is not a
+folder) prints one clear line and exits 2; ``-v`` adds the traceback. Commands check their output
+paths before their work (``commands/_paths.py``).
 """
 
 from __future__ import annotations
@@ -92,7 +94,9 @@ def main(argv: list[str] | None = None) -> int:
         # commands that run MediaPipe (QUIET_NATIVE_LOGS) drop its C++ start-up lines from stderr, unless -v
         with native_stderr_filtered(args._quiet_native and not args.verbose):
             rc = args._run(args)
-    except (CLIError, ValueError, FileNotFoundError) as e:
+    except (CLIError, ValueError, OSError) as e:
+        if args.verbose:
+            logging.getLogger("fastgha").exception("the error's traceback")
         print(f"fastgha {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -13,7 +13,7 @@ from typing import Literal
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from fastgha_core.commands import MAX_VIEW_BLEND_TAU_DEG, view_blend_tau_problem
+from fastgha_core.commands import MAX_REFINE_STEPS, MAX_VIEW_BLEND_TAU_DEG, view_blend_tau_problem
 
 __all__ = ["MAX_VIEW_BLEND_TAU_DEG", "Settings", "get_settings"]
 
@@ -208,9 +208,9 @@ class Settings(BaseSettings):
         try:
             n = int(v)
         except (TypeError, ValueError):
-            raise ValueError(f"refine_steps must be auto or a number of steps 0-1000, got {v!r}") from None
-        if not 0 <= n <= 1000:
-            raise ValueError(f"refine_steps must be auto or a number of steps 0-1000, got {n}")
+            raise ValueError(f"refine_steps must be auto or a number of steps 0-{MAX_REFINE_STEPS}, got {v!r}") from None
+        if not 0 <= n <= MAX_REFINE_STEPS:
+            raise ValueError(f"refine_steps must be auto or a number of steps 0-{MAX_REFINE_STEPS}, got {n}")
         return n
 
     @field_validator("view_blend_tau_deg")

@@ -56,6 +56,10 @@ def check_model_has_weights(spec: str) -> None:
 #: 180 degrees, so beyond this every weight is above exp(-1/2) and the value only hides a typo (0 turns blending off).
 MAX_VIEW_BLEND_TAU_DEG = 360.0
 
+#: Most test-time refinement steps the commands and the server accept (the defaults are 30-60 steps,
+#: a few seconds on 2 cores; 1000 steps take minutes, beyond that the value is most likely a typo).
+MAX_REFINE_STEPS = 1000
+
 
 def view_blend_tau_problem(value: float) -> str | None:
     """Why ``value`` is not a view-blending tau (``model/viewblend.py``: 0 = off, else degrees in

@@ -132,8 +132,10 @@ def run(args) -> int:
     from . import check_model_has_weights, loading, note_first_compilation
     from ..render import render
 
-    if args.size <= 0 or args.fps <= 0:
-        raise ValueError(f"--size and --fps must be positive, got {args.size} and {args.fps}")
+    if not 16 <= args.size <= 4096:
+        raise ValueError(f"--size must be in 16..4096 pixels (as fastgha client's), got {args.size}")
+    if args.fps <= 0:
+        raise ValueError(f"--fps must be positive, got {args.fps}")
     if not args.radius > 0:
         raise ValueError(f"--radius must be > 0 metres, got {args.radius}")
     if not 0 < args.fov < 180:
@@ -143,7 +145,10 @@ def run(args) -> int:
     problem = None if args.view_blend_tau_deg is None else view_blend_tau_problem(args.view_blend_tau_deg)
     if problem:
         raise ValueError(f"--view-blend-tau-deg: {problem}")
+    from ._paths import output_dir, output_file
+
     out = Path(args.out)
+    (output_file if out.suffix.lower() in _VIDEO_SUFFIXES else output_dir)(out, "--out")
     if out.suffix.lower() in _NOT_A_FOLDER and not out.is_dir():
         raise ValueError(
             f"--out must be a video file ({', '.join(_VIDEO_SUFFIXES)}) or a folder for PNG frames, got {str(out)!r} "

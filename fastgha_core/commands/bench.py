@@ -49,6 +49,10 @@ def run(args) -> int:
                 f"available: {', '.join(available) or 'none'}"
             )
         targets = [args.target]
+    if args.json is not None:
+        from ._paths import output_file
+
+        output_file(args.json, "--json")  # before minutes of timing, not after
     import time
 
     results: dict = {"summary": {}}

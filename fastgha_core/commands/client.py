@@ -308,7 +308,13 @@ def run(args) -> int:
         raise CLIError("--expressions and --orbit cannot be combined with --from-video / --webcam (the video drives expression and pose)")
     if args.save_track and not video:
         raise CLIError("--save-track needs --from-video or --webcam")
-    out = Path(args.out)
+    from ._paths import output_dir, output_file
+
+    out = output_file(args.out, "--out")
+    if args.save_track:
+        output_file(args.save_track, "--save-track")
+    if args.frames_dir:
+        output_dir(args.frames_dir, "--frames-dir")
     if out.suffix.lower() != ".mp4":
         raise CLIError(f"--out must be an .mp4 path, got {out}")
     import logging

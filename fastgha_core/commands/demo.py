@@ -87,8 +87,12 @@ def run(args) -> int:
     name = args.sample or names[0]
     if name not in names:
         raise ValueError(f"unknown sample {name!r}; shipped samples: {', '.join(names)}")
+    from ._paths import output_dir, output_file
+
+    out = output_dir(args.out, "--out")
+    if args.json:
+        output_file(args.json, "--json")
     check_model_has_weights(args.model)
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
     torch.manual_seed(0)

@@ -44,7 +44,11 @@ def run(args) -> int:
     if bool(args.vgg_weights) != bool(args.lpips_weights):
         raise CLIError("LPIPS needs both --vgg-weights and --lpips-weights (got only one)")
     from ..cli import check_device
+    from ._paths import output_dir, output_file
 
+    output_dir(args.out, "--out")
+    if args.json:
+        output_file(args.json, "--json")
     check_device(args.device)
     from . import check_model_has_weights
 

@@ -43,6 +43,9 @@ def run(args) -> int:
         raise CLIError(f"avatar file {src} does not exist")
     if dst.suffix.lower() != ".ply":
         raise CLIError(f"--ply must name a .ply file, got {dst}")
+    from ._paths import output_file
+
+    output_file(dst, "--ply")
     if not 0.0 <= args.min_opacity <= 1.0:
         raise CLIError(f"--min-opacity must lie in [0, 1], got {args.min_opacity}")
     g, meta, extra = load_avatar_file(src)

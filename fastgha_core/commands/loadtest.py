@@ -75,6 +75,11 @@ def run(args) -> int:
     from ..cli import CLIError
     from .client import api_key_from, key_hint, unreachable
 
+    from ._paths import output_file
+
+    for option, path in (("--json", args.json), ("--plot", args.plot)):
+        if path:
+            output_file(path, option)
     cfg = LoadTestConfig(
         url=args.url,
         clients=args.clients,

@@ -156,10 +156,10 @@ def run(args) -> int:
     from ..cameras import load_request_folder
     from ..cli import CLIError, check_device
     from ..model.fastgha import load_model
-    from . import check_model_has_weights, loading, note_first_compilation
+    from . import MAX_REFINE_STEPS, check_model_has_weights, loading, note_first_compilation
 
-    if args.refine_steps < 0:
-        raise CLIError(f"--refine-steps must be >= 0, got {args.refine_steps}")
+    if not 0 <= args.refine_steps <= MAX_REFINE_STEPS:
+        raise CLIError(f"--refine-steps must be in 0..{MAX_REFINE_STEPS} (the server's bound), got {args.refine_steps}")
     if (args.refine_cameras or args.cameras_out) and args.refine_steps == 0:
         raise CLIError("--refine-cameras and --cameras-out need --refine-steps N > 0")
     from ..refine import REFINE_PRESETS
@@ -168,6 +168,11 @@ def run(args) -> int:
         raise CLIError(f"--refine-preset must be auto or one of {', '.join(REFINE_PRESETS)}, got {args.refine_preset!r}")
     if args.cameras_out and not args.refine_cameras:
         raise CLIError("--cameras-out writes the corrected cameras: add --refine-cameras (without it the cameras are not refined)")
+    from ._paths import output_file
+
+    for option, path in (("--out", args.out), ("--ply", args.ply), ("--cameras-out", args.cameras_out)):
+        if path:
+            output_file(path, option)
     if not str(args.out).lower().endswith(".safetensors"):
         raise CLIError(
             f"--out is the avatar file (.safetensors: what animate, export and the server read), got {args.out!r}"
@@ -261,5 +266,6 @@ def _refine(args, model, avatar, paths, images, cams, masks, tracked=None):
     if args.cameras_out:
         from pathlib import Path
 
+        Path(args.cameras_out).parent.mkdir(parents=True, exist_ok=True)  # as --out's folder is made
         Path(args.cameras_out).write_text(json.dumps(cameras_to_json(res.cameras), indent=1) + "\n")
     return res.avatar, f", refined in {res.timings['total']:.1f} s ({args.refine_steps} steps, preset {refine_preset_for(avatar, args.refine_preset)!r})"

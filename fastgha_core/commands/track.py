@@ -107,7 +107,11 @@ def run(args) -> int:
         raise CLIError(f"--size must be at least 16, got {args.size}")
     if not 1 <= args.fov <= 150:
         raise CLIError(f"--fov must be in [1, 150] degrees, got {args.fov}")
-    out = Path(args.out)
+    from ._paths import output_dir, output_file
+
+    out = output_dir(args.out, "--out")
+    if args.json:
+        output_file(args.json, "--json")
     given = [Path(n) for n in args.images]
     images = _without_their_masks(given)
     if len(images) < len(given):  # `--images folder/*.png` also matches the masks beside the photos

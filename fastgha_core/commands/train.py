@@ -65,6 +65,9 @@ def run(args) -> int:
     for flag, value in (("--workers", cfg.workers), ("--warmup-steps", cfg.warmup_steps), ("--val-every", cfg.val_every), ("--ckpt-every", cfg.ckpt_every)):
         if value < 0:
             raise CLIError(f"{flag} must be >= 0, got {value}")
+    from ._paths import output_dir
+
+    output_dir(args.out, "--out")
     dist = init_distributed(args.device)
     try:
         model = build_model(cfg, args.dino_weights, args.vae_weights, args.init_from)
