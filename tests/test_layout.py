@@ -138,3 +138,27 @@ def test_shipped_samples_load():
         assert size < 1.5e6
     with pytest.raises(ValueError, match="unknown sample"):
         load_sample("nobody")
+
+
+def test_synth_rerun_replaces_its_own_subjects_and_refuses_foreign_folders(tmp_path, capsys):
+    """A second ``fastgha synth`` into the same folder with fewer timesteps / cameras left the first
+    run's files beside the new ones: a request folder of 4 photos with 2 cameras. Now a subject
+    folder synth wrote is replaced as a whole, and one it did not write is refused before anything
+    is written."""
+    base = ["synth", "--subjects", "1", "--seed", "40", "--out", str(tmp_path / "d")]
+    assert main(base + ["--timesteps", "4", "--cameras", "5", "--resolution", "48"]) == 0
+    assert main(base + ["--timesteps", "2", "--cameras", "2", "--resolution", "32"]) == 0
+    expected = tmp_path / "e"
+    assert main(["synth", "--subjects", "1", "--seed", "40", "--out", str(expected), "--timesteps", "2", "--cameras", "2", "--resolution", "32"]) == 0
+    got = sorted(p.relative_to(tmp_path / "d") for p in (tmp_path / "d").rglob("*"))
+    assert got == sorted(p.relative_to(expected) for p in expected.rglob("*"))  # nothing of the first run is left
+    paths, cams = load_request_folder(tmp_path / "d" / "synth_0000040" / "request")
+    assert len(paths) == len(cams) == 2
+    foreign = tmp_path / "f" / "synth_0000041"
+    foreign.mkdir(parents=True)
+    (foreign / "notes.txt").write_text("mine")
+    capsys.readouterr()
+    assert main(["synth", "--subjects", "2", "--seed", "40", "--out", str(tmp_path / "f"), "--timesteps", "2", "--cameras", "2"]) == 2
+    assert "was not written by fastgha synth" in capsys.readouterr().err
+    assert sorted(p.name for p in (tmp_path / "f").iterdir()) == ["synth_0000041"]  # seed 40 not written either
+    assert (foreign / "notes.txt").read_text() == "mine"

@@ -5,7 +5,7 @@ HELP = "render synthetic multi-view head captures (ICT-FaceKit) into the dataset
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--out", required=True, help="output dataset root")
+    parser.add_argument("--out", required=True, help="output dataset root (a subject folder an earlier synth run wrote there is replaced; any other folder of that name is refused)")
     parser.add_argument("--subjects", type=int, default=4, help="number of subjects (default 4)")
     parser.add_argument("--timesteps", type=int, default=32, help="timesteps per sequence (default 32)")
     parser.add_argument("--cameras", type=int, default=16, help="cameras per subject (default 16)")
@@ -50,6 +50,9 @@ def run(args) -> int:
             + ("drop --heldout or " if args.heldout else "use --heldout for evaluation seeds, or ")
             + "choose another --seed"
         )
+    from ._paths import output_dir
+
+    output_dir(args.out, "--out")
     total = args.subjects * args.timesteps * args.cameras
     with tqdm(total=total, unit="img", desc="synth") as bar:
         folders = synth_dataset(

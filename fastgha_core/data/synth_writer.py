@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import json
 import logging
+import re
+import shutil
 from pathlib import Path
 from typing import Callable, Iterable
 
@@ -10,7 +13,7 @@ import numpy as np
 
 from ..cameras import farthest_viewpoint_sampling
 from .layout import write_request_folder, write_sequence
-from .synthetic import SyntheticSequence, make_sequence
+from .synthetic import SyntheticSequence, make_sequence, subject_name
 
 __all__ = ["request_selection", "write_subject_request", "synth_dataset"]
 
@@ -61,8 +64,24 @@ def synth_dataset(
     progress: Callable[[int], None] | None = None,
 ) -> list[Path]:
     """Write one sequence per seed to ``out/<subject>/seq000/`` and a request folder to
-    ``out/<subject>/request/``. Returns the sequence folders."""
+    ``out/<subject>/request/``. Returns the sequence folders.
+
+    A subject folder that an earlier run wrote (every ``meta.json`` in it names this generator) is
+    replaced as a whole, so no timestep, camera or request photo of the earlier run is left beside
+    the new ones (they used to be, and the request folder then held more photos than cameras).
+
+    Raises:
+        ValueError: a subject folder exists and holds anything else (checked for every seed before
+            anything is written or removed).
+    """
     out = Path(out)
+    seeds = [int(s) for s in seeds]
+    earlier = [out / subject_name(seed) for seed in seeds if (out / subject_name(seed)).exists()]
+    for folder in earlier:
+        if not _written_by_us(folder):
+            raise ValueError(f"{folder} exists and was not written by fastgha synth; choose another output folder")
+    for folder in earlier:
+        shutil.rmtree(folder)
     folders = []
     for seed in seeds:
         seq = make_sequence(int(seed), timesteps=timesteps, num_cameras=num_cameras, resolution=resolution)
@@ -73,3 +92,25 @@ def synth_dataset(
         folders.append(folder)
         logger.debug("wrote %s", folder)
     return folders
+
+
+def _written_by_us(folder: Path) -> bool:
+    """Whether ``folder`` is a subject folder of ``synth_dataset``: it holds only ``request/`` and
+    sequence folders ``seqNNN/`` whose ``meta.json`` names ``fastgha_core.data.synthetic`` as their
+    generator, or which have none yet (a run stopped before writing it: ``meta.json`` comes last)."""
+    if not folder.is_dir():
+        return False
+    for child in folder.iterdir():
+        if child.name == "request" and child.is_dir():
+            continue
+        if not (child.is_dir() and re.fullmatch(r"seq\d{3}", child.name)):
+            return False
+        meta = child / "meta.json"
+        if meta.exists():
+            try:
+                generator = json.loads(meta.read_text()).get("extra", {}).get("generator")
+            except (OSError, ValueError, AttributeError):
+                return False
+            if generator != "fastgha_core.data.synthetic":
+                return False
+    return True
