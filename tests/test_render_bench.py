@@ -88,3 +88,31 @@ def test_rows_are_printed_as_entries_finish(monkeypatch):
     text = "".join(s for k, s in events if k == "out")
     rows = [line for line in text.splitlines() if line.strip().startswith(("800 ", "1200 "))]
     assert len(rows) == 2 and all(line.count("skipped") == 4 for line in rows)
+
+
+def test_reference_prediction_scales_by_the_splats_the_full_image_sees(monkeypatch):
+    """The dense reference evaluates every visible splat at every pixel, and the 64x64 calibration
+    crop sees only the middle of the head: the prediction multiplies the crop's time by the pixel
+    ratio *and* the visible-splat ratio (by pixels alone it predicted 5 s for an entry of 35-68 s)."""
+    import fastgha_core.bench.render as R
+
+    g = R.head_scene(3000)
+    full, crop = R.bench_camera(256), R.bench_camera(256).crop(96, 96, 64, 64)
+    n_full, n_crop = R._visible(g, full), R._visible(g, crop)
+    assert n_full == 3000 and 0 < n_crop < n_full  # the whole head is in frame, the crop sees part of it
+    ticks = iter([10.0, 11.0] * 2)  # every calibration render "takes" 1 s
+    monkeypatch.setattr(R.time, "perf_counter", lambda: next(ticks))
+    monkeypatch.setattr(R, "_forward", lambda g, cams, backend: (lambda: None))
+    assert R._predict(g, 256, "torch_tiles", "forward") == 16.0  # pixels only
+    assert R._predict(g, 256, "reference", "forward") == 16.0 * n_full / n_crop
+
+
+def test_bench_count_options_refuse_zero_and_negative(capsys):
+    import pytest
+
+    for argv in (["bench", "render", "--render-repeats", "0"], ["bench", "mlp", "--mlp-gaussians", "-1"],
+                 ["bench", "recon", "--recon-repeats", "0"], ["bench", "frame", "--frame-heldout", "-1"]):
+        with pytest.raises(SystemExit) as e:  # argparse: usage line, exit 2, before any work
+            main(argv)
+        assert e.value.code == 2
+        assert "expected an integer >=" in capsys.readouterr().err

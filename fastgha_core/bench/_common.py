@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import logging
 import os
 import statistics
@@ -11,9 +12,26 @@ from typing import Any, Callable
 
 import torch
 
-__all__ = ["Timing", "time_fn", "bench_model", "input_views", "bench_avatar", "load_average"]
+__all__ = ["Timing", "time_fn", "bench_model", "input_views", "bench_avatar", "load_average", "positive_int", "non_negative_int"]
 
 log = logging.getLogger(__name__)
+
+
+def positive_int(text: str) -> int:
+    """argparse ``type`` of the count options (repeats, frames, Gaussians): an integer >= 1; 0 or a
+    negative count used to mean "the default" or crash deep in torch."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text}")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    """argparse ``type`` of counts where 0 means "skip": an integer >= 0."""
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text}")
+    return value
 
 
 @dataclass

@@ -31,7 +31,7 @@ import time
 
 import torch
 
-from ._common import bench_avatar, bench_model, load_average, time_fn
+from ._common import bench_avatar, bench_model, load_average, non_negative_int, positive_int, time_fn
 
 log = logging.getLogger(__name__)
 
@@ -44,13 +44,13 @@ def add_arguments(parser) -> None:
     parser.add_argument("--frame-model", default="tiny", help="model preset or folder (default tiny)")
     parser.add_argument("--frame-views", default=None, help="comma-separated input view counts, i.e. avatar sizes (default 1,2,4,6)")
     parser.add_argument("--frame-resolutions", default=None, help="comma-separated square output sizes (default 256,512)")
-    parser.add_argument("--frame-frames", type=int, default=None, help="frames in the end-to-end loop (default 60, --quick 10)")
+    parser.add_argument("--frame-frames", type=positive_int, default=None, help="frames in the end-to-end loop (default 60, --quick 10)")
     parser.add_argument("--frame-jpeg-quality", type=int, default=85, help="JPEG quality (default 85, the server default)")
     parser.add_argument("--frame-precision", choices=("auto", "fp32", "bf16"), default="auto",
                         help="deformation MLP precision, as FASTGHA_MLP_PRECISION (auto: timed fp32 vs bf16, as the server does at start-up)")
     parser.add_argument("--frame-compile", choices=("auto", "on", "off"), default="auto",
                         help="torch.compile the MLP, as FASTGHA_COMPILE (auto: when a C++ compiler is found)")
-    parser.add_argument("--frame-heldout", type=int, default=None, help="held-out sample frames scored against ground truth (default 16, --quick 4; 0 = skip)")
+    parser.add_argument("--frame-heldout", type=non_negative_int, default=None, help="held-out sample frames scored against ground truth (default 16, --quick 4; 0 = skip)")
 
 
 def _ints(text, default):

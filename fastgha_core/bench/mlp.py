@@ -22,15 +22,15 @@ import time
 
 import torch
 
-from ._common import bench_model, load_average, time_fn
+from ._common import bench_model, load_average, positive_int, time_fn
 
 log = logging.getLogger(__name__)
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("--mlp-model", default="tiny", help="model preset or folder whose deformation MLP is measured (default tiny)")
-    parser.add_argument("--mlp-gaussians", type=int, default=None, help="Gaussians per avatar (default 65536, --quick 16384)")
-    parser.add_argument("--mlp-batch", type=int, default=4, help="avatars per call in the batched configuration (default 4)")
+    parser.add_argument("--mlp-gaussians", type=positive_int, default=None, help="Gaussians per avatar (default 65536, --quick 16384)")
+    parser.add_argument("--mlp-batch", type=positive_int, default=4, help="avatars per call in the batched configuration (default 4)")
     parser.add_argument("--mlp-compile", choices=("auto", "on", "off"), default="auto", help="measure torch.compile (auto: not with --quick)")
 
 

@@ -18,7 +18,7 @@ import sys
 
 import torch
 
-from ._common import bench_avatar, bench_model, input_views, load_average, time_fn
+from ._common import bench_avatar, bench_model, input_views, load_average, positive_int, time_fn
 
 log = logging.getLogger(__name__)
 
@@ -29,7 +29,7 @@ DEFAULT_AVATARS = (1, 4, 16)
 def add_arguments(parser) -> None:
     parser.add_argument("--recon-model", default="tiny", help="model preset or folder (default tiny)")
     parser.add_argument("--recon-views", default=None, help="comma-separated view counts (default 1,2,3,4,5,6)")
-    parser.add_argument("--recon-repeats", type=int, default=None, help="timed repeats per view count (default 5, --quick 1)")
+    parser.add_argument("--recon-repeats", type=positive_int, default=None, help="timed repeats per view count (default 5, --quick 1)")
     parser.add_argument("--recon-avatars", default=None, help="comma-separated avatar counts for the memory probe (default 1,4,16)")
 
 
@@ -65,6 +65,8 @@ def run(args) -> dict:
     counts = _ints(getattr(args, "recon_avatars", None), (1, 2) if quick else DEFAULT_AVATARS, "--recon-avatars")
     model = bench_model(name)
     vmax = int(model.config.max_views)
+    if getattr(args, "recon_views", None) and max(views) > vmax:  # the user's list; the default stays within
+        raise ValueError(f"--recon-views: model {model.config.name!r} accepts 1..{vmax} views, got {args.recon_views!r}")
     load0 = load_average()
     print(f"reconstruction benchmark: model {model.config.name!r}, input {model.config.input_size}², "
           f"torch threads {torch.get_num_threads()}, {repeats} repeats, median")
