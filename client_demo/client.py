@@ -296,7 +296,10 @@ def load_request_dir(folder: str | Path) -> tuple[list[Path], list[dict] | None,
     images = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.stem.endswith("_mask"))
     if not images:
         raise ValueError(f"request folder {folder} has no .jpg/.jpeg/.png photos")
-    cams = json.loads(cam_file.read_text()) if cam_file.is_file() else None
+    try:
+        cams = json.loads(cam_file.read_text()) if cam_file.is_file() else None
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{cam_file} does not parse as JSON: {e}") from None
     if isinstance(cams, dict) and "cameras" in cams:
         cams = cams["cameras"]
     if cams is not None and (not isinstance(cams, list) or len(cams) != len(images)):

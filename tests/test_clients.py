@@ -108,6 +108,9 @@ def test_load_request_dir(request_dir, tmp_path):
     (bare / "cameras.json").write_text("[{}]")
     with pytest.raises(ValueError, match=r"2 images \(00.jpg, 01.jpg\) but cameras.json holds 1 cameras"):  # names them: which one is extra?
         load_request_dir(bare)
+    (bare / "cameras.json").write_text("[{K: 1}]")  # a hand-edited file: the error names it
+    with pytest.raises(ValueError, match=r"bare/cameras.json does not parse as JSON: Expecting property name"):
+        load_request_dir(bare)
 
 
 def test_loadtest_target_and_bounds():
