@@ -56,6 +56,7 @@ __all__ = [
     "read_image",
     "read_mask",
     "apply_orientation",
+    "too_large_error",
 ]
 
 # 64 MP: larger than any phone photo (50 MP sensors), small enough to refuse decompression bombs.
@@ -198,6 +199,17 @@ def _focal_35mm(exif, width: int, height: int) -> float | None:
 
 
 # ---------------------------------------------------------------- opening
+def too_large_error(name: str, e: Exception, max_pixels: int) -> ImageDecodeError:
+    """``image_too_large`` with the image's size, from Pillow's decompression-bomb message ("Image
+    size (N pixels) exceeds limit of M pixels, ..."), and this reader's own limit ``max_pixels``,
+    which the caller set (Pillow's check, at 89 M pixels, comes first for larger images)."""
+    import re
+
+    m = re.search(r"\((\d+) pixels\)", str(e))
+    size = f"has {m.group(1)} pixels" if m else "is too large to decode"
+    return ImageDecodeError("image_too_large", f"{name} {size}; the limit is {max_pixels}")
+
+
 def _open(data: bytes, name: str, max_pixels: int, formats: Sequence[str] | None) -> Image.Image:
     if not data:
         raise ImageDecodeError("invalid_image", f"{name} is empty")
@@ -205,8 +217,8 @@ def _open(data: bytes, name: str, max_pixels: int, formats: Sequence[str] | None
         with warnings.catch_warnings():
             warnings.simplefilter("error", Image.DecompressionBombWarning)
             im = Image.open(io.BytesIO(data), formats=None if formats is None else list(formats))
-    except (Image.DecompressionBombError, Image.DecompressionBombWarning):
-        raise ImageDecodeError("image_too_large", f"{name} is too large to decode") from None
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as e:
+        raise too_large_error(name, e, max_pixels) from None
     except Exception as e:  # Pillow raises many types (UnidentifiedImageError, OSError, SyntaxError, ...)
         what = f"a readable {' or '.join(formats)} image" if formats else "an image file Pillow can read"
         # Pillow's UnidentifiedImageError only repeats that, with the repr of our BytesIO: leave it out
@@ -231,7 +243,7 @@ def _load(im: Image.Image, name: str, max_side: int | None) -> None:
                 # draft picks the smallest 1/1, 1/2, 1/4, 1/8 scale that is still >= the requested size
                 im.draft(im.mode, (max(1, math.ceil(w * s)), max(1, math.ceil(h * s))))
             im.load()
-    except (Image.DecompressionBombError, Image.DecompressionBombWarning):
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning):  # _open checked the size already
         raise ImageDecodeError("image_too_large", f"{name} is too large to decode") from None
     except Exception as e:
         raise ImageDecodeError("invalid_image", f"{name} could not be decoded ({type(e).__name__}: {e})") from None

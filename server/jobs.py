@@ -133,8 +133,8 @@ def _open_checked(data: bytes, name: str, max_pixels: int):
         with warnings.catch_warnings():
             warnings.simplefilter("error", Image.DecompressionBombWarning)
             im = Image.open(io.BytesIO(data), formats=_FORMATS)
-    except (Image.DecompressionBombError, Image.DecompressionBombWarning):
-        raise ApiError(413, "image_too_large", f"{name} is too large to decode") from None
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning) as e:
+        raise ApiError(413, "image_too_large", _shared.too_large_error(name, e, max_pixels).message) from None
     except Exception as e:  # Pillow raises many types; never print its object reprs
         raise ApiError(400, "invalid_image", f"{name} is not a readable JPEG or PNG image{_why(e)}") from None
     w, h = im.size

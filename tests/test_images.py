@@ -239,6 +239,9 @@ def test_errors_name_the_file_and_have_codes():
     with pytest.raises(ImageDecodeError) as e:
         decode_image_bytes(jpeg, "holiday.jpg", max_pixels=40 * 40 - 1)
     assert e.value.code == "image_too_large" and "holiday.jpg" in str(e.value)
+    with pytest.raises(ImageDecodeError) as e:  # past Pillow's own bomb limit (89 M pixels): still the size and our limit
+        decode_image_bytes(_encode(Image.new("1", (20000, 20000)), "PNG"), "bomb.png")
+    assert e.value.code == "image_too_large" and str(e.value) == f"bomb.png has 400000000 pixels; the limit is {64 * 1024 * 1024}"
     with pytest.raises(ImageDecodeError) as e:
         decode_image_bytes(_encode(Image.new("RGB", (4, 4)), "BMP"), "x.bmp", formats=("JPEG", "PNG"))
     assert e.value.code == "invalid_image"

@@ -95,6 +95,13 @@ def test_errors_name_files_by_their_filenames_never_an_index_or_a_repr():
         probe_request([Photo("huge.png", _png(np.zeros((100, 100, 3), np.uint8)))], None, None, max_pixels=5000, max_request_pixels=10**7)
     assert ei.value.status == 413 and ei.value.code == "image_too_large" and "huge.png" in ei.value.message
     assert "FASTGHA_MAX_IMAGE_PIXELS" in ei.value.message and "downscaled" in ei.value.message  # what to change, either side
+    from PIL import Image
+
+    bomb = io.BytesIO()
+    Image.new("1", (20000, 20000)).save(bomb, "PNG")  # past Pillow's own bomb check: the size and the limit, not only "too large"
+    with pytest.raises(ApiError) as ei:
+        probe_request([Photo("bomb.png", bomb.getvalue())], None, None, max_pixels=10**6, max_request_pixels=10**7)
+    assert ei.value.status == 413 and ei.value.message == "bomb.png has 400000000 pixels; the limit is 1000000"
     photos = [Photo(f"p{i}.png", good) for i in range(3)]
     with pytest.raises(ApiError) as ei:
         probe_request(photos, None, None, max_pixels=10**6, max_request_pixels=2 * 30 * 40)
