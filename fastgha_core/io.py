@@ -372,7 +372,7 @@ def save_avatar_file(
     ``metadata`` must hold ``model_name`` and ``expression_space`` (strings); ``format_version``
     is added (``constants.AVATAR_FORMAT_VERSION``).
     """
-    from safetensors.torch import save_file
+    from safetensors.torch import save
 
     if not isinstance(metadata, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in metadata.items()):
         raise ValueError(f"avatar metadata must be a dict of str -> str, got {metadata!r}")
@@ -398,7 +398,9 @@ def save_avatar_file(
     tensors = {k: t.detach().to("cpu").contiguous().clone() for k, t in tensors.items()}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    save_file(tensors, str(path), metadata=meta)
+    # bytes written by Python, not safetensors' save_file: that one creates the file with mode 0600,
+    # where every other output (PLY, MP4, JSON) follows the user's umask
+    path.write_bytes(save(tensors, metadata=meta))
     logger.debug("wrote avatar (%d Gaussians) to %s", len(g), path)
 
 

@@ -160,6 +160,9 @@ def test_avatar_file_round_trip(tmp_path):
         assert torch.equal(getattr(h, name), getattr(g, name)), name
     assert meta == {"model_name": "tiny", "expression_space": "ict53", "note": "hi", "format_version": str(AVATAR_FORMAT_VERSION)}
     assert set(ex) == {"bbox", "ids"} and torch.equal(ex["ids"], extra["ids"]) and torch.equal(ex["bbox"], extra["bbox"])
+    plain = tmp_path / "plain.txt"
+    plain.write_text("x")  # the mode any file gets under this umask (safetensors' save_file made 0600)
+    assert path.stat().st_mode & 0o777 == plain.stat().st_mode & 0o777
 
 
 def test_avatar_file_errors(tmp_path):
