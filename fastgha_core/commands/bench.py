@@ -26,7 +26,7 @@ def _module(target: str):
 def add_arguments(parser) -> None:
     parser.add_argument("target", choices=(*TARGETS, "all"), help="what to benchmark; 'all' runs every available target")
     parser.add_argument("--json", metavar="PATH", type=Path, default=None, help="also write the results as JSON here")
-    parser.add_argument("--quick", action="store_true", help="fewer sizes and repeats: a smoke run (render about a minute, all a few minutes on 2 cores)")
+    parser.add_argument("--quick", action="store_true", help="fewer sizes and repeats: a smoke run (render about 10 s, all about 30 s on 2 cores)")
     # options of the individual targets (each module may add its own)
     for target in _available():
         mod = _module(target)
