@@ -23,6 +23,7 @@ __all__ = [
     "FastGHAConfig",
     "PRESETS",
     "get_preset",
+    "check_field_types",
 ]
 
 
@@ -382,6 +383,38 @@ def _validate_deform(d: DeformConfig) -> None:
     _in_range(w + "prior_fade[0]", fade[0], 0, note="metres from the surface with full prior weight")
     _in_range(w + "prior_fade[1]", fade[1], fade[0], note="metres from the surface with no prior weight, at least prior_fade[0]")
     _one_of(w + "face_shell", d.face_shell, FACE_SHELL_REGIONS)
+
+
+def check_field_types(cls, data: dict, where: str) -> None:
+    """``ValueError`` naming ``where.field`` when a JSON value in ``data`` cannot be the field's type,
+    judged by the field's default: ``true``/``false`` for a bool, an integer for an int, a number
+    for a float, a string for a str, a list of numbers for a tuple of numbers, an object for a
+    nested section; fields whose default is None take anything. A string such as ``"2"`` for an int
+    used to pass and fail minutes later, deep in training, with a ``TypeError``."""
+    import numbers
+
+    for f in dataclasses.fields(cls):
+        if f.name not in data:
+            continue
+        value = data[f.name]
+        default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+        if isinstance(default, bool):
+            ok, kind = isinstance(value, bool), "true or false"
+        elif isinstance(default, int):
+            ok, kind = isinstance(value, numbers.Integral) and not isinstance(value, bool), "an integer"
+        elif isinstance(default, float):
+            ok, kind = isinstance(value, numbers.Real) and not isinstance(value, bool), "a number"
+        elif isinstance(default, str):
+            ok, kind = isinstance(value, str), "a string"
+        elif isinstance(default, tuple) and all(isinstance(v, numbers.Real) for v in default):
+            ok = isinstance(value, (list, tuple)) and all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in value)
+            kind = "a list of numbers"
+        elif dataclasses.is_dataclass(default):
+            ok, kind = isinstance(value, (dict, type(default))), "an object of fields"
+        else:
+            continue
+        if not ok:
+            raise ValueError(f"{where}.{f.name} must be {kind}, got {value!r}")
 
 
 def _from_dict(cls, data: Any, where: str):

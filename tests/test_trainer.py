@@ -184,3 +184,47 @@ def test_input_view_depth_terms_reach_the_network(tmp_path, toy_data):
         assert any(g is not None and g.abs().sum() > 0 for g in grads), f"{name} does not reach the network"
     off, _ = _trainer(tmp_path / "off", toy_data).compute_losses(batch)
     assert float(off["indepth"]) == float(off["xview"]) == 0.0
+
+
+def test_a_fresh_run_refuses_a_folder_with_checkpoints_and_a_resume_keeps_val_csv_single(tmp_path, toy_data):
+    """A fresh run into an old run's folder used to delete its own checkpoint (the pruning keeps the
+    newest steps: the old run's) and append to val.csv; a resumed run re-validated past its checkpoint."""
+    first = _trainer(tmp_path, toy_data, ckpt_every=2, val_every=1, val_samples=1)
+    first.fit(steps=3)  # checkpoints at 2 and 3, validation rows 1, 2, 3
+    with pytest.raises(ValueError, match=r"already holds a training run \(checkpoint step_00000003\): add --resume"):
+        _trainer(tmp_path, toy_data, ckpt_every=2).fit(steps=2)
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == ["step_00000002", "step_00000003"]
+    import shutil
+
+    shutil.rmtree(tmp_path / "checkpoints" / "step_00000003")  # as if killed after step 2's checkpoint
+    resumed = _trainer(tmp_path, toy_data, ckpt_every=2, val_every=1, val_samples=1)
+    resumed.fit(steps=4, resume=True)
+    assert [r["step"] for r in csv.DictReader(open(tmp_path / "val.csv"))] == ["1", "2", "3", "4"]
+
+
+def test_resuming_with_another_model_is_one_clear_error(tmp_path, toy_data):
+    _trainer(tmp_path, toy_data, ckpt_every=1).fit(steps=1)
+    cfg = TrainConfig(model="toy", val_every=0, ckpt_every=0, render_backend="cpu")
+    mc = toy_model_config(32)
+    mc.deform.hidden_size *= 2  # another deformation MLP: other tensor shapes
+    other = FastGHA(mc)
+    with pytest.raises(ValueError, match=r"holds another model than this run's"):
+        Trainer(cfg, other, toy_data, tmp_path, dist=DistInfo(), collate_fn=collate_toy).fit(steps=2, resume=True)
+
+
+@pytest.mark.parametrize("config, message", [
+    ({"preset": "tiny", "steps": "2"}, r"train config.steps must be an integer, got '2'"),
+    ({"preset": "tiny", "lr": "fast"}, r"train config.lr must be a number"),
+    ({"preset": "tiny", "betas": 0.9}, r"train config.betas must be a list of numbers"),
+    ({"preset": "tiny", "loss": 5}, r"loss must be an object of fields, got 5"),
+    ({"preset": "tiny", "loss": {"w_geo": "x"}}, r"loss.w_geo must be a number, got 'x'"),
+    ({"preset": "tiny", "input_camera_noise": {"enabled": "yes"}}, r"input_camera_noise.enabled must be true or false"),
+])
+def test_config_json_values_of_the_wrong_type_are_refused_when_read(tmp_path, config, message):
+    """They passed and failed minutes later in training with a TypeError (exit 1, a traceback)."""
+    import json
+
+    path = tmp_path / "c.json"
+    path.write_text(json.dumps(config))
+    with pytest.raises(ValueError, match=message):
+        load_train_config(str(path))

@@ -62,6 +62,9 @@ def _from_dict(cls, data: dict[str, Any] | None, key: str):
     bad = sorted(set(data) - names)
     if bad:
         raise ValueError(f"train config: unknown {key} field(s) {bad}; expected some of {sorted(names)}")
+    from ..config import check_field_types
+
+    check_field_types(cls, data, f"train config: {key}")
     return cls(**data)
 
 

@@ -115,12 +115,16 @@ class TrainConfig:
         unknown = sorted(set(data) - names)
         if unknown:
             raise ValueError(f"train config: unknown field(s) {unknown}; expected some of {sorted(names)}")
+        from ..config import check_field_types
+
+        check_field_types(cls, data, "train config")
         kw = dict(data)
         if "loss" in kw and isinstance(kw["loss"], dict):
             lnames = {f.name for f in fields(LossConfig)}
             bad = sorted(set(kw["loss"]) - lnames)
             if bad:
                 raise ValueError(f"train config: unknown loss field(s) {bad}; expected some of {sorted(lnames)}")
+            check_field_types(LossConfig, kw["loss"], "train config: loss")
             lk = dict(kw["loss"])
             if "perc_layers" in lk:
                 lk["perc_layers"] = tuple(lk["perc_layers"])
@@ -187,6 +191,9 @@ def load_train_config(spec: str) -> TrainConfig:
     preset = data.pop("preset", None) or (data.get("model") if data.get("model") in TRAIN_PRESETS else "paper")
     base = get_train_preset(preset)
     merged = base.to_dict()
+    for key in ("loss", "input_camera_noise", "input_matting"):
+        if not isinstance(data.get(key, {}), dict):
+            raise ValueError(f"{path}: {key} must be an object of fields, got {data[key]!r}")
     loss = dict(merged["loss"])
     loss.update(data.pop("loss", {}) or {})
     nested = {}
@@ -474,7 +481,14 @@ class Trainer:
         from safetensors.torch import load_file
 
         path = Path(path)
-        self.model.load_state_dict(load_file(str(path / "model.safetensors"), device=str(self.device)), strict=True)
+        try:
+            self.model.load_state_dict(load_file(str(path / "model.safetensors"), device=str(self.device)), strict=True)
+        except RuntimeError as e:  # torch lists every mismatched tensor: dozens of lines
+            first = next((ln.strip() for ln in str(e).splitlines()[1:] if ln.strip()), str(e))
+            raise ValueError(
+                f"checkpoint {path} holds another model than this run's (the --config it was trained with differs; "
+                f"its train_config.json says which): {first}"
+            ) from None
         state = torch.load(path / "trainer_state.pt", map_location="cpu", weights_only=False)
         if state.get("world_size", 1) != self.dist.world_size:
             log.warning("resuming a run saved with %d ranks on %d ranks: data order continues but is not identical", state.get("world_size"), self.dist.world_size)
@@ -564,13 +578,21 @@ class Trainer:
         cfg = self.config
         steps = int(cfg.steps if steps is None else steps)
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        ck = latest_checkpoint(self.run_dir)
         if resume:
-            ck = latest_checkpoint(self.run_dir)
             if ck is None:
                 log.warning("--resume: no checkpoint in %s; starting from step 0", self.run_dir / "checkpoints")
             else:
                 self.load_checkpoint(ck)
+        elif ck is not None:
+            # a fresh run here would mix with the old one: the checkpoint pruning sorts by step and
+            # deleted the new run's own checkpoint, leaving the old run's for a later --resume
+            raise ValueError(
+                f"{self.run_dir} already holds a training run (checkpoint {ck.name}): add --resume to continue it, "
+                "or choose another --out for a new run"
+            )
         if self.dist.is_main:
+            _trim_csv(self.run_dir / "val.csv", self.step)  # a resumed run re-validates the steps past its checkpoint
             (self.run_dir / "train_config.json").write_text(
                 json.dumps({"train": cfg.to_dict(), "model": self.model_config.to_dict(), "world_size": self.dist.world_size}, indent=2)
             )
@@ -663,6 +685,20 @@ class Trainer:
         finally:
             self.model.train(was_training)
             restore_rng(rng, self.device)
+
+
+def _trim_csv(path: Path, last_step: int) -> None:
+    """Drop the rows of the CSV at ``path`` whose ``step`` is past ``last_step`` (all of them for a
+    fresh run, ``last_step`` 0); nothing when the file does not exist."""
+    if not path.is_file():
+        return
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        fields, rows = list(reader.fieldnames or []), [r for r in reader if int(r["step"]) <= last_step]
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(rows)
 
 
 class _CSVLog:
