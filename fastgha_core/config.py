@@ -257,6 +257,11 @@ class FastGHAConfig:
             )
         if not 1 <= self.max_views:
             raise ValueError(f"max_views must be >= 1, got {self.max_views}")
+        from .expressions import get_space
+
+        dim = len(get_space(self.expression_space).names)  # ValueError naming the spaces when unknown
+        if self.expression_dim != dim:
+            raise ValueError(f"expression_dim must be {dim}, the length of expression_space {self.expression_space!r}'s codes, got {self.expression_dim}")
         _validate_gaussians(self.gaussians)
         _validate_deform(self.deform)
 

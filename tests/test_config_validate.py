@@ -217,3 +217,27 @@ def test_training_config_from_a_folder_names_the_file_and_the_field(bad_model_fo
 
     with pytest.raises(ValueError, match=r"config\.json: gaussians\.view_blend_expr_mm must be a number >= 0"):
         model_config_from_spec(str(bad_model_folder))
+
+
+def test_expression_dim_must_match_its_space():
+    """A config with ``expression_space`` flame120 and ``expression_dim`` 53 validated, and the model
+    failed at its first sample ("expression must have shape [B=1, E=53], got [1, 120]")."""
+    from fastgha_core.config import FastGHAConfig, get_preset
+
+    d = get_preset("tiny").to_dict()
+    with pytest.raises(ValueError, match=r"expression_dim must be 120, the length of expression_space 'flame120''s codes, got 53"):
+        FastGHAConfig.from_dict({**d, "expression_space": "flame120", "expression_dim": 53})
+    with pytest.raises(ValueError, match=r"unknown expression space 'arkit'"):
+        FastGHAConfig.from_dict({**d, "expression_space": "arkit"})
+    assert FastGHAConfig.from_dict({**d, "expression_space": "flame120", "expression_dim": 120}).expression_dim == 120
+
+
+def test_a_dataset_in_another_expression_space_is_refused_before_training(tmp_path):
+    from types import SimpleNamespace
+
+    from fastgha_core.train.builders import check_expression_space
+
+    seqs = [SimpleNamespace(expression_space="ict53"), SimpleNamespace(expression_space="flame120")]
+    with pytest.raises(ValueError, match=r"data: the sequences' expression space flame120 is not the model's 'ict53'"):
+        check_expression_space(seqs, "ict53", "data")
+    check_expression_space(seqs[:1], "ict53", "data")  # the same space passes

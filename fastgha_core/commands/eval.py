@@ -31,7 +31,7 @@ def run(args) -> int:
 
     from ..cli import CLIError
     from ..model.fastgha import load_model
-    from ..train.builders import build_eval_sources
+    from ..train.builders import build_eval_sources, check_expression_space
     from ..train.evaluate import EvalConfig, evaluate, write_report
 
     log = logging.getLogger(__name__)
@@ -71,6 +71,7 @@ def run(args) -> int:
     cfg = EvalConfig(num_inputs=args.num_inputs, num_target_timesteps=args.expressions, num_target_views=args.views, ablation=args.ablation, backend=args.backend, resolution=args.resolution, refine_steps=args.refine_steps, refine_cameras=args.refine_cameras, surface=args.surface)
     res = args.resolution or int(model.config.render_size)
     sources = build_eval_sources(args.data, args.subjects, resolution=max(res, int(model.config.input_size)), num_cameras=max(16, args.num_inputs + args.views), first_seed=args.first_seed)
+    check_expression_space(sources, model.config.expression_space, args.data)
     report = evaluate(model, sources, cfg, lpips=lpips, faces=faces, out_dir=args.out)
     report["model"] = str(args.model)
     report["data"] = str(args.data)
@@ -85,7 +86,7 @@ def _run_responses(args, model) -> int:
     from pathlib import Path
 
     from ..cli import CLIError
-    from ..train.builders import build_eval_sources
+    from ..train.builders import build_eval_sources, check_expression_space
     from ..train.responses import ResponseConfig, evaluate_responses, responses_markdown
 
     if args.ablation not in ("none", "no-prior"):
@@ -97,6 +98,7 @@ def _run_responses(args, model) -> int:
     res = args.resolution or 256
     cfg = ResponseConfig(resolution=res, num_inputs=args.num_inputs, use_prior=args.ablation != "no-prior", backend=args.backend, grid_subject=args.grid_subject)
     sources = build_eval_sources(args.data, args.subjects, resolution=int(model.config.input_size), num_cameras=16, first_seed=args.first_seed)
+    check_expression_space(sources, model.config.expression_space, args.data)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     report = evaluate_responses(model, sources, cfg, out_dir=out)

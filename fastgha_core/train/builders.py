@@ -12,7 +12,7 @@ import torch
 
 from .trainer import TrainConfig
 
-__all__ = ["build_model", "build_training_data", "build_eval_sources", "model_config_from_spec"]
+__all__ = ["build_model", "build_training_data", "build_eval_sources", "check_expression_space", "model_config_from_spec"]
 
 log = logging.getLogger(__name__)
 
@@ -97,10 +97,23 @@ def _training_data(data: str, cfg: TrainConfig, model_config):
     sources = open_dataset(root)
     if not sources:
         raise ValueError(f"{root}: no sequences found")
+    check_expression_space(sources, model_config.expression_space, root)
     res = int(model_config.render_size)
     train = sampling.TrainingDataset(sources, num_inputs=cfg.num_inputs, num_targets=cfg.num_targets, seed=cfg.seed, resolution=res)
     val = sampling.TrainingDataset(sources, num_inputs=cfg.num_inputs, num_targets=cfg.num_targets, seed=cfg.seed + 1, resolution=res)
     return train, val, True
+
+
+def check_expression_space(sources: list, space: str, where) -> None:
+    """``ValueError`` when a sequence's expression codes are not in the model's ``space``: a model
+    trained or evaluated on them failed at its first sample, after the model and data were built,
+    with "expression must have shape [B=1, E=53], got [1, 120]"."""
+    other = sorted({str(s.expression_space) for s in sources} - {str(space)})
+    if other:
+        raise ValueError(
+            f"{where}: the sequences' expression space {', '.join(other)} is not the model's {space!r}; "
+            f"use a model whose config has that expression_space (docs/model.md)"
+        )
 
 
 def build_eval_sources(data: str, subjects: int | None, resolution: int, timesteps: int = 16, num_cameras: int = 16,
