@@ -79,3 +79,25 @@ def test_reconstruct_and_animate_bound_their_sizes(tmp_path, capsys):
     assert "--refine-steps must be in 0..1000" in capsys.readouterr().err
     assert main(["animate", "--avatar", "x", "--expressions", "e", "--out", str(tmp_path / "x.mp4"), "--size", "100000"]) == 2
     assert "--size must be in 16..4096" in capsys.readouterr().err
+
+
+def test_ctrl_c_ends_a_command_with_status_130(tmp_path):
+    """SIGINT during a long command: "interrupted" and status 130 from the console script's exit
+    path (``cli.console_main``: ``os._exit`` after the streams are flushed; interpreter shutdown with
+    the thread pools mid-work segfaulted ``fastgha train`` in about half of the interrupts tried)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-m", "fastgha_core.cli", "bench", "mlp", "--json", str(tmp_path / "b.json")],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    line = ""
+    while "MLP benchmark" not in line and time.monotonic() < deadline:  # wait until it is working
+        line = proc.stdout.readline()
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "fastgha bench: interrupted" in err and "Traceback" not in err
+    assert not (tmp_path / "b.json").exists()
