@@ -162,3 +162,16 @@ def test_synth_rerun_replaces_its_own_subjects_and_refuses_foreign_folders(tmp_p
     assert "was not written by fastgha synth" in capsys.readouterr().err
     assert sorted(p.name for p in (tmp_path / "f").iterdir()) == ["synth_0000041"]  # seed 40 not written either
     assert (foreign / "notes.txt").read_text() == "mine"
+
+
+def test_a_broken_sequence_folder_is_named_in_the_error(tmp_path):
+    """A hand-edited meta.json that does not parse, or a folder without its cameras.json, gave
+    "Expecting property name ..." or a bare "[Errno 2]" without saying which file."""
+    assert main(["synth", "--subjects", "1", "--timesteps", "2", "--cameras", "2", "--resolution", "32", "--out", str(tmp_path)]) == 0
+    seq = tmp_path / "synth_0000000" / "seq000"
+    (seq / "cameras.json").unlink()
+    with pytest.raises(ValueError, match=r"seq000 has meta.json but no cameras.json"):
+        open_dataset(tmp_path)
+    (seq / "meta.json").write_text("{format: 1}")
+    with pytest.raises(ValueError, match=r"seq000/meta.json does not parse as JSON: Expecting property name"):
+        open_dataset(tmp_path)

@@ -222,9 +222,12 @@ class LayoutSequence:
         meta_file = self.folder / "meta.json"
         if not meta_file.exists():
             raise ValueError(f"{self.folder} is not a sequence folder of our layout (no meta.json)")
-        meta = json.loads(meta_file.read_text())
-        if meta.get("format") != LAYOUT_FORMAT:
-            raise ValueError(f"{meta_file}: format is {meta.get('format')!r}, expected {LAYOUT_FORMAT!r}")
+        try:
+            meta = json.loads(meta_file.read_text())
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{meta_file} does not parse as JSON: {e}") from None
+        if not isinstance(meta, dict) or meta.get("format") != LAYOUT_FORMAT:
+            raise ValueError(f"{meta_file}: format is {meta.get('format') if isinstance(meta, dict) else meta!r}, expected {LAYOUT_FORMAT!r}")
         if int(meta.get("version", 0)) > LAYOUT_VERSION:
             raise ValueError(f"{meta_file}: layout version {meta.get('version')} is newer than supported {LAYOUT_VERSION}")
         self.meta = meta
@@ -233,7 +236,10 @@ class LayoutSequence:
         self.expression_space = str(meta["expression_space"])
         self._T, self._C = int(meta["num_timesteps"]), int(meta["num_cameras"])
         self._ext = meta["image_format"]
-        self._cams = Cameras.stack(cameras_from_json((self.folder / "cameras.json").read_text()))
+        cam_file = self.folder / "cameras.json"
+        if not cam_file.is_file():
+            raise ValueError(f"{self.folder} has meta.json but no cameras.json: the sequence is incomplete")
+        self._cams = Cameras.stack(cameras_from_json(cam_file.read_text()))
         if len(self._cams) != self._C:
             raise ValueError(f"{self.folder}/cameras.json has {len(self._cams)} cameras, meta.json says {self._C}")
         self._expr = np.load(self.folder / "expressions.npy", mmap_mode="r")  # [T, E]
