@@ -228,3 +228,18 @@ def test_config_json_values_of_the_wrong_type_are_refused_when_read(tmp_path, co
     path.write_text(json.dumps(config))
     with pytest.raises(ValueError, match=message):
         load_train_config(str(path))
+
+
+def test_evaluation_says_when_the_sequence_has_fewer_targets_than_asked(toy_data, caplog):
+    """``--views 8 --expressions 4`` on a small sequence quietly scored fewer images than asked."""
+    from fastgha_core.train.evaluate import EvalConfig, select_protocol
+
+    seq = toy_data.sequence()
+    with caplog.at_level("WARNING", logger="fastgha_core.train.evaluate"):
+        proto = select_protocol(seq, EvalConfig(num_inputs=4, num_target_timesteps=50, num_target_views=50, backend="cpu"))
+    assert len(proto.target_timesteps) < 50 and len(proto.target_cameras) < 50
+    assert f"{len(proto.target_timesteps)} of 50 target expressions and {len(proto.target_cameras)} of 50 target views" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="fastgha_core.train.evaluate"):
+        select_protocol(seq, EvalConfig(num_inputs=4, num_target_timesteps=1, num_target_views=1, backend="cpu"))
+    assert "target expressions" not in caplog.text

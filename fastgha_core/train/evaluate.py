@@ -143,6 +143,10 @@ def select_protocol(source, cfg: EvalConfig) -> Protocol:
     sub = centers[rest_c]
     idx = farthest_viewpoint_sampling(sub, min(cfg.num_target_views, len(rest_c)), start=0)
     tgt_cams = [rest_c[i] for i in idx]
+    if len(tgt_ts) < cfg.num_target_timesteps or len(tgt_cams) < cfg.num_target_views:
+        log.warning("%s/%s: %d of %d target expressions and %d of %d target views (the sequence has %d timesteps and %d cameras, "
+                    "%d of each taken by the inputs)", source.subject, source.sequence, len(tgt_ts), cfg.num_target_timesteps,
+                    len(tgt_cams), cfg.num_target_views, T, C, len(in_cams))
     thr = float(torch.quantile(norms, cfg.strong_quantile))
     strong = [t for t in tgt_ts if float(norms[t]) >= thr]
     return Protocol(in_ts, in_cams, tgt_ts, tgt_cams, strong, reused)
