@@ -101,3 +101,14 @@ def test_ctrl_c_ends_a_command_with_status_130(tmp_path):
     assert proc.returncode == 130, err
     assert "fastgha bench: interrupted" in err and "Traceback" not in err
     assert not (tmp_path / "b.json").exists()
+
+
+def test_train_refuses_an_old_runs_folder_before_building_anything(tmp_path, capsys):
+    ck = tmp_path / "run" / "checkpoints" / "step_00000003"
+    ck.mkdir(parents=True)
+    (ck / "trainer_state.pt").write_bytes(b"")
+    (ck / "model.safetensors").write_bytes(b"")
+    assert main(["train", "--data", "synthetic", "--steps", "1", "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert "already holds a training run (checkpoint step_00000003): add --resume" in err
+    assert "perceptual" not in err  # refused before the model and the losses were built

@@ -1147,3 +1147,19 @@ def test_a_closed_lid_covers_the_hole_its_faded_eye_leaves():
     # covered: 0.87 of the skin's luma and alpha on average (0.80 without the backing, the lid's edge alone)
     assert float(lum.mean()) > 0.835 * skin_l and float(alpha.mean()) > 0.835, (float(lum.mean()) / skin_l, float(alpha.mean()))
     assert float(lum.max()) < 1.05 * skin_l  # and nowhere brighter than the skin
+
+
+def test_nearest_neighbours_matches_one_kdtree_query():
+    """The chunked, interrupt-safe query (``prior.nearest_neighbours``) against scipy's plain one."""
+    import numpy as np
+    from scipy.spatial import cKDTree
+
+    from fastgha_core.model.prior import nearest_neighbours
+
+    rng = np.random.default_rng(3)
+    data, queries = rng.random((3000, 3)).astype(np.float32), rng.random((20000, 3)).astype(np.float32)
+    for k in (1, 4):
+        got, want = nearest_neighbours(data, queries, k=k), cKDTree(data).query(queries, k=k)
+        assert got[0].shape == want[0].shape and np.array_equal(got[1], want[1]) and np.allclose(got[0], want[0])
+    d, i = nearest_neighbours(data, queries[:5])  # below one chunk: a single query
+    assert d.shape == i.shape == (5,)

@@ -481,14 +481,18 @@ class Trainer:
         from safetensors.torch import load_file
 
         path = Path(path)
-        try:
-            self.model.load_state_dict(load_file(str(path / "model.safetensors"), device=str(self.device)), strict=True)
-        except RuntimeError as e:  # torch lists every mismatched tensor: dozens of lines
-            first = next((ln.strip() for ln in str(e).splitlines()[1:] if ln.strip()), str(e))
+        saved = load_file(str(path / "model.safetensors"), device=str(self.device))
+        own = self.model.state_dict()
+        missing, unexpected = sorted(own.keys() - saved.keys()), sorted(saved.keys() - own.keys())
+        reshaped = sorted(k for k in own.keys() & saved.keys() if own[k].shape != saved[k].shape)
+        if missing or unexpected or reshaped:  # torch's own message lists every tensor: thousands of characters
+            example = (missing or unexpected or reshaped)[0]
             raise ValueError(
-                f"checkpoint {path} holds another model than this run's (the --config it was trained with differs; "
-                f"its train_config.json says which): {first}"
-            ) from None
+                f"checkpoint {path} holds another model than this run's: {len(missing)} tensors missing, "
+                f"{len(unexpected)} unexpected, {len(reshaped)} of other shapes (e.g. {example}); the --config it "
+                "was trained with differs (the run folder's train_config.json says which)"
+            )
+        self.model.load_state_dict(saved, strict=True)
         state = torch.load(path / "trainer_state.pt", map_location="cpu", weights_only=False)
         if state.get("world_size", 1) != self.dist.world_size:
             log.warning("resuming a run saved with %d ranks on %d ranks: data order continues but is not identical", state.get("world_size"), self.dist.world_size)
