@@ -91,7 +91,10 @@ def test_ctrl_c_ends_a_command_with_status_130(tmp_path):
     import time
 
     proc = subprocess.Popen([sys.executable, "-m", "fastgha_core.cli", "bench", "mlp", "--json", str(tmp_path / "b.json")],
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            # a test run started in the background (nohup, CI) ignores SIGINT, and a
+                            # child inherits that: Python then installs no handler and never sees it
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 120
     line = ""
     while "MLP benchmark" not in line and time.monotonic() < deadline:  # wait until it is working
