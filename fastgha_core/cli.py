@@ -112,9 +112,11 @@ def console_main() -> None:
     """The ``fastgha`` console script: ``main()``, then exit with its status.
 
     After Ctrl-C the process ends at once (``os._exit``), once the command's ``finally`` blocks
-    have closed its files and the streams are flushed: interpreter shutdown with torch's and numba's
-    thread pools mid-work ended ``fastgha train`` in a segmentation fault in about half of the
-    interrupts a user tried (after "interrupted" was printed; the checkpoints were intact)."""
+    have closed its files and the streams are flushed, instead of waiting in interpreter shutdown on
+    threads that were mid-work when the interrupt came. The segmentation faults users saw on Ctrl-C
+    in ``fastgha train`` had another cause, scipy's KD-tree threads working on freed buffers (fixed in
+    ``model.prior.nearest_neighbours``); this exit keeps a thread of that kind from ending an
+    interrupted command any other way than with status 130."""
     import os
 
     rc = main()
