@@ -31,7 +31,7 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     from ..cli import CLIError
     from ..train.builders import build_model, build_training_data
-    from ..train.trainer import Trainer, init_distributed, latest_checkpoint, load_train_config
+    from ..train.trainer import Trainer, checkpoint_to_start_from, init_distributed, load_train_config
 
     cfg = load_train_config(args.config)
     overrides = {
@@ -68,8 +68,7 @@ def run(args) -> int:
     from ._paths import output_dir
 
     output_dir(args.out, "--out")
-    if not args.resume and (ck := latest_checkpoint(args.out)) is not None:  # Trainer.fit refuses it too, after the model is built
-        raise CLIError(f"{args.out} already holds a training run (checkpoint {ck.name}): add --resume to continue it, or choose another --out for a new run")
+    checkpoint_to_start_from(args.out, args.resume)  # before the model is built (Trainer.fit checks it too)
     dist = init_distributed(args.device)
     try:
         model = build_model(cfg, args.dino_weights, args.vae_weights, args.init_from)

@@ -52,6 +52,7 @@ __all__ = [
     "init_distributed",
     "StreamSampler",
     "latest_checkpoint",
+    "checkpoint_to_start_from",
     "resize_sample",
 ]
 
@@ -363,6 +364,20 @@ def _seed_all(seed: int) -> None:
     random.seed(seed)
 
 
+def checkpoint_to_start_from(run_dir: str | Path, resume: bool) -> Path | None:
+    """The checkpoint a run in ``run_dir`` continues from: the newest one with ``resume``, None without.
+
+    Raises:
+        ValueError: ``run_dir`` holds a run's checkpoint and ``resume`` is False. A fresh run there
+            would mix with the old one: the checkpoint pruning keeps the newest steps, so it deleted the
+            new run's own checkpoint and left the old run's for a later ``--resume``.
+    """
+    ck = latest_checkpoint(run_dir)
+    if ck is not None and not resume:
+        raise ValueError(f"{run_dir} already holds a training run (checkpoint {ck.name}): add --resume to continue it, or choose another --out for a new run")
+    return ck
+
+
 def latest_checkpoint(run_dir: str | Path) -> Path | None:
     """The newest complete checkpoint folder of a run (one with ``trainer_state.pt``), or None."""
     ck = Path(run_dir) / "checkpoints"
@@ -582,19 +597,12 @@ class Trainer:
         cfg = self.config
         steps = int(cfg.steps if steps is None else steps)
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        ck = latest_checkpoint(self.run_dir)
+        ck = checkpoint_to_start_from(self.run_dir, resume)
         if resume:
             if ck is None:
                 log.warning("--resume: no checkpoint in %s; starting from step 0", self.run_dir / "checkpoints")
             else:
                 self.load_checkpoint(ck)
-        elif ck is not None:
-            # a fresh run here would mix with the old one: the checkpoint pruning sorts by step and
-            # deleted the new run's own checkpoint, leaving the old run's for a later --resume
-            raise ValueError(
-                f"{self.run_dir} already holds a training run (checkpoint {ck.name}): add --resume to continue it, "
-                "or choose another --out for a new run"
-            )
         if self.dist.is_main:
             _trim_csv(self.run_dir / "val.csv", self.step)  # a resumed run re-validates the steps past its checkpoint
             (self.run_dir / "train_config.json").write_text(
